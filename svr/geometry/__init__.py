@@ -1,0 +1,74 @@
+"""SE(3) and SO(3) geometry for poses, batched over any leading dimensions.
+
+See :mod:`svr.geometry.so3` and :mod:`svr.geometry.se3` for the conventions.
+"""
+
+from svr.geometry.representations import (
+    ANCHOR_HALF_SIZE_MM,
+    anchor_points_to_pose,
+    pose_to_anchor_points,
+    pose_to_quat_translation,
+    pose_to_rotation6d_translation,
+    quat_translation_to_pose,
+    rotation6d_translation_to_pose,
+)
+from svr.geometry.se3 import (
+    se3_compose,
+    se3_error,
+    se3_from_vector,
+    se3_group_exp,
+    se3_group_log,
+    se3_inverse,
+    se3_to_vector,
+)
+from svr.geometry.so3 import (
+    euler_to_matrix,
+    hat,
+    matrix_from_quat,
+    matrix_to_euler,
+    matrix_to_rotation_6d,
+    quat_from_matrix,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_rotate,
+    regularize_rotvec,
+    rotation_6d_to_matrix,
+    rotvec_from_quat,
+    so3_exp,
+    so3_left_jacobian,
+    so3_left_jacobian_inverse,
+    so3_log,
+)
+
+__all__ = [
+    "ANCHOR_HALF_SIZE_MM",
+    "anchor_points_to_pose",
+    "euler_to_matrix",
+    "hat",
+    "matrix_from_quat",
+    "matrix_to_euler",
+    "matrix_to_rotation_6d",
+    "pose_to_anchor_points",
+    "pose_to_quat_translation",
+    "pose_to_rotation6d_translation",
+    "quat_from_matrix",
+    "quat_from_rotvec",
+    "quat_multiply",
+    "quat_rotate",
+    "quat_translation_to_pose",
+    "regularize_rotvec",
+    "rotation6d_translation_to_pose",
+    "rotation_6d_to_matrix",
+    "rotvec_from_quat",
+    "se3_compose",
+    "se3_error",
+    "se3_from_vector",
+    "se3_group_exp",
+    "se3_group_log",
+    "se3_inverse",
+    "se3_to_vector",
+    "so3_exp",
+    "so3_left_jacobian",
+    "so3_left_jacobian_inverse",
+    "so3_log",
+]

@@ -1,0 +1,18 @@
+"""Pose losses: the SE(3) geodesic loss, the baselines, and the metric weights Z."""
+
+from svr.losses.metric_weights import (
+    DEFAULT_LENGTH_SCALE_MM,
+    default_metric_weights,
+    estimate_metric_weights,
+    validate_metric_weights,
+)
+from svr.losses.se3 import SE3GeodesicLoss, se3_geodesic_loss
+
+__all__ = [
+    "DEFAULT_LENGTH_SCALE_MM",
+    "SE3GeodesicLoss",
+    "default_metric_weights",
+    "estimate_metric_weights",
+    "se3_geodesic_loss",
+    "validate_metric_weights",
+]
