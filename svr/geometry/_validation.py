@@ -24,8 +24,9 @@ def check_tensor(x: object, func: str, name: str, last_dims: tuple[int, ...]) ->
     """
     expected = "(..., " + ", ".join(str(d) for d in last_dims) + ")"
     if not isinstance(x, Tensor):
-        raise TypeError(f"{func}(): '{name}' must be a torch.Tensor of shape {expected}, "
-                        f"got {type(x).__name__}")
+        raise TypeError(
+            f"{func}(): '{name}' must be a torch.Tensor of shape {expected}, got {type(x).__name__}"
+        )
     if not x.is_floating_point():
         raise TypeError(f"{func}(): '{name}' must be a floating-point tensor, got {x.dtype}")
     n = len(last_dims)
@@ -35,7 +36,7 @@ def check_tensor(x: object, func: str, name: str, last_dims: tuple[int, ...]) ->
 
 
 def check_se3_matrix(x: object, func: str, name: str) -> Tensor:
-    """Check that ``x`` is a floating-point ``(..., 4, 4)`` or ``(..., 3, 4)`` rigid-transform tensor.
+    """Check that ``x`` is a floating-point (..., 4, 4) or (..., 3, 4) rigid-transform tensor.
 
     Raises:
         TypeError: If ``x`` is not a floating-point tensor.
@@ -44,8 +45,9 @@ def check_se3_matrix(x: object, func: str, name: str) -> Tensor:
     if isinstance(x, Tensor) and x.dim() >= 2 and tuple(x.shape[-2:]) == (3, 4):
         return check_tensor(x, func, name, (3, 4))
     if isinstance(x, Tensor) and x.dim() >= 2 and tuple(x.shape[-2:]) != (4, 4):
-        raise ValueError(f"{func}(): '{name}' must have shape (..., 4, 4) or (..., 3, 4), "
-                         f"got {tuple(x.shape)}")
+        raise ValueError(
+            f"{func}(): '{name}' must have shape (..., 4, 4) or (..., 3, 4), got {tuple(x.shape)}"
+        )
     return check_tensor(x, func, name, (4, 4))
 
 

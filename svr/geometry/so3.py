@@ -83,11 +83,20 @@ def matrix_from_quat(quat: Tensor) -> Tensor:
     xx, yy, zz = s * x * x, s * y * y, s * z * z
     xy, xz, yz = s * x * y, s * x * z, s * y * z
     wx, wy, wz = s * w * x, s * w * y, s * w * z
-    return torch.stack([
-        1 - yy - zz, xy - wz, xz + wy,
-        xy + wz, 1 - xx - zz, yz - wx,
-        xz - wy, yz + wx, 1 - xx - yy,
-    ], dim=-1).unflatten(-1, (3, 3))
+    return torch.stack(
+        [
+            1 - yy - zz,
+            xy - wz,
+            xz + wy,
+            xy + wz,
+            1 - xx - zz,
+            yz - wx,
+            xz - wy,
+            yz + wx,
+            1 - xx - yy,
+        ],
+        dim=-1,
+    ).unflatten(-1, (3, 3))
 
 
 def quat_from_matrix(matrix: Tensor) -> Tensor:
@@ -103,16 +112,25 @@ def quat_from_matrix(matrix: Tensor) -> Tensor:
     m = matrix.flatten(-2)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
     # 4 q_i^2 for i = w, x, y, z; the largest is >= 1, so its square root is well conditioned.
-    four_q2 = torch.stack([
-        1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22,
-    ], dim=-1)
+    four_q2 = torch.stack(
+        [
+            1 + m00 + m11 + m22,
+            1 + m00 - m11 - m22,
+            1 - m00 + m11 - m22,
+            1 - m00 - m11 + m22,
+        ],
+        dim=-1,
+    )
     # Each row is 4 q_i q_j for the pivot i; dividing by 2 sqrt(4 q_i^2) = 4 |q_i| gives q.
-    candidates = torch.stack([
-        torch.stack([four_q2[..., 0], m21 - m12, m02 - m20, m10 - m01], dim=-1),
-        torch.stack([m21 - m12, four_q2[..., 1], m10 + m01, m02 + m20], dim=-1),
-        torch.stack([m02 - m20, m10 + m01, four_q2[..., 2], m21 + m12], dim=-1),
-        torch.stack([m10 - m01, m20 + m02, m21 + m12, four_q2[..., 3]], dim=-1),
-    ], dim=-2)
+    candidates = torch.stack(
+        [
+            torch.stack([four_q2[..., 0], m21 - m12, m02 - m20, m10 - m01], dim=-1),
+            torch.stack([m21 - m12, four_q2[..., 1], m10 + m01, m02 + m20], dim=-1),
+            torch.stack([m02 - m20, m10 + m01, four_q2[..., 2], m21 + m12], dim=-1),
+            torch.stack([m10 - m01, m20 + m02, m21 + m12, four_q2[..., 3]], dim=-1),
+        ],
+        dim=-2,
+    )
     # The clamp only touches pivots that are not selected; it keeps their gradients finite.
     candidates = candidates / (2.0 * four_q2.clamp_min(0.1).sqrt()).unsqueeze(-1)
     pivot = four_q2.argmax(dim=-1, keepdim=True)
@@ -201,10 +219,15 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 
 def _parse_convention(convention: str, func: str) -> tuple[tuple[int, int, int], bool]:
     seq = convention.lower()
-    if (len(convention) != 3 or not (convention.islower() or convention.isupper())
-            or set(seq) != {"x", "y", "z"}):
-        raise ValueError(f"{func}(): 'convention' must be a Tait-Bryan sequence such as 'xyz' "
-                         f"(extrinsic) or 'XYZ' (intrinsic), got {convention!r}")
+    if (
+        len(convention) != 3
+        or not (convention.islower() or convention.isupper())
+        or set(seq) != {"x", "y", "z"}
+    ):
+        raise ValueError(
+            f"{func}(): 'convention' must be a Tait-Bryan sequence such as 'xyz' "
+            f"(extrinsic) or 'XYZ' (intrinsic), got {convention!r}"
+        )
     return tuple(_AXES[c] for c in seq), convention.isupper()  # type: ignore[return-value]
 
 
@@ -295,7 +318,9 @@ def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
 
 
 def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
-    """6D representation of a rotation matrix: its first two columns, ``(R00, R10, R20, R01, R11, R21)``.
+    """6D representation of a rotation matrix: its first two columns.
+
+    The layout is ``(R00, R10, R20, R01, R11, R21)``.
 
     Args:
         matrix: (..., 3, 3) rotation matrices.
@@ -323,8 +348,11 @@ def so3_left_jacobian(rotvec: Tensor) -> Tensor:
     theta2 = rotvec.square().sum(-1)[..., None, None]
     k = hat(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
-    return (eye + _series.one_minus_cos_over_theta2(theta2) * k
-            + _series.theta_minus_sin_over_theta3(theta2) * (k @ k))
+    return (
+        eye
+        + _series.one_minus_cos_over_theta2(theta2) * k
+        + _series.theta_minus_sin_over_theta3(theta2) * (k @ k)
+    )
 
 
 def so3_left_jacobian_inverse(rotvec: Tensor) -> Tensor:

@@ -16,9 +16,12 @@ that is ~28 mm per radian, rounded to 30 mm.
 """
 
 
-def default_metric_weights(length_scale_mm: float = DEFAULT_LENGTH_SCALE_MM, *,
-                           dtype: torch.dtype | None = None,
-                           device: torch.device | str | None = None) -> Tensor:
+def default_metric_weights(
+    length_scale_mm: float = DEFAULT_LENGTH_SCALE_MM,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """The default diagonal of Z: ``(1, 1, 1, 1/L^2, 1/L^2, 1/L^2)``.
 
     With it, ``e^T Z e = theta^2 + |dt|^2 / L^2``: rotation in rad, translation in units of L.
@@ -32,8 +35,9 @@ def default_metric_weights(length_scale_mm: float = DEFAULT_LENGTH_SCALE_MM, *,
         (6,) weights.
     """
     if not length_scale_mm > 0:
-        raise ValueError(f"default_metric_weights(): 'length_scale_mm' must be > 0, "
-                         f"got {length_scale_mm}")
+        raise ValueError(
+            f"default_metric_weights(): 'length_scale_mm' must be > 0, got {length_scale_mm}"
+        )
     s = 1.0 / float(length_scale_mm) ** 2
     return torch.tensor([1.0, 1.0, 1.0, s, s, s], dtype=dtype, device=device)
 
@@ -54,17 +58,23 @@ def validate_metric_weights(weights: Tensor, func: str = "validate_metric_weight
             positive, or the matrix is not symmetric positive definite.
     """
     if not isinstance(weights, Tensor) or not weights.is_floating_point():
-        raise TypeError(f"{func}(): 'weights' must be a floating-point torch.Tensor of shape (6,) "
-                        f"or (6, 6), got {getattr(weights, 'dtype', type(weights).__name__)}")
+        raise TypeError(
+            f"{func}(): 'weights' must be a floating-point torch.Tensor of shape (6,) "
+            f"or (6, 6), got {getattr(weights, 'dtype', type(weights).__name__)}"
+        )
     if tuple(weights.shape) not in ((6,), (6, 6)):
-        raise ValueError(f"{func}(): 'weights' must have shape (6,) (a diagonal) or (6, 6) "
-                         f"(a symmetric positive definite matrix), got {tuple(weights.shape)}")
+        raise ValueError(
+            f"{func}(): 'weights' must have shape (6,) (a diagonal) or (6, 6) "
+            f"(a symmetric positive definite matrix), got {tuple(weights.shape)}"
+        )
     w = weights.detach()
     if not bool(torch.isfinite(w).all()):
         raise ValueError(f"{func}(): 'weights' must be finite")
     if w.dim() == 1:
         if not bool((w > 0).all()):
-            raise ValueError(f"{func}(): diagonal 'weights' must all be > 0, got {w.tolist()}")
+            raise ValueError(
+                f"{func}(): 'weights' diagonal entries must all be > 0, got {w.tolist()}"
+            )
         return weights
     w64 = w.to(torch.float64)
     if not torch.allclose(w64, w64.T, rtol=1e-5, atol=1e-8 * float(w64.abs().max())):
@@ -94,8 +104,10 @@ def estimate_metric_weights(errors: Tensor, normalize: bool = False) -> Tensor:
     """
     check_tensor(errors, "estimate_metric_weights", "errors", (6,))
     if errors.dim() != 2 or errors.shape[0] < 7:
-        raise ValueError("estimate_metric_weights(): 'errors' must have shape (N, 6) with N >= 7 "
-                         f"(more samples than dimensions), got {tuple(errors.shape)}")
+        raise ValueError(
+            "estimate_metric_weights(): 'errors' must have shape (N, 6) with N >= 7 "
+            f"(more samples than dimensions), got {tuple(errors.shape)}"
+        )
     x = errors.detach().to(torch.float64)
     if not bool(torch.isfinite(x).all()):
         raise ValueError("estimate_metric_weights(): 'errors' contains NaN or Inf")
@@ -107,8 +119,10 @@ def estimate_metric_weights(errors: Tensor, normalize: bool = False) -> Tensor:
         names = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
         null = eigvecs[:, 0].abs()
         involved = [names[i] for i in range(6) if float(null[i]) > 0.1]
-        raise ValueError("estimate_metric_weights(): the covariance of 'errors' is singular "
-                         f"(degenerate components: {', '.join(involved)}); use more varied data")
+        raise ValueError(
+            "estimate_metric_weights(): the covariance of 'errors' is singular "
+            f"(degenerate components: {', '.join(involved)}); use more varied data"
+        )
     weights = torch.linalg.inv(cov).diagonal()
     if normalize:
         weights = weights / weights.norm()

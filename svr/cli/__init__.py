@@ -1,0 +1,62 @@
+"""The ``svr`` command line: one entry point, explicit subcommand dispatch.
+
+Each subcommand module defines ``add_parser(subparsers)`` and ``run(args) -> int``; ``run`` turns
+the parsed options into a dataclass config and calls library code. Errors that users can cause
+(bad files, bad values) are reported as one line on stderr with a non-zero exit; tracebacks only
+with ``--verbose``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Sequence
+
+from svr import __version__
+from svr.cli import demo
+from svr.cli.common import CliError
+
+SUBCOMMANDS = {"demo": demo}
+
+log = logging.getLogger("svr")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``svr`` argument parser with all subcommands."""
+    parser = argparse.ArgumentParser(
+        prog="svr",
+        description="Fetal MRI slice-to-volume reconstruction with learned SE(3) slice poses.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in SUBCOMMANDS.values():
+        module.add_parser(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``svr`` command line.
+
+    Args:
+        argv: Arguments without the program name (default: ``sys.argv[1:]``).
+
+    Returns:
+        The exit status: 0 on success, 1 on a reported error, 2 on bad usage (from argparse).
+    """
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        return SUBCOMMANDS[args.command].run(args)
+    except (CliError, OSError, ValueError) as err:
+        if args.verbose:
+            log.exception("svr %s failed", args.command)
+        print(f"svr {args.command}: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"svr {args.command}: interrupted", file=sys.stderr)
+        return 130

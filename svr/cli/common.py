@@ -1,0 +1,69 @@
+"""Options and checks shared by the ``svr`` subcommands."""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+
+class CliError(Exception):
+    """A user-facing error: printed as one line, exit status 1."""
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Show defaults and keep the description's line breaks."""
+
+
+def add_common_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--device``, ``--seed``, ``--verbose`` and ``--quiet``."""
+    parser.add_argument(
+        "--device",
+        default="auto",
+        help="torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:N",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed")
+    verbosity = parser.add_mutually_exclusive_group()
+    verbosity.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging and tracebacks on errors"
+    )
+    verbosity.add_argument(
+        "-q", "--quiet", action="store_true", help="warnings and errors only, no progress bars"
+    )
+
+
+def resolve_device(name: str) -> str:
+    """Turn ``--device`` into a usable torch device string.
+
+    Raises:
+        CliError: If the device is unknown or CUDA is requested but not available.
+    """
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        device = torch.device(name)
+    except RuntimeError as err:
+        raise CliError(
+            f"--device: unknown device {name!r} (use auto, cpu, cuda or cuda:N)"
+        ) from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise CliError(f"--device {name}: CUDA is not available on this machine (use cpu)")
+    if device.type not in ("cpu", "cuda"):
+        raise CliError(f"--device: unsupported device type {device.type!r} (use cpu or cuda)")
+    return str(device)
+
+
+def positive_int(text: str) -> int:
+    """Argparse type: an integer > 0."""
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """Argparse type: a finite float > 0."""
+    value = float(text)
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value

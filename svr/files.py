@@ -1,0 +1,62 @@
+"""Safe output files: atomic writes that never overwrite existing files unless asked."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+
+class OutputExistsError(FileExistsError):
+    """An output file exists and overwriting was not allowed."""
+
+
+def check_output_path(path: str | os.PathLike[str], overwrite: bool) -> Path:
+    """Check that ``path`` can be written: its folder exists and it does not exist unless allowed.
+
+    Args:
+        path: The output file.
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+        FileNotFoundError: If the parent folder does not exist.
+        PermissionError: If the parent folder is not writable.
+    """
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise OutputExistsError(f"{p}: output exists; pass --overwrite to replace it")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise FileNotFoundError(f"{p}: output folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise PermissionError(f"{p}: output folder {parent} is not writable")
+    return p
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str, overwrite: bool = False) -> Path:
+    """Write a text file atomically: to a temporary file in the same folder, then renamed.
+
+    A reader never sees a partial file, and a failure leaves any existing file untouched.
+
+    Args:
+        path: The output file.
+        text: Its content (UTF-8).
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        The written path.
+    """
+    p = check_output_path(path, overwrite)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p
