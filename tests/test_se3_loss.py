@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from oracles import quadratic_form_np, random_poses, right_jacobian_np, se3_error_np
 from scipy.spatial.transform import Rotation
 from torch.autograd import gradcheck, gradgradcheck
@@ -339,3 +341,25 @@ def test_cuda_matches_cpu(rng, gradient):
         loss.backward()
         results.append((loss.detach().cpu(), p.grad.cpu()))
     torch.testing.assert_close(results[0], results[1], rtol=1e-5, atol=1e-6)
+
+
+_finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
+_rotvec = st.lists(st.floats(-4 * math.pi, 4 * math.pi, allow_nan=False), min_size=3, max_size=3)
+_pose = st.tuples(_rotvec, st.lists(_finite, min_size=3, max_size=3)).map(
+    lambda rt: torch.tensor(rt[0] + rt[1], dtype=F64)
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(pred=_pose, target=_pose, g=_pose)
+def test_property_nonnegative_left_invariant_finite_gradients(pred, target, g):
+    p = pred.clone().requires_grad_(True)
+    loss = se3_geodesic_loss(p, target, DIAG_ANISO)
+    loss.backward()
+    assert loss.item() >= 0.0
+    assert torch.isfinite(p.grad).all()
+    moved = se3_geodesic_loss(compose_vec(g, pred), compose_vec(g, target), DIAG_ANISO)
+    assert moved.item() == pytest.approx(loss.item(), rel=1e-7, abs=1e-9)
+    # The rotation part of the error is a rotation vector of angle at most pi.
+    e_rot = se3_error_np(pred[None].numpy(), target[None].numpy())[0, :3]
+    assert np.linalg.norm(e_rot) <= math.pi + 1e-12

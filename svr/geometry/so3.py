@@ -218,6 +218,11 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 
 
 def _parse_convention(convention: str, func: str) -> tuple[tuple[int, int, int], bool]:
+    if not isinstance(convention, str):
+        raise TypeError(
+            f"{func}(): 'convention' must be a string such as 'xyz', "
+            f"got {type(convention).__name__}"
+        )
     seq = convention.lower()
     if (
         len(convention) != 3
@@ -278,12 +283,14 @@ def matrix_to_euler(matrix: Tensor, convention: str = "xyz") -> Tensor:
     check_tensor(matrix, "matrix_to_euler", "matrix", (3, 3))
     axes, intrinsic = _parse_convention(convention, "matrix_to_euler")
     if intrinsic:  # intrinsic (a, b, c) about (I, J, K) == extrinsic (c, b, a) about (K, J, I)
-        return _extrinsic_angles(matrix, axes[::-1]).flip(-1)
-    return _extrinsic_angles(matrix, axes)
+        return _extrinsic_angles(matrix, axes[::-1], lock_zero_first=True).flip(-1)
+    return _extrinsic_angles(matrix, axes, lock_zero_first=False)
 
 
-def _extrinsic_angles(m: Tensor, axes: tuple[int, ...]) -> Tensor:
-    # R = R_k(c) R_j(b) R_i(a); s is the parity of the permutation (i, j, k).
+def _extrinsic_angles(m: Tensor, axes: tuple[int, ...], lock_zero_first: bool) -> Tensor:
+    # R = R_k(c) R_j(b) R_i(a); s is the parity of the permutation (i, j, k). At gimbal lock
+    # (cos b = 0), R_j(b) R_i(a) = R_k(-s sin(b) a) R_j(b), so only c - s sin(b) a is determined:
+    # with c = 0 it is a = a_locked, with a = 0 it is c = -s sign(sin b) a_locked.
     i, j, k = axes
     s = 1.0 if (j - i) % 3 == 1 else -1.0
     sin_b = -s * m[..., k, i]
@@ -293,8 +300,13 @@ def _extrinsic_angles(m: Tensor, axes: tuple[int, ...]) -> Tensor:
     a_free = torch.atan2(s * m[..., k, j], m[..., k, k])
     c_free = torch.atan2(s * m[..., j, i], m[..., i, i])
     a_locked = torch.atan2(-s * m[..., j, k], m[..., j, j])
-    a = torch.where(locked, a_locked, a_free)
-    c = torch.where(locked, torch.zeros_like(c_free), c_free)
+    zero = torch.zeros_like(a_free)
+    if lock_zero_first:
+        a = torch.where(locked, zero, a_free)
+        c = torch.where(locked, -s * torch.sign(sin_b) * a_locked, c_free)
+    else:
+        a = torch.where(locked, a_locked, a_free)
+        c = torch.where(locked, zero, c_free)
     return torch.stack([a, b, c], dim=-1)
 
 
