@@ -74,7 +74,7 @@ def geodesic_distance(pred: Tensor, target: Tensor, weights: Tensor | None = Non
     _check_poses(pred, target, "geodesic_distance")
     e = se3_error(pred, target)
     z = resolve_weights(weights, e, "geodesic_distance")
-    return quadratic_form(e, z.to(e.dtype)).sqrt()
+    return quadratic_form(e, z.to(device=e.device, dtype=e.dtype)).sqrt()
 
 
 def euler_angle_errors_deg(pred: Tensor, target: Tensor, convention: str = "xyz") -> Tensor:

@@ -1190,3 +1190,16 @@ def test_cuda_matches_cpu(dtype):
         for a_cpu, a_gpu in zip(cpu_args, gpu_args, strict=True):
             assert torch.isfinite(a_gpu.grad).all(), fn.__name__
             torch.testing.assert_close(a_gpu.grad.cpu(), a_cpu.grad, atol=10 * tol, rtol=10 * tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("theta", [0.0, 1e-4, 1e-2, 1.0])
+def test_half_precision_small_angles_are_finite_and_accurate(dtype, theta):
+    r = torch.tensor([theta, 0.0, 0.0], dtype=dtype, requires_grad=True)
+    R = g.so3_exp(r)
+    R.sum().backward()
+    assert torch.isfinite(R).all() and torch.isfinite(r.grad).all()
+    want = Rotation.from_rotvec([theta, 0.0, 0.0]).as_matrix()
+    np.testing.assert_allclose(R.detach().double().numpy(), want, atol=4 * torch.finfo(dtype).eps)
+    q = g.quat_from_rotvec(r.detach())
+    assert torch.isfinite(q).all() and torch.isfinite(g.so3_left_jacobian(r.detach())).all()

@@ -336,7 +336,10 @@ def test_cuda_matches_cpu(rng, gradient):
     for device in ("cpu", "cuda"):
         p = pred.to(device).requires_grad_(True)
         loss = se3_geodesic_loss(
-            p, target.to(device), DIAG_ANISO.float().to(device), gradient=gradient
+            p,
+            target.to(device),
+            DIAG_ANISO.float(),
+            gradient=gradient,  # Z moved to the device by the loss
         )
         loss.backward()
         results.append((loss.detach().cpu(), p.grad.cpu()))
@@ -363,3 +366,11 @@ def test_property_nonnegative_left_invariant_finite_gradients(pred, target, g):
     # The rotation part of the error is a rotation vector of angle at most pi.
     e_rot = se3_error_np(pred[None].numpy(), target[None].numpy())[0, :3]
     assert np.linalg.norm(e_rot) <= math.pi + 1e-12
+
+
+def test_weights_follow_the_predictions_dtype(rng):
+    """float32 Z with float64 poses (and vice versa) work, with Z's gradient in Z's dtype."""
+    pred, target = poses(rng, 8).requires_grad_(True), poses(rng, 8)
+    z = DIAG_ANISO.float().requires_grad_(True)
+    se3_geodesic_loss(pred, target, z).backward()
+    assert z.grad.dtype == torch.float32 and pred.grad.dtype == F64

@@ -14,7 +14,10 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-_TINY = 1e-30
+TINY = 1e-30
+"""Offset under the square root of theta^2 that keeps it and its gradient finite at zero."""
+
+_TINY_FLOAT16 = 1e-4  # 1e-30 underflows to 0 in float16; 1e-4 changes no value at its precision
 
 # Below these values of theta^2 the series replaces the closed form. Coefficients whose closed
 # form is free of cancellation only need to avoid 0/0; those that cancel (theta - sin theta,
@@ -28,8 +31,9 @@ def _threshold(table: dict[torch.dtype, float], dtype: torch.dtype) -> float:
     return table[torch.float32] if dtype in _LOW_PRECISION else table[dtype]
 
 
-def _series_or_exact(theta2: Tensor, exact: Callable[[Tensor], Tensor],
-                     series: tuple[float, ...], threshold: float) -> Tensor:
+def _series_or_exact(
+    theta2: Tensor, exact: Callable[[Tensor], Tensor], series: tuple[float, ...], threshold: float
+) -> Tensor:
     small = theta2 < threshold
     safe_theta2 = torch.where(small, torch.ones_like(theta2), theta2)
     poly = theta2 * series[-1] + series[-2]
@@ -38,31 +42,33 @@ def _series_or_exact(theta2: Tensor, exact: Callable[[Tensor], Tensor],
     return torch.where(small, poly, exact(safe_theta2))
 
 
-def half_sinc(theta2: Tensor) -> Tensor:
-    """``sin(theta / 2) / theta`` as a function of ``theta^2`` (quaternion vector-part scale).
+def half_angle(theta2: Tensor, out: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """``cos(theta / 2)`` and ``sin(theta / 2) / theta`` as functions of ``theta^2``.
 
-    Free of cancellation, so no series is needed: the tiny offset in ``theta = sqrt(theta2 + 1e-30)``
-    makes it exactly 1/2 at ``theta2 = 0`` (``sin x = x`` in floating point for tiny ``x``) and keeps
-    the gradient finite there, where ``d theta2 / d r = 2 r`` is exactly zero. Its derivative in
-    ``theta`` cancels for small angles, but it only ever enters multiplied by ``r r^T / theta``,
-    which bounds the resulting gradient error by ~eps.
+    These are the scalar part and the vector-part scale of the quaternion of a rotation vector.
+    Both are free of cancellation, so no series is needed: the tiny offset in
+    ``theta = sqrt(theta2 + 1e-30)`` makes the second exactly 1/2 at ``theta2 = 0`` (``sin x = x``
+    in floating point for tiny ``x``) and keeps the gradients finite there, where
+    ``d theta2 / d r = 2 r`` is exactly zero. The derivative of the second in ``theta`` cancels
+    for small angles, but it only ever enters multiplied by ``r r^T / theta``, which bounds the
+    resulting gradient error by ~eps.
+
+    With ``out``, the two are written into its tensors in place (no autograd); the values are the
+    same, as ``sin(theta/2) / (theta/2) / 2`` is ``sin(theta/2) / theta`` exactly.
     """
-    theta = _guarded_theta(theta2)
-    return (0.5 * theta).sin() / theta
-
-
-def half_cos(theta2: Tensor) -> Tensor:
-    """``cos(theta / 2)`` as a function of ``theta^2``, with a finite gradient at 0."""
-    return (0.5 * _guarded_theta(theta2)).cos()
-
-
-def _guarded_theta(theta2: Tensor) -> Tensor:
-    return (theta2 + _TINY).sqrt()
+    if out is None:
+        theta = (theta2 + (_TINY_FLOAT16 if theta2.dtype == torch.float16 else TINY)).sqrt()
+        half = 0.5 * theta
+        return half.cos(), half.sin() / theta
+    c, s = out  # in-place transcendental functions are slow with several threads: avoided
+    half = torch.sqrt(torch.add(theta2, TINY, out=c), out=s).mul_(0.5)
+    torch.cos(half, out=c)
+    return c, torch.div(half.sin(), half, out=s).mul_(0.5)
 
 
 def one_minus_cos_over_theta2(theta2: Tensor) -> Tensor:
-    """``(1 - cos theta) / theta^2``, computed as ``2 (sin(theta/2) / theta)^2`` (no cancellation)."""
-    return 2.0 * half_sinc(theta2).square()
+    """``(1 - cos theta) / theta^2``, as ``2 (sin(theta/2) / theta)^2`` (no cancellation)."""
+    return 2.0 * half_angle(theta2)[1].square()
 
 
 def theta_minus_sin_over_theta3(theta2: Tensor) -> Tensor:
@@ -73,7 +79,8 @@ def theta_minus_sin_over_theta3(theta2: Tensor) -> Tensor:
         return (t - t.sin()) / (t2 * t)
 
     return _series_or_exact(
-        theta2, exact,
+        theta2,
+        exact,
         (1 / 6, -1 / 120, 1 / 5040, -1 / 362880),
         _threshold(_CANCEL_THRESHOLD, theta2.dtype),
     )
@@ -90,7 +97,8 @@ def inverse_jacobian_coefficient(theta2: Tensor) -> Tensor:
         return (1.0 - half * half.cos() / half.sin()) / t2
 
     return _series_or_exact(
-        theta2, exact,
+        theta2,
+        exact,
         (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600),
         _threshold(_CANCEL_THRESHOLD, theta2.dtype),
     )
