@@ -42,3 +42,12 @@ def random_poses(
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     angle = rng.uniform(0, max_angle, size=(n, 1))
     return np.concatenate([axis * angle, rng.normal(scale=trans_mm, size=(n, 3))], axis=1)
+
+
+def np_gram_schmidt(d6: np.ndarray) -> np.ndarray:
+    """Rotation matrices with columns Gram-Schmidt-orthonormalised from (..., 6) column pairs."""
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = u2 / np.linalg.norm(u2, axis=-1, keepdims=True)
+    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)

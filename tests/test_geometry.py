@@ -19,6 +19,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import np_gram_schmidt
 from scipy.linalg import expm, logm
 from scipy.spatial.transform import Rotation
 
@@ -59,6 +60,15 @@ AXES = np.concatenate(
 def rotvecs_at(angles: list[float] | np.ndarray, axes: np.ndarray = AXES) -> np.ndarray:
     """(len(angles), len(axes), 3) rotation vectors ``axis * angle``."""
     return np.asarray(angles, dtype=np.float64)[:, None, None] * axes[None]
+
+
+def rotvecs_up_to_4pi(seed: int) -> list[np.ndarray]:
+    """Random rotation vectors with |r| up to 4 pi, then angles up to pi and beyond pi."""
+    return [
+        random_rotvecs(np.random.default_rng(seed), (4, 5), 4 * PI),
+        rotvecs_at(ANGLES_TO_PI),
+        rotvecs_at(ANGLES_BEYOND_PI),
+    ]
 
 
 def T(x: np.ndarray | float, dtype: torch.dtype = F64) -> torch.Tensor:
@@ -192,15 +202,7 @@ def test_so3_exp_matches_rodrigues_closed_form():
     np.testing.assert_allclose(N(g.so3_exp(T(r))), want, rtol=0, atol=TOL64)
 
 
-@pytest.mark.parametrize(
-    "r",
-    [
-        random_rotvecs(np.random.default_rng(2), (4, 5), 4 * PI),
-        rotvecs_at(ANGLES_TO_PI),
-        rotvecs_at(ANGLES_BEYOND_PI),
-    ],
-    ids=["random", "to_pi", "beyond_pi"],
-)
+@pytest.mark.parametrize("r", rotvecs_up_to_4pi(seed=2), ids=["random", "to_pi", "beyond_pi"])
 def test_quat_from_rotvec_matches_scipy(r):
     q = N(g.quat_from_rotvec(T(r)))
     assert q.shape == (*r.shape[:-1], 4)
@@ -273,15 +275,7 @@ def test_so3_log_of_half_turns_about_coordinate_axes():
         assert rotvec_distance(got, PI * np.eye(3)[i]).max() <= TOL64
 
 
-@pytest.mark.parametrize(
-    "r",
-    [
-        random_rotvecs(np.random.default_rng(7), (4, 5), 4 * PI),
-        rotvecs_at(ANGLES_TO_PI),
-        rotvecs_at(ANGLES_BEYOND_PI),
-    ],
-    ids=["random", "to_pi", "beyond_pi"],
-)
+@pytest.mark.parametrize("r", rotvecs_up_to_4pi(seed=7), ids=["random", "to_pi", "beyond_pi"])
 def test_regularize_rotvec(r):
     got = N(g.regularize_rotvec(T(r)))
     assert (np.linalg.norm(got, axis=-1) <= PI + 1e-15).all()
@@ -409,14 +403,6 @@ def test_matrix_to_euler_close_to_but_outside_gimbal_lock(convention, offset):
     # The outer angles are ill-conditioned here: d(angle) ~ eps / cos(middle angle).
     tol = TOL64 + 1e-15 / offset
     assert np.abs(angle_diff(got, sp_euler(m, convention))).max() <= tol
-
-
-def np_gram_schmidt(d6: np.ndarray) -> np.ndarray:
-    a1, a2 = d6[..., :3], d6[..., 3:]
-    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
-    u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
-    b2 = u2 / np.linalg.norm(u2, axis=-1, keepdims=True)
-    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
 
 
 def test_rotation_6d_to_matrix_matches_gram_schmidt():

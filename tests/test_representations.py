@@ -15,6 +15,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import np_gram_schmidt
 from scipy.spatial.transform import Rotation
 
 import svr.geometry as g
@@ -56,14 +57,6 @@ def np_anchor_points(pose: np.ndarray, a: float) -> np.ndarray:
     m = matrices(pose[..., :3])
     pts = np.einsum("...ij,kj->...ki", m, template) + pose[..., None, 3:]
     return pts.reshape(*pose.shape[:-1], 9)
-
-
-def np_gram_schmidt(d6: np.ndarray) -> np.ndarray:
-    a1, a2 = d6[..., :3], d6[..., 3:]
-    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
-    u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
-    b2 = u2 / np.linalg.norm(u2, axis=-1, keepdims=True)
-    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
 
 
 # Rotation angles that stress the conversions (at pi the axis sign is arbitrary).
