@@ -11,6 +11,16 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """``../shared/data`` beside the repository; tests using it skip when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
 
 @pytest.fixture
 def rng() -> np.random.Generator:

@@ -1,0 +1,207 @@
+"""Images in world space: a tensor plus its voxel-to-world affine, NIfTI I/O, world-point sampling.
+
+Conventions (``DESIGN.md``):
+    * An image is ``data`` (I, J, K) in NIfTI array order and a (4, 4) float64 ``affine`` mapping
+      voxel indices ``(i, j, k)`` (voxel centres at integers) to world ``(x, y, z)`` in mm (RAS+).
+    * :func:`sample_world` is the one place that turns world points into ``grid_sample``
+      coordinates: it owns the ``(x, y, z) <-> (W, H, D)`` reordering and uses
+      ``align_corners=True`` (index ``0`` and ``n - 1`` map to -1 and +1).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import torch
+from torch import Tensor
+
+from svr.files import check_output_path
+
+NIFTI_SUFFIXES = (".nii", ".nii.gz")
+
+
+class ImageError(ValueError):
+    """A file is not a usable image; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Image:
+    """A 3D image in world space.
+
+    Attributes:
+        data: (I, J, K) floating-point tensor, NIfTI array order.
+        affine: (4, 4) float64 tensor, voxel index -> world mm, on the same device as ``data``.
+    """
+
+    data: Tensor
+    affine: Tensor
+
+    def __post_init__(self) -> None:
+        if self.data.dim() != 3:
+            raise ValueError(
+                f"Image: 'data' must be 3D (I, J, K), got shape {tuple(self.data.shape)}"
+            )
+        if tuple(self.affine.shape) != (4, 4):
+            raise ValueError(f"Image: 'affine' must be (4, 4), got {tuple(self.affine.shape)}")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Array shape (I, J, K)."""
+        return tuple(self.data.shape)  # type: ignore[return-value]
+
+    @property
+    def spacing(self) -> Tensor:
+        """(3,) voxel sizes in mm along the array axes (norms of the affine's columns)."""
+        return self.affine[:3, :3].norm(dim=0)
+
+    def to(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Image:
+        """A copy on ``device`` with ``data`` in ``dtype`` (the affine stays float64)."""
+        return Image(
+            self.data.to(device=device, dtype=dtype),
+            self.affine.to(device=device, dtype=torch.float64),
+        )
+
+
+def _fail(path: Path, problem: str) -> ImageError:
+    return ImageError(f"{path}: {problem}")
+
+
+def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32) -> Image:
+    """Load a 3D NIfTI image with its world affine (sform, else qform, as nibabel chooses).
+
+    A trailing 4th dimension of size 1 is dropped.
+
+    Args:
+        path: A ``.nii`` or ``.nii.gz`` file.
+        dtype: Floating dtype of the returned data.
+
+    Returns:
+        The image, on the CPU.
+
+    Raises:
+        ImageError: Naming the file, if it is missing, unreadable, not NIfTI, truncated, not 3D,
+            empty, has non-finite voxels, or a singular or non-finite affine.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise _fail(p, "no such file")
+    if not p.is_file():
+        raise _fail(p, "not a file")
+    if not str(p).endswith(NIFTI_SUFFIXES):
+        raise _fail(p, "not a NIfTI file name (expected .nii or .nii.gz)")
+    try:
+        with np.errstate(invalid="ignore", divide="ignore"):  # singular affines are reported below
+            img = nib.load(str(p))
+            array = np.asarray(img.dataobj, dtype=np.float64)
+            affine = np.asarray(img.affine, dtype=np.float64)
+    except PermissionError as err:
+        raise _fail(p, "permission denied") from err
+    except (OSError, EOFError, ValueError, nib.filebasedimages.ImageFileError) as err:
+        raise _fail(p, f"cannot read as NIfTI ({err.__class__.__name__}: {err})") from err
+    if array.size == 0:
+        raise _fail(p, f"image is empty (shape {array.shape})")
+    if array.ndim == 4 and array.shape[3] == 1:
+        array = array[..., 0]
+    if array.ndim != 3:
+        raise _fail(p, f"expected a 3D image, got {array.ndim}D with shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise _fail(p, f"{int((~np.isfinite(array)).sum())} voxels are NaN or Inf")
+    if not np.isfinite(affine).all() or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
+        raise _fail(p, "the affine (sform/qform) is singular or not finite")
+    return Image(torch.from_numpy(array).to(dtype), torch.from_numpy(affine))
+
+
+def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = False) -> Path:
+    """Write an image as float32 NIfTI with sform and qform set to its affine, atomically.
+
+    Args:
+        image: The image (any device).
+        path: A ``.nii`` or ``.nii.gz`` file name.
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ImageError: If the name does not end in .nii or .nii.gz.
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    p = check_output_path(path, overwrite)
+    if not str(p).endswith(NIFTI_SUFFIXES):
+        raise _fail(p, "output must end in .nii or .nii.gz")
+    affine = image.affine.detach().cpu().numpy()
+    nii = nib.Nifti1Image(image.data.detach().cpu().numpy().astype(np.float32), affine)
+    nii.set_sform(affine, code=1)
+    nii.set_qform(affine, code=1)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp{''.join(p.suffixes)}")
+    try:
+        nib.save(nii, str(tmp))
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return p
+
+
+def world_to_voxel(affine: Tensor, points: Tensor) -> Tensor:
+    """Map world points (mm) to continuous voxel indices of an image with ``affine``.
+
+    Args:
+        affine: (4, 4) voxel -> world affine.
+        points: (..., 3) world points in mm.
+
+    Returns:
+        (..., 3) voxel indices ``(i, j, k)`` in ``points``' dtype.
+    """
+    inv = torch.linalg.inv(affine.to(torch.float64)).to(device=points.device, dtype=points.dtype)
+    return points @ inv[:3, :3].T + inv[:3, 3]
+
+
+def world_to_grid(image: Image) -> Tensor:
+    """(3, 4) float64 affine from world mm to ``grid_sample`` coordinates of ``image``.
+
+    ``grid_sample`` reads the data (I, J, K) as (D, H, W), so grid ``x`` indexes ``k``, ``y``
+    indexes ``j`` and ``z`` indexes ``i``; with ``align_corners=True`` index 0 and ``n - 1`` map to
+    -1 and +1 (a size-1 axis maps index 0 to -1).
+    """
+    inv = torch.linalg.inv(image.affine.to(torch.float64))[:3]
+    sizes = torch.tensor(
+        [max(n - 1, 1) for n in image.shape], dtype=torch.float64, device=inv.device
+    )
+    to_grid = (2.0 / sizes)[:, None] * inv
+    to_grid[:, 3] -= 1.0
+    return to_grid.flip(0)
+
+
+def sample_world(image: Image, points: Tensor, mode: str = "bilinear") -> Tensor:
+    """Sample an image at world points; zero outside the image.
+
+    Args:
+        image: The image.
+        points: (..., 3) world points in mm, on ``image``'s device (computed in the image's dtype).
+        mode: ``"bilinear"`` (trilinear in 3D) or ``"nearest"``.
+
+    Returns:
+        (...) sampled values in the dtype of ``image.data``.
+    """
+    if points.shape[-1] != 3:
+        raise ValueError(
+            f"sample_world(): 'points' must have shape (..., 3), got {tuple(points.shape)}"
+        )
+    m = world_to_grid(image).to(image.data.dtype)
+    flat = points.reshape(-1, 3).to(image.data.dtype)
+    grid = torch.addmm(m[:, 3], flat, m[:, :3].T)
+    out = torch.nn.functional.grid_sample(
+        image.data[None, None],
+        grid.reshape(1, 1, 1, -1, 3),
+        mode=mode,
+        padding_mode="zeros",
+        align_corners=True,
+    )
+    return out.reshape(points.shape[:-1])

@@ -1,0 +1,147 @@
+"""NIfTI I/O with correct affines (checked against SimpleITK), and world-point sampling."""
+
+from __future__ import annotations
+
+import gzip
+
+import nibabel as nib
+import numpy as np
+import pytest
+import SimpleITK as sitk  # noqa: N813 (the usual alias)
+import torch
+from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
+
+from svr.files import OutputExistsError
+from svr.image import Image, ImageError, load_nifti, sample_world, save_nifti, world_to_voxel
+
+
+def oblique_affine(rng: np.random.Generator) -> np.ndarray:
+    affine = np.eye(4)
+    affine[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix() @ np.diag([0.8, 1.1, 3.0])
+    affine[:3, 3] = rng.normal(scale=30, size=3)
+    return affine
+
+
+def write(path, array, affine) -> None:
+    nib.save(nib.Nifti1Image(np.asarray(array, dtype=np.float32), affine), str(path))
+
+
+def sitk_affine(path) -> np.ndarray:
+    """Voxel -> RAS world affine from SimpleITK's LPS origin/spacing/direction."""
+    img = sitk.ReadImage(str(path))
+    direction = np.array(img.GetDirection()).reshape(3, 3)
+    lps = np.eye(4)
+    lps[:3, :3] = direction * np.array(img.GetSpacing())
+    lps[:3, 3] = img.GetOrigin()
+    return np.diag([-1.0, -1.0, 1.0, 1.0]) @ lps
+
+
+def test_save_load_round_trip_and_affine_agrees_with_simpleitk(tmp_path, rng):
+    affine = oblique_affine(rng)
+    data = torch.from_numpy(rng.normal(size=(7, 9, 5))).float()
+    path = save_nifti(Image(data, torch.from_numpy(affine)), tmp_path / "x.nii.gz")
+    loaded = load_nifti(path)
+    torch.testing.assert_close(loaded.data, data)
+    np.testing.assert_allclose(loaded.affine.numpy(), affine, atol=1e-5)
+    np.testing.assert_allclose(sitk_affine(path), loaded.affine.numpy(), atol=1e-4)
+    header = nib.load(str(path)).header
+    assert int(header["sform_code"]) == 1 and int(header["qform_code"]) == 1
+    assert header.get_data_dtype() == np.float32
+    np.testing.assert_allclose(loaded.spacing.numpy(), [0.8, 1.1, 3.0], rtol=1e-5)
+
+
+def test_save_refuses_to_overwrite_and_leaves_no_temporary_files(tmp_path):
+    img = Image(torch.zeros(2, 2, 2), torch.eye(4, dtype=torch.float64))
+    path = save_nifti(img, tmp_path / "x.nii")
+    with pytest.raises(OutputExistsError, match="--overwrite"):
+        save_nifti(img, path)
+    save_nifti(Image(torch.ones(2, 2, 2), img.affine), path, overwrite=True)
+    assert load_nifti(path).data.sum() == 8
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.nii"]
+    with pytest.raises(ImageError, match=r"must end in \.nii"):
+        save_nifti(img, tmp_path / "x.png")
+
+
+def _bad_files(tmp_path):
+    eye = np.eye(4)
+    write(tmp_path / "good.nii.gz", np.ones((4, 4, 4)), eye)
+    (tmp_path / "text.nii.gz").write_bytes(b"this is not a NIfTI file at all")
+    raw = gzip.compress((tmp_path / "good.nii.gz").read_bytes())
+    write(tmp_path / "big.nii.gz", np.random.default_rng(0).normal(size=(20, 20, 20)), eye)
+    (tmp_path / "truncated.nii.gz").write_bytes((tmp_path / "big.nii.gz").read_bytes()[:2000])
+    (tmp_path / "double.nii.gz").write_bytes(raw[:60])
+    write(tmp_path / "flat.nii.gz", np.ones((4, 4)), eye)
+    write(tmp_path / "four_d.nii.gz", np.ones((4, 4, 4, 3)), eye)
+    nan = np.ones((4, 4, 4))
+    nan[1, 2, 3] = np.nan
+    write(tmp_path / "nan.nii.gz", nan, eye)
+    write(tmp_path / "empty.nii.gz", np.ones((4, 0, 4)), eye)
+    singular = eye.copy()
+    singular[2, 2] = 0.0
+    nii = nib.Nifti1Image(np.ones((4, 4, 4), dtype=np.float32), None)
+    nii.set_sform(singular, code=1)  # a singular sform, no qform: nibabel cannot write it to both
+    nib.save(nii, str(tmp_path / "singular.nii.gz"))
+    (tmp_path / "image.png").write_bytes(b"\x89PNG")
+    return {
+        "missing.nii.gz": "no such file",
+        "text.nii.gz": "cannot read as NIfTI",
+        "truncated.nii.gz": "cannot read as NIfTI",
+        "double.nii.gz": "cannot read as NIfTI",
+        "flat.nii.gz": "expected a 3D image, got 2D",
+        "four_d.nii.gz": "expected a 3D image, got 4D",
+        "nan.nii.gz": "1 voxels are NaN or Inf",
+        "empty.nii.gz": "image is empty",
+        "singular.nii.gz": "singular",
+        "image.png": "not a NIfTI file name",
+    }
+
+
+def test_bad_files_raise_one_clear_error_naming_the_file(tmp_path):
+    for name, problem in _bad_files(tmp_path).items():
+        with pytest.raises(ImageError) as info:
+            load_nifti(tmp_path / name)
+        message = str(info.value)
+        assert message.startswith(f"{tmp_path / name}: ") and problem in message, message
+        assert "\n" not in message
+
+
+def test_trailing_singleton_dimension_is_dropped(tmp_path):
+    write(tmp_path / "x.nii", np.ones((3, 4, 5, 1)), np.eye(4))
+    assert load_nifti(tmp_path / "x.nii").shape == (3, 4, 5)
+
+
+def test_sample_world_matches_voxels_and_scipy(rng):
+    affine = torch.from_numpy(oblique_affine(rng))
+    data = torch.from_numpy(rng.normal(size=(12, 10, 8)))
+    img = Image(data, affine)
+    idx = torch.from_numpy(rng.integers(0, [12, 10, 8], size=(50, 3))).double()
+    world = idx @ affine[:3, :3].T + affine[:3, 3]
+    torch.testing.assert_close(sample_world(img, world), data[tuple(idx.long().T)])
+    torch.testing.assert_close(world_to_voxel(affine, world), idx)
+    inside = torch.from_numpy(rng.uniform(0, [11, 9, 7], size=(200, 3)))
+    world = inside @ affine[:3, :3].T + affine[:3, 3]
+    want = map_coordinates(data.numpy(), inside.numpy().T, order=1)
+    np.testing.assert_allclose(sample_world(img, world).numpy(), want, rtol=1e-10, atol=1e-10)
+    nearest = sample_world(img, world, mode="nearest")
+    np.testing.assert_allclose(
+        nearest.numpy(), map_coordinates(data.numpy(), inside.numpy().T, order=0), atol=1e-12
+    )
+    outside = torch.tensor([[1e4, 0.0, 0.0]], dtype=torch.float64)
+    assert sample_world(img, outside).item() == 0.0
+
+
+def test_image_validation():
+    with pytest.raises(ValueError, match="3D"):
+        Image(torch.zeros(2, 2), torch.eye(4))
+    with pytest.raises(ValueError, match="'points'"):
+        sample_world(
+            Image(torch.zeros(2, 2, 2), torch.eye(4, dtype=torch.float64)), torch.zeros(3, 2)
+        )
+
+
+def test_real_atlas_affine_matches_simpleitk(shared_data):
+    path = shared_data / "atlas" / "sb-fidon2021" / "GA28_operated" / "srr.nii.gz"
+    img = load_nifti(path)
+    assert img.shape == (135, 189, 155)
+    np.testing.assert_allclose(img.affine.numpy(), sitk_affine(path), atol=1e-4)
