@@ -1,1 +1,1 @@
-"""Sampling: canonical volumes, the slice sampler, poses for training and evaluation, stack simulation."""
+"""Sampling: canonical volumes, slices, poses, training data and stack simulation."""

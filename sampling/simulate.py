@@ -1,0 +1,447 @@
+"""Motion-corrupted thick-slice stacks simulated from a brain volume, with ground truth.
+
+Frames and transforms (all mm):
+    * source frame: the input volume's world frame ("atlas" in the output files);
+    * canonical frame: the source frame shifted so that the mask centroid ``c`` is the origin;
+    * scanner frame: where the brain is placed, ``x_s = P (x_a - c) + s`` for a random rotation
+      ``P`` and offset ``s`` (``random_placement=False``: ``P = I``, ``s = 0``).
+
+Each stack has a nominal geometry in the scanner frame (orientation, centre, slice spacing); slice
+``k`` has the nominal pose ``S_k`` (slice plane -> scanner). While it is acquired, at time ``tau``,
+the fetal head has moved by ``D(tau)`` about the brain centre, so the slice records the ground
+truth at the true pose ``D(tau)^-1 o S_k`` (slice plane -> the ground truth's scanner frame); into
+the source frame, that is ``(x_a -> x_s)^-1 o D(tau)^-1 o S_k``. Stacks are written with their
+nominal affines, as a scanner would; ``truth_slices.json`` keeps the true poses.
+
+The output folder has the layout of the bench cases (``stacks/``, ``masks/``, ``gt_volume.nii.gz``
+and ``gt_mask.nii.gz`` in the scanner frame, ``case.json``, ``truth_slices.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
+from sampling.slicer import SliceConfig, sample_slices
+from sampling.volume import CanonicalVolume
+from svr.files import OutputExistsError
+from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, so3_exp
+from svr.image import Image, save_nifti
+
+Orientation = Literal["orthogonal", "oblique", "random"]
+Motion = Literal["trajectories", "random_walk", "none"]
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """What to simulate.
+
+    Attributes:
+        num_stacks: Number of stacks, >= 1.
+        orientations: ``"orthogonal"`` (axial, coronal, sagittal in the scanner, repeated),
+            ``"oblique"`` (orthogonal ones tilted by up to 30°) or ``"random"`` (uniform).
+        thickness_mm: Slice thickness (FWHM of the through-plane PSF).
+        spacing_mm: Distance between slice centres; ``None`` = the thickness. Larger gives gaps,
+            smaller overlaps.
+        in_plane_mm: In-plane pixel spacing.
+        margin_mm: Field of view beyond the brain's radius, in-plane and through-plane.
+        interleave: Acquisition order: slices ``0, m, 2m, ..., 1, 1 + m, ...`` for ``m`` =
+            interleave (1 = sequential).
+        slice_time_s: Time to acquire one slice (s); stacks are acquired one after another.
+        motion: ``"trajectories"`` (real fetal motion, needs ``motion_path``), ``"random_walk"``
+            or ``"none"``.
+        motion_path: The trajectory file (``.npz``).
+        motion_scale: Magnitude factor applied to the trajectories.
+        random_walk_rotation_deg: Per-axis std of the random walk's final rotation (degrees).
+        random_walk_translation_mm: Per-axis std of the random walk's final translation (mm).
+        noise: Rician noise sigma relative to the brain's 99th-percentile intensity.
+        bias_field: Strength of a smooth multiplicative bias field per stack (0 = none; 0.2
+            gives roughly +-20 %).
+        signal_void_probability: Chance that a slice has a signal void (a dark blob).
+        random_placement: Rotate and shift the brain randomly in the scanner.
+        in_plane_psf: Also apply the in-plane Gaussian PSF.
+        seed: Seed of every random choice.
+    """
+
+    num_stacks: int = 3
+    orientations: Orientation = "orthogonal"
+    thickness_mm: float = 3.0
+    spacing_mm: float | None = None
+    in_plane_mm: float = 1.0
+    margin_mm: float = 8.0
+    interleave: int = 2
+    slice_time_s: float = 1.5
+    motion: Motion = "random_walk"
+    motion_path: str | None = None
+    motion_scale: float = 1.0
+    random_walk_rotation_deg: float = 5.0
+    random_walk_translation_mm: float = 2.0
+    noise: float = 0.02
+    bias_field: float = 0.0
+    signal_void_probability: float = 0.0
+    random_placement: bool = True
+    in_plane_psf: bool = False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = ("num_stacks", "thickness_mm", "in_plane_mm", "interleave", "slice_time_s")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"SimulationConfig: '{name}' must be > 0, got {getattr(self, name)}"
+                )
+        non_negative = (
+            "margin_mm",
+            "motion_scale",
+            "random_walk_rotation_deg",
+            "random_walk_translation_mm",
+            "noise",
+            "bias_field",
+        )
+        for name in non_negative:
+            if not getattr(self, name) >= 0:
+                raise ValueError(
+                    f"SimulationConfig: '{name}' must be >= 0, got {getattr(self, name)}"
+                )
+        if self.spacing_mm is not None and not self.spacing_mm > 0:
+            raise ValueError(f"SimulationConfig: 'spacing_mm' must be > 0, got {self.spacing_mm}")
+        if not 0 <= self.signal_void_probability <= 1:
+            raise ValueError(
+                "SimulationConfig: 'signal_void_probability' must be in [0, 1], got "
+                f"{self.signal_void_probability}"
+            )
+        if self.orientations not in ("orthogonal", "oblique", "random"):
+            raise ValueError(
+                "SimulationConfig: 'orientations' must be orthogonal, oblique or "
+                f"random, got {self.orientations!r}"
+            )
+        if self.motion not in ("trajectories", "random_walk", "none"):
+            raise ValueError(
+                "SimulationConfig: 'motion' must be trajectories, random_walk or none, "
+                f"got {self.motion!r}"
+            )
+        if self.motion == "trajectories" and self.motion_path is None:
+            raise ValueError("SimulationConfig: motion='trajectories' needs 'motion_path'")
+
+    @property
+    def slice_spacing_mm(self) -> float:
+        """The spacing between slice centres (the thickness unless given)."""
+        return self.thickness_mm if self.spacing_mm is None else self.spacing_mm
+
+
+@dataclass
+class SimulatedStack:
+    """One simulated stack.
+
+    Attributes:
+        image: (H, W, N) slices with the nominal scanner-frame affine.
+        mask: Brain mask of the observed slices, same grid.
+        true_poses: (N, 4, 4) slice -> ground-truth scanner frame.
+        atlas_poses: (N, 4, 4) slice -> source frame.
+        acquisition_index: (N,) order in which the slices were acquired.
+    """
+
+    image: Image
+    mask: Image
+    true_poses: Tensor
+    atlas_poses: Tensor
+    acquisition_index: Tensor
+
+
+@dataclass
+class SimulatedCase:
+    """A simulated case: stacks and ground truth."""
+
+    stacks: list[SimulatedStack]
+    gt_volume: Image
+    gt_mask: Image
+    info: dict = field(default_factory=dict)
+
+
+def _random_rotation(generator: torch.Generator) -> Tensor:
+    """A rotation uniform on SO(3) (normalised Gaussian quaternion)."""
+    return matrix_from_quat(torch.randn(4, generator=generator, dtype=torch.float64))
+
+
+def _axis_rotation(axis: Tensor, angle: float) -> Tensor:
+    return so3_exp(axis * angle)
+
+
+def stack_orientations(config: SimulationConfig, generator: torch.Generator) -> list[Tensor]:
+    """(3, 3) orientation per stack: columns are the in-plane axes u, v and the slice normal."""
+    base = [
+        torch.eye(3, dtype=torch.float64),
+        _axis_rotation(torch.tensor([1.0, 0, 0], dtype=torch.float64), math.pi / 2),
+        _axis_rotation(torch.tensor([0, 1.0, 0], dtype=torch.float64), math.pi / 2),
+    ]
+    out = []
+    for i in range(config.num_stacks):
+        if config.orientations == "random":
+            out.append(_random_rotation(generator))
+            continue
+        q = base[i % 3]
+        if config.orientations == "oblique":
+            axis = torch.nn.functional.normalize(
+                torch.randn(3, generator=generator, dtype=torch.float64), dim=0
+            )
+            angle = math.radians(30.0) * float(
+                torch.rand(1, generator=generator, dtype=torch.float64)
+            )
+            q = _axis_rotation(axis, angle) @ q
+        out.append(q)
+    return out
+
+
+def acquisition_order(num_slices: int, interleave: int) -> Tensor:
+    """(N,) acquisition index of each slice for an interleaved order ``0, m, 2m, ..., 1, ...``."""
+    order = torch.cat([torch.arange(s, num_slices, interleave) for s in range(interleave)])
+    index = torch.empty(num_slices, dtype=torch.long)
+    index[order] = torch.arange(num_slices)
+    return index
+
+
+def _motions(
+    config: SimulationConfig,
+    times_s: np.ndarray,
+    generator: torch.Generator,
+    trajectories: list | None,
+) -> Tensor:
+    n = len(times_s)
+    if config.motion == "none":
+        return torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    if config.motion == "random_walk":
+        walk = random_walk_motion(
+            n, generator, config.random_walk_rotation_deg, config.random_walk_translation_mm
+        )
+        ranks = torch.argsort(torch.argsort(torch.from_numpy(times_s)))  # step of each slice
+        return walk[ranks]
+    index = int(torch.randint(len(trajectories), (1,), generator=generator))
+    trajectory = trajectories[index]
+    start = float(torch.rand(1, generator=generator, dtype=torch.float64)) * trajectory.duration_s
+    return trajectory_motion(trajectory, times_s, start, config.motion_scale)
+
+
+def _bias(points: Tensor, strength: float, generator: torch.Generator, radius: float) -> Tensor:
+    """Smooth multiplicative field exp(sum of low-order polynomial terms) at (..., 3) points."""
+    x = points / radius
+    coeffs = torch.randn(9, generator=generator, dtype=torch.float64) * strength / 3
+    terms = torch.stack(
+        [
+            x[..., 0],
+            x[..., 1],
+            x[..., 2],
+            x[..., 0] ** 2,
+            x[..., 1] ** 2,
+            x[..., 2] ** 2,
+            x[..., 0] * x[..., 1],
+            x[..., 1] * x[..., 2],
+            x[..., 0] * x[..., 2],
+        ],
+        -1,
+    )
+    return torch.exp(terms.to(torch.float64) @ coeffs).to(points.dtype)
+
+
+def _rician(slices: Tensor, sigma: float, generator: torch.Generator) -> Tensor:
+    n1 = torch.randn(slices.shape, generator=generator, dtype=slices.dtype) * sigma
+    n2 = torch.randn(slices.shape, generator=generator, dtype=slices.dtype) * sigma
+    return ((slices + n1).square() + n2.square()).sqrt()
+
+
+def _signal_voids(slices: Tensor, probability: float, generator: torch.Generator) -> Tensor:
+    b, h, w = slices.shape
+    hit = torch.rand(b, generator=generator) < probability
+    if not bool(hit.any()):
+        return slices
+    a = torch.arange(h, dtype=slices.dtype)[:, None]
+    c = torch.arange(w, dtype=slices.dtype)[None, :]
+    out = slices.clone()
+    for i in torch.nonzero(hit).flatten().tolist():
+        ca, cc = (torch.rand(2, generator=generator) * torch.tensor([h, w])).tolist()
+        r = float(torch.rand(1, generator=generator)) * min(h, w) / 4 + 3
+        blob = torch.exp(-((a - ca) ** 2 + (c - cc) ** 2) / (2 * r * r))
+        out[i] = slices[i] * (1 - 0.9 * blob)
+    return out
+
+
+def simulate_case(
+    volume: CanonicalVolume, config: SimulationConfig, progress: bool = False
+) -> SimulatedCase:
+    """Simulate motion-corrupted stacks from a canonical volume.
+
+    Args:
+        volume: The brain (its source frame is the "atlas" frame of the outputs).
+        config: What to simulate.
+        progress: Show a progress bar over stacks.
+
+    Returns:
+        The simulated case (CPU tensors).
+    """
+    generator = torch.Generator().manual_seed(config.seed)
+    trajectories = (
+        load_trajectories(config.motion_path) if config.motion == "trajectories" else None
+    )
+    brain_idx = torch.nonzero(volume.mask).to(torch.float64)
+    brain_pts = brain_idx @ volume.image.affine[:3, :3].T + volume.image.affine[:3, 3]
+    radius = float(brain_pts.norm(dim=1).max())
+
+    # Placement: x_s = P x_c + s, with x_c canonical coordinates.
+    if config.random_placement:
+        placement_R = _random_rotation(generator)
+        placement_t = (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 10.0
+    else:
+        placement_R, placement_t = (
+            torch.eye(3, dtype=torch.float64),
+            torch.zeros(3, dtype=torch.float64),
+        )
+    scanner_from_canonical = torch.eye(4, dtype=torch.float64)
+    scanner_from_canonical[:3, :3], scanner_from_canonical[:3, 3] = placement_R, placement_t
+    gt_affine = scanner_from_canonical @ volume.image.affine
+    gt_volume = Image(volume.image.data.clone(), gt_affine)
+    gt_mask = Image(volume.mask.float(), gt_affine)
+    source_from_scanner = torch.eye(4, dtype=torch.float64)
+    source_from_scanner[:3, :3] = placement_R.T
+    source_from_scanner[:3, 3] = volume.centre_mm - placement_R.T @ placement_t
+
+    spacing = config.slice_spacing_mm
+    half = radius + config.margin_mm
+    num_slices = max(1, math.ceil(2 * half / spacing))
+    side = max(1, math.ceil(2 * half / config.in_plane_mm))
+    slice_config = SliceConfig(
+        size=(side, side),
+        spacing_mm=config.in_plane_mm,
+        thickness_mm=config.thickness_mm,
+        in_plane_psf=config.in_plane_psf,
+        psf_samples=3 if config.in_plane_psf else 5,
+    )
+    mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
+    sigma = config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99))
+
+    stacks = []
+    orientations = stack_orientations(config, generator)
+    for s, orient in enumerate(tqdm(orientations, desc="stacks", disable=not progress)):
+        centre = placement_t + (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 6.0
+        offsets = (torch.arange(num_slices, dtype=torch.float64) - (num_slices - 1) / 2) * spacing
+        nominal = torch.eye(4, dtype=torch.float64).repeat(num_slices, 1, 1)
+        nominal[:, :3, :3] = orient
+        nominal[:, :3, 3] = centre + offsets[:, None] * orient[:, 2]
+        acq = acquisition_order(num_slices, config.interleave)
+        times = ((s * num_slices + acq).double() * config.slice_time_s).numpy()
+        motion = _motions(config, times, generator, trajectories)
+        # D acts about the brain centre, which sits at placement_t in the scanner frame.
+        about_centre = torch.eye(4, dtype=torch.float64)
+        about_centre[:3, 3] = placement_t
+        moved = se3_compose(se3_compose(about_centre, motion), se3_inverse(about_centre))
+        true_poses = se3_compose(se3_inverse(moved), nominal)
+        slices = sample_slices(gt_volume, true_poses, slice_config)
+        masks = (sample_slices(gt_mask, true_poses, mask_config) > 0.5).float()
+        if config.bias_field > 0:
+            pts_u = (torch.arange(side, dtype=torch.float64) - (side - 1) / 2) * config.in_plane_mm
+            grid = (
+                nominal[:, None, None, :3, 3]
+                + pts_u[None, :, None, None] * orient[:, 0]
+                + pts_u[None, None, :, None] * orient[:, 1]
+            ) - placement_t
+            slices = slices * _bias(grid, config.bias_field, generator, radius).float()
+        if config.signal_void_probability > 0:
+            slices = _signal_voids(slices, config.signal_void_probability, generator)
+        if config.noise > 0:
+            slices = _rician(slices, sigma, generator)
+        affine = torch.eye(4, dtype=torch.float64)
+        affine[:3, :3] = orient * torch.tensor(
+            [config.in_plane_mm, config.in_plane_mm, spacing], dtype=torch.float64
+        )
+        affine[:3, 3] = nominal[0, :3, 3] - (side - 1) / 2 * config.in_plane_mm * (
+            orient[:, 0] + orient[:, 1]
+        )
+        stacks.append(
+            SimulatedStack(
+                image=Image(slices.permute(1, 2, 0).contiguous(), affine),
+                mask=Image(masks.permute(1, 2, 0).contiguous(), affine),
+                true_poses=true_poses,
+                atlas_poses=se3_compose(source_from_scanner, true_poses),
+                acquisition_index=acq,
+            )
+        )
+    info = {
+        "thickness": [config.thickness_mm] * config.num_stacks,
+        "spacing": spacing,
+        "inplane": config.in_plane_mm,
+        "atlas_centre_mm": volume.centre_mm.tolist(),
+        "scanner_from_atlas_R": placement_R.tolist(),
+        "scanner_centre": placement_t.tolist(),
+        "simulation": asdict(config),
+    }
+    return SimulatedCase(stacks, gt_volume, gt_mask, info)
+
+
+def _pose_json(T: Tensor) -> dict:
+    return {"R": T[:3, :3].tolist(), "t": T[:3, 3].tolist()}
+
+
+def write_case(
+    case: SimulatedCase, out_dir: str | os.PathLike[str], overwrite: bool = False, source: str = ""
+) -> Path:
+    """Write a simulated case in the bench-case layout, atomically (a folder renamed into place).
+
+    Args:
+        case: The case.
+        out_dir: The folder to create.
+        overwrite: Replace an existing folder.
+        source: Name of the source volume, recorded in ``case.json``.
+
+    Returns:
+        The folder.
+
+    Raises:
+        OutputExistsError: If the folder exists and ``overwrite`` is false.
+    """
+    out = Path(out_dir)
+    if out.exists() and not overwrite:
+        raise OutputExistsError(f"{out}: output exists; pass --overwrite to replace it")
+    if not out.parent.is_dir():
+        raise FileNotFoundError(f"{out}: output folder {out.parent} does not exist")
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        (tmp / "stacks").mkdir()
+        (tmp / "masks").mkdir()
+        truth = {"stacks": []}
+        for i, stack in enumerate(case.stacks):
+            save_nifti(stack.image, tmp / "stacks" / f"stack{i}.nii.gz")
+            save_nifti(stack.mask, tmp / "masks" / f"stack{i}_mask.nii.gz")
+            truth["stacks"].append(
+                {
+                    "file": f"stacks/stack{i}.nii.gz",
+                    "slices": [
+                        {
+                            "scanner": _pose_json(stack.true_poses[k]),
+                            "atlas": _pose_json(stack.atlas_poses[k]),
+                            "acq_index": int(stack.acquisition_index[k]),
+                        }
+                        for k in range(stack.true_poses.shape[0])
+                    ],
+                }
+            )
+        save_nifti(case.gt_volume, tmp / "gt_volume.nii.gz")
+        save_nifti(case.gt_mask, tmp / "gt_mask.nii.gz")
+        (tmp / "case.json").write_text(json.dumps({**case.info, "source": source}, indent=1) + "\n")
+        (tmp / "truth_slices.json").write_text(json.dumps(truth) + "\n")
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
