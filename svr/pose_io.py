@@ -1,0 +1,134 @@
+"""Slice-pose tables (``DESIGN.md``): one row per slice, as CSV or JSON.
+
+Each row holds the stack (or slice-set) file, the slice index in it, the pose vector
+``(r_x, r_y, r_z, t_x, t_y, t_z)`` (rad, mm), the 3x4 matrix ``[R | t]`` row by row, and the frame
+the pose maps into (``canonical``, ``scanner`` or ``atlas``). The pose maps slice-plane
+coordinates ``(u, v, 0)`` in mm (origin at the slice centre, ``u`` along array axis 0) to that
+frame.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from svr.files import atomic_write_text
+from svr.geometry import se3_from_vector, se3_to_vector
+
+VECTOR_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
+MATRIX_COLUMNS = tuple(f"m{i}{j}" for i in range(3) for j in range(4))
+COLUMNS = ("file", "slice_index", *VECTOR_COLUMNS, *MATRIX_COLUMNS, "frame")
+FRAMES = ("canonical", "scanner", "atlas")
+
+
+@dataclass(frozen=True)
+class PoseTable:
+    """Slice poses with where they come from.
+
+    Attributes:
+        files: One file name per slice.
+        slice_indices: (N,) long slice index within its file.
+        poses: (N, 6) float64 pose vectors.
+        frame: The target frame, one of ``FRAMES``.
+    """
+
+    files: list[str]
+    slice_indices: Tensor
+    poses: Tensor
+    frame: str
+
+    def __post_init__(self) -> None:
+        n = self.poses.shape[0]
+        if self.poses.dim() != 2 or self.poses.shape[1] != 6:
+            raise ValueError(f"PoseTable: 'poses' must be (N, 6), got {tuple(self.poses.shape)}")
+        if len(self.files) != n or self.slice_indices.shape != (n,):
+            raise ValueError(
+                "PoseTable: 'files', 'slice_indices' and 'poses' must have one entry per slice"
+            )
+        if self.frame not in FRAMES:
+            raise ValueError(f"PoseTable: 'frame' must be one of {FRAMES}, got {self.frame!r}")
+
+
+def _rows(table: PoseTable) -> list[dict[str, object]]:
+    matrices = se3_from_vector(table.poses.to(torch.float64))[:, :3].reshape(-1, 12)
+    rows = []
+    for i, (name, vec, mat) in enumerate(
+        zip(table.files, table.poses.tolist(), matrices.tolist(), strict=True)
+    ):
+        row: dict[str, object] = {"file": name, "slice_index": int(table.slice_indices[i])}
+        row.update(zip(VECTOR_COLUMNS, vec, strict=True))
+        row.update(zip(MATRIX_COLUMNS, mat, strict=True))
+        row["frame"] = table.frame
+        rows.append(row)
+    return rows
+
+
+def write_pose_table(
+    table: PoseTable, path: str | os.PathLike[str], overwrite: bool = False
+) -> Path:
+    """Write a pose table as CSV (``.csv``) or JSON (``.json``), atomically.
+
+    Raises:
+        ValueError: For another file suffix.
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    p = Path(path)
+    rows = _rows(table)
+    if p.suffix == ".json":
+        text = json.dumps({"columns": list(COLUMNS), "slices": rows}, indent=1) + "\n"
+    elif p.suffix == ".csv":
+        buffer = io.StringIO()
+        writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(rows)
+        text = buffer.getvalue()
+    else:
+        raise ValueError(f"{p}: pose tables are written as .csv or .json")
+    return atomic_write_text(p, text, overwrite)
+
+
+def read_pose_table(path: str | os.PathLike[str]) -> PoseTable:
+    """Read a pose table written by :func:`write_pose_table` (the 6-vectors are authoritative).
+
+    Raises:
+        ValueError: Naming the file, if it is missing, malformed, lacks columns or mixes frames.
+    """
+    p = Path(path)
+    try:
+        if p.suffix == ".json":
+            rows = json.loads(p.read_text())["slices"]
+        elif p.suffix == ".csv":
+            with p.open(newline="") as f:
+                rows = list(csv.DictReader(f))
+        else:
+            raise ValueError("expected a .csv or .json file")
+        files = [str(r["file"]) for r in rows]
+        indices = torch.tensor([int(r["slice_index"]) for r in rows], dtype=torch.long)
+        poses = torch.tensor(
+            [[float(r[c]) for c in VECTOR_COLUMNS] for r in rows], dtype=torch.float64
+        ).reshape(-1, 6)
+        frames = {str(r["frame"]) for r in rows}
+    except (OSError, KeyError, TypeError, ValueError, json.JSONDecodeError) as err:
+        raise ValueError(
+            f"{p}: not a readable pose table ({err.__class__.__name__}: {err})"
+        ) from err
+    if len(frames) > 1:
+        raise ValueError(f"{p}: rows mix frames {sorted(frames)}")
+    try:
+        return PoseTable(files, indices, poses, frames.pop() if frames else "canonical")
+    except ValueError as err:
+        raise ValueError(f"{p}: {err}") from err
+
+
+def table_from_matrices(
+    files: list[str], slice_indices: Tensor, matrices: Tensor, frame: str
+) -> PoseTable:
+    """A pose table from (N, 4, 4) or (N, 3, 4) matrices."""
+    return PoseTable(files, slice_indices, se3_to_vector(matrices.to(torch.float64)), frame)
