@@ -22,8 +22,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -36,7 +34,7 @@ from tqdm import tqdm
 from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
 from sampling.slicer import SliceConfig, sample_slices
 from sampling.volume import CanonicalVolume
-from svr.files import OutputExistsError
+from svr.files import atomic_directory
 from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti
 
@@ -277,7 +275,10 @@ def _signal_voids(slices: Tensor, probability: float, generator: torch.Generator
 
 
 def simulate_case(
-    volume: CanonicalVolume, config: SimulationConfig, progress: bool = False
+    volume: CanonicalVolume,
+    config: SimulationConfig,
+    progress: bool = False,
+    device: torch.device | str = "cpu",
 ) -> SimulatedCase:
     """Simulate motion-corrupted stacks from a canonical volume.
 
@@ -285,6 +286,8 @@ def simulate_case(
         volume: The brain (its source frame is the "atlas" frame of the outputs).
         config: What to simulate.
         progress: Show a progress bar over stacks.
+        device: Where slices are sampled; random draws and results stay on the CPU, so the
+            output does not depend on the device beyond floating-point rounding.
 
     Returns:
         The simulated case (CPU tensors).
@@ -329,6 +332,7 @@ def simulate_case(
     mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
     sigma = config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99))
 
+    gt_on_device, mask_on_device = gt_volume.to(device), gt_mask.to(device)
     stacks = []
     orientations = stack_orientations(config, generator)
     for s, orient in enumerate(tqdm(orientations, desc="stacks", disable=not progress)):
@@ -345,8 +349,9 @@ def simulate_case(
         about_centre[:3, 3] = placement_t
         moved = se3_compose(se3_compose(about_centre, motion), se3_inverse(about_centre))
         true_poses = se3_compose(se3_inverse(moved), nominal)
-        slices = sample_slices(gt_volume, true_poses, slice_config)
-        masks = (sample_slices(gt_mask, true_poses, mask_config) > 0.5).float()
+        on_device = true_poses.to(device)
+        slices = sample_slices(gt_on_device, on_device, slice_config).cpu()
+        masks = (sample_slices(mask_on_device, on_device, mask_config) > 0.5).float().cpu()
         if config.bias_field > 0:
             pts_u = (torch.arange(side, dtype=torch.float64) - (side - 1) / 2) * config.in_plane_mm
             grid = (
@@ -408,40 +413,24 @@ def write_case(
     Raises:
         OutputExistsError: If the folder exists and ``overwrite`` is false.
     """
-    out = Path(out_dir)
-    if out.exists() and not overwrite:
-        raise OutputExistsError(f"{out}: output exists; pass --overwrite to replace it")
-    if not out.parent.is_dir():
-        raise FileNotFoundError(f"{out}: output folder {out.parent} does not exist")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
+    with atomic_directory(out_dir, overwrite) as tmp:
         (tmp / "stacks").mkdir()
         (tmp / "masks").mkdir()
-        truth = {"stacks": []}
+        truth: dict[str, list] = {"stacks": []}
         for i, stack in enumerate(case.stacks):
             save_nifti(stack.image, tmp / "stacks" / f"stack{i}.nii.gz")
             save_nifti(stack.mask, tmp / "masks" / f"stack{i}_mask.nii.gz")
-            truth["stacks"].append(
+            slices = [
                 {
-                    "file": f"stacks/stack{i}.nii.gz",
-                    "slices": [
-                        {
-                            "scanner": _pose_json(stack.true_poses[k]),
-                            "atlas": _pose_json(stack.atlas_poses[k]),
-                            "acq_index": int(stack.acquisition_index[k]),
-                        }
-                        for k in range(stack.true_poses.shape[0])
-                    ],
+                    "scanner": _pose_json(stack.true_poses[k]),
+                    "atlas": _pose_json(stack.atlas_poses[k]),
+                    "acq_index": int(stack.acquisition_index[k]),
                 }
-            )
+                for k in range(stack.true_poses.shape[0])
+            ]
+            truth["stacks"].append({"file": f"stacks/stack{i}.nii.gz", "slices": slices})
         save_nifti(case.gt_volume, tmp / "gt_volume.nii.gz")
         save_nifti(case.gt_mask, tmp / "gt_mask.nii.gz")
         (tmp / "case.json").write_text(json.dumps({**case.info, "source": source}, indent=1) + "\n")
         (tmp / "truth_slices.json").write_text(json.dumps(truth) + "\n")
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    return Path(out_dir)

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -38,13 +41,47 @@ def check_output_path(path: str | os.PathLike[str], overwrite: bool) -> Path:
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str, overwrite: bool = False) -> Path:
-    """Write a text file atomically: to a temporary file in the same folder, then renamed.
+    """Write a UTF-8 text file atomically (see :func:`atomic_write_bytes`)."""
+    return atomic_write_bytes(path, text.encode("utf-8"), overwrite)
+
+
+@contextmanager
+def atomic_directory(path: str | os.PathLike[str], overwrite: bool = False) -> Iterator[Path]:
+    """Build an output folder in a temporary sibling and move it into place when done.
+
+    On an error the temporary folder is removed and any existing folder is left untouched.
+
+    Args:
+        path: The folder to create.
+        overwrite: Whether an existing folder may be replaced.
+
+    Yields:
+        The temporary folder to write into.
+
+    Raises:
+        OutputExistsError: If the folder exists and ``overwrite`` is false.
+        FileNotFoundError: If its parent folder does not exist.
+    """
+    out = check_output_path(path, overwrite)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        yield tmp
+        if out.exists():
+            shutil.rmtree(out) if out.is_dir() else out.unlink()
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, overwrite: bool = False) -> Path:
+    """Write a file atomically: to a temporary file in the same folder, then renamed.
 
     A reader never sees a partial file, and a failure leaves any existing file untouched.
 
     Args:
         path: The output file.
-        text: Its content (UTF-8).
+        data: Its content.
         overwrite: Whether an existing file may be replaced.
 
     Returns:
@@ -53,8 +90,8 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, overwrite: bool =
     p = check_output_path(path, overwrite)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -14,10 +14,10 @@ import sys
 from collections.abc import Sequence
 
 from svr import __version__
-from svr.cli import demo
+from svr.cli import demo, sample, simulate
 from svr.cli.common import CliError
 
-SUBCOMMANDS = {"demo": demo}
+SUBCOMMANDS = {"simulate": simulate, "sample": sample, "demo": demo}
 
 log = logging.getLogger("svr")
 

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from sampling.volume import CanonicalVolume
 
 
 class CliError(Exception):
@@ -67,3 +71,34 @@ def positive_float(text: str) -> float:
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
+
+
+def add_volume_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--input-volume``, ``--input-mask`` and ``--phantom-ga`` (the built-in brain)."""
+    group = parser.add_argument_group("input volume (default: the built-in phantom)")
+    group.add_argument("--input-volume", help="brain volume (NIfTI), e.g. an atlas srr.nii.gz")
+    group.add_argument("--input-mask", help="its brain mask (NIfTI, same grid)")
+    group.add_argument(
+        "--phantom-ga",
+        type=positive_float,
+        default=28.0,
+        help="gestational age (weeks) of the built-in phantom, without --input-volume",
+    )
+
+
+def load_input_volume(args: argparse.Namespace) -> tuple[CanonicalVolume, str]:
+    """The canonical volume named by the options, and a name for it.
+
+    Raises:
+        CliError: If only one of ``--input-volume`` and ``--input-mask`` is given.
+        ImageError: For unusable files (the message names the file).
+    """
+    from sampling.phantom import gestational_age_config, make_phantom
+    from sampling.volume import canonicalize, load_canonical_volume
+
+    if (args.input_volume is None) != (args.input_mask is None):
+        raise CliError("--input-volume and --input-mask go together")
+    if args.input_volume is not None:
+        return load_canonical_volume(args.input_volume, args.input_mask), str(args.input_volume)
+    volume, mask = make_phantom(gestational_age_config(args.phantom_ga))
+    return canonicalize(volume, mask, name="phantom"), f"phantom (GA {args.phantom_ga:g} weeks)"
