@@ -1,0 +1,454 @@
+"""Training and evaluation datasets of slices cut from canonical volumes, with pose labels.
+
+* :class:`SliceStream`: an endless (or ``num_batches``-long) stream of random batches for training,
+  sampled on the fly: random poses (Euler angles or uniform rotations, offsets along the normal,
+  in-plane shifts), the empty-slice rule, per-batch in-plane spacing and thickness jitter, and
+  intensity augmentation (:mod:`sampling.augment`).
+* :class:`EulerGridDataset`: the paper's regular Euler grid over one volume (map-style), for the
+  paper-scale experiment.
+
+**Empty-slice rule.** A slice is kept only if at least ``min_brain_fraction`` of its pixels lie
+inside the brain mask (:func:`sampling.slicer.brain_fraction`: the mask sampled by nearest
+neighbour on the slice's centre plane, with the slice's size and in-plane spacing). Rejected random
+poses are redrawn; rejected grid poses are left out.
+
+**Labels** are :func:`sampling.poses.pose_labels` of the poses actually sampled (after any in-plane
+shift), in float32; the poses themselves come in float64. Poses map slice-plane mm to canonical mm.
+
+**Reproducibility.** Batch ``i`` of epoch ``e`` of a :class:`SliceStream` is a pure function of
+``(config.seed, e, i)``: its ``torch.Generator`` is seeded with a hash of the three, and nothing
+else (no global RNG) is used. With a ``DataLoader`` of ``W`` workers, worker ``w`` makes batches
+``w, w + W, w + 2 W, ...``; the ``DataLoader`` takes them round-robin, so the stream is the same
+for every number of workers, and each worker's own stream is different and reproducible. Call
+:meth:`SliceStream.set_epoch` before each epoch (like ``DistributedSampler``) to get new batches.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset, IterableDataset, get_worker_info
+
+from sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
+from sampling.poses import (
+    DEFAULT_EULER_GRID,
+    REPRESENTATIONS,
+    EulerGridConfig,
+    Representation,
+    RotationSampling,
+    iter_euler_grid_poses,
+    pose_labels,
+    random_slice_poses,
+)
+from sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from sampling.volume import CanonicalVolume
+from svr.image import Image
+
+DEFAULT_MIN_BRAIN_FRACTION = 0.02
+"""Default of the empty-slice rule: at least 2 % of a slice's pixels inside the brain mask.
+
+With the default 128 x 128 slices at 1 mm that is about 330 mm^2 of brain: slices that only graze
+the brain are dropped, while a young fetal brain (a mid-slice of ~15 % of the field of view) keeps
+most of its off-centre slices."""
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_positive_range(value: tuple[float, float] | None, name: str) -> None:
+    ok = value is None or (
+        isinstance(value, tuple)
+        and len(value) == 2
+        and all(_is_number(v) for v in value)
+        and 0.0 < value[0] <= value[1]
+    )
+    if not ok:
+        raise ValueError(
+            f"SliceDatasetConfig: '{name}' must be None or a tuple (low, high) of finite numbers "
+            f"with 0 < low <= high, got {value!r}"
+        )
+
+
+def _check_fraction(value: float, owner: str) -> None:
+    if not (_is_number(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f"{owner}: 'min_brain_fraction' must be in [0, 1], got {value!r}")
+
+
+def _check_representation(value: str, owner: str) -> None:
+    if value not in REPRESENTATIONS:
+        raise ValueError(
+            f"{owner}: 'representation' must be one of {', '.join(REPRESENTATIONS)}, got {value!r}"
+        )
+
+
+def _check_int(value: int | None, name: str, minimum: int, allow_none: bool = False) -> None:
+    if allow_none and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(
+            f"SliceDatasetConfig: '{name}' must be an integer >= {minimum}"
+            f"{' or None' if allow_none else ''}, got {value!r}"
+        )
+
+
+@dataclass(frozen=True)
+class SliceDatasetConfig:
+    """How :class:`SliceStream` draws its batches.
+
+    Attributes:
+        slice: Slice size, spacing, thickness, PSF and interpolation (the jitter ranges below
+            replace its ``spacing_mm`` and ``thickness_mm`` per batch when set).
+        thickness_range_mm: ``None`` to use ``slice.thickness_mm``, else ``(low, high)``: each batch
+            has one thickness (FWHM of the through-plane PSF), uniform in the range, mm.
+        spacing_range_mm: ``None`` to use ``slice.spacing_mm``, else ``(low, high)``: each batch has
+            one in-plane spacing, uniform in the range, mm (the field of view changes with it).
+        rotation: ``"euler"`` (three Euler angles uniform in +-``angle_range_deg``, the paper's) or
+            ``"uniform"`` (uniform on SO(3)); see :func:`sampling.poses.random_slice_poses`.
+        angle_range_deg: Half-width of each Euler angle's range, degrees, >= 0.
+        tz_range_mm: Half-width of the offset along the slice normal, mm, >= 0.
+        shift_mm: Maximum in-plane shift, mm, >= 0: ``du`` and ``dv`` are each uniform in
+            ``[-shift_mm, +shift_mm]`` and applied to the pose before sampling
+            (:func:`sampling.augment.shift_poses`), so the label is that of the shifted slice.
+        min_brain_fraction: The empty-slice rule (module docstring), in [0, 1]; 0 keeps all.
+        max_resample_rounds: How many times rejected poses are redrawn before giving up, >= 1.
+        mix_volumes: ``False``: each batch comes from one volume drawn uniformly; ``True``: each
+            slice draws its own volume.
+        representation: Label representation, one of :data:`sampling.poses.REPRESENTATIONS`.
+        augment: Intensity augmentation, or ``None`` for none.
+        batch_size: Slices per batch, >= 1.
+        num_batches: Batches per epoch (over all ``DataLoader`` workers), >= 1, or ``None`` for an
+            endless stream.
+        seed: Seed of the stream, >= 0.
+
+    Raises:
+        ValueError: On construction, naming the field, if a value is invalid.
+    """
+
+    slice: SliceConfig = field(default_factory=SliceConfig)
+    thickness_range_mm: tuple[float, float] | None = None
+    spacing_range_mm: tuple[float, float] | None = None
+    rotation: RotationSampling = "euler"
+    angle_range_deg: float = 90.0
+    tz_range_mm: float = 40.0
+    shift_mm: float = 0.0
+    min_brain_fraction: float = DEFAULT_MIN_BRAIN_FRACTION
+    max_resample_rounds: int = 100
+    mix_volumes: bool = False
+    representation: Representation = "se3"
+    augment: SliceAugmentConfig | None = None
+    batch_size: int = 32
+    num_batches: int | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        owner = "SliceDatasetConfig"
+        if not isinstance(self.slice, SliceConfig):
+            raise ValueError(
+                f"{owner}: 'slice' must be a SliceConfig, got {type(self.slice).__name__}"
+            )
+        _check_positive_range(self.thickness_range_mm, "thickness_range_mm")
+        _check_positive_range(self.spacing_range_mm, "spacing_range_mm")
+        if self.rotation not in ("euler", "uniform"):
+            raise ValueError(
+                f"{owner}: 'rotation' must be 'euler' or 'uniform', got {self.rotation!r}"
+            )
+        for name in ("angle_range_deg", "tz_range_mm", "shift_mm"):
+            value = getattr(self, name)
+            if not (_is_number(value) and value >= 0):
+                raise ValueError(f"{owner}: '{name}' must be a finite number >= 0, got {value!r}")
+        _check_fraction(self.min_brain_fraction, owner)
+        _check_int(self.max_resample_rounds, "max_resample_rounds", 1)
+        if not isinstance(self.mix_volumes, bool):
+            raise ValueError(f"{owner}: 'mix_volumes' must be a bool, got {self.mix_volumes!r}")
+        _check_representation(self.representation, owner)
+        if self.augment is not None and not isinstance(self.augment, SliceAugmentConfig):
+            raise ValueError(
+                f"{owner}: 'augment' must be a SliceAugmentConfig or None, "
+                f"got {type(self.augment).__name__}"
+            )
+        _check_int(self.batch_size, "batch_size", 1)
+        _check_int(self.num_batches, "num_batches", 1, allow_none=True)
+        _check_int(self.seed, "seed", 0)
+
+
+def _mask_image(volume: CanonicalVolume) -> Image:
+    """The brain mask of ``volume`` as a float image on the volume's grid (1 inside)."""
+    return Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
+
+
+def _batch_seed(seed: int, epoch: int, index: int) -> int:
+    """A 64-bit seed hashed from the stream seed, the epoch and the batch index."""
+    return int(np.random.SeedSequence([seed, epoch, index]).generate_state(1, np.uint64)[0])
+
+
+class SliceStream(IterableDataset[dict[str, Tensor]]):
+    """Random batches of slices with pose labels, sampled on the fly from canonical volumes.
+
+    Each batch draws its in-plane spacing and thickness (when jittered), its volume(s), then the
+    poses (random rotation, offset along the normal, in-plane shift), redrawing those that break
+    the empty-slice rule, samples the slices and augments them. Use it with
+    ``DataLoader(stream, batch_size=None, num_workers=...)``: the stream makes whole batches.
+
+    Each yielded batch is a dict of tensors, on the volumes' device:
+
+    * ``"slices"``: (B, 1, H, W) float32 slices (after augmentation).
+    * ``"labels"``: (B, D) float32 :func:`~sampling.poses.pose_labels` of ``"poses"`` in
+      ``config.representation`` (D = 6, 7, 9 or 9).
+    * ``"poses"``: (B, 6) float64 pose vectors (rad, mm), slice plane -> canonical frame.
+    * ``"volume_index"``: (B,) int64 index of each slice's volume in ``volumes``.
+    * ``"spacing_mm"``: (B,) float64 in-plane spacing the slices were sampled with, mm.
+    * ``"thickness_mm"``: (B,) float64 slice thickness (PSF FWHM), mm; 0 for thin slices.
+
+    Args:
+        volumes: One or more canonical volumes, all on one device (where sampling runs).
+        config: How batches are drawn; ``None`` for ``SliceDatasetConfig()``.
+
+    Attributes:
+        volumes: The volumes, as a tuple.
+        config: The configuration.
+        device: The volumes' device.
+        epoch: The epoch the next iteration yields (:meth:`set_epoch`).
+
+    Raises:
+        ValueError: If ``volumes`` is empty, holds something else than ``CanonicalVolume`` or
+            spans several devices.
+    """
+
+    def __init__(
+        self, volumes: Sequence[CanonicalVolume], config: SliceDatasetConfig | None = None
+    ) -> None:
+        super().__init__()
+        volumes = tuple(volumes)
+        if not volumes or not all(isinstance(v, CanonicalVolume) for v in volumes):
+            raise ValueError(
+                "SliceStream: 'volumes' must be a non-empty sequence of CanonicalVolume"
+            )
+        devices = {v.image.data.device for v in volumes}
+        if len(devices) != 1:
+            raise ValueError(f"SliceStream: 'volumes' must all be on one device, got {devices}")
+        self.volumes = volumes
+        self.config = SliceDatasetConfig() if config is None else config
+        self.device = devices.pop()
+        self.epoch = 0
+        self._masks = tuple(_mask_image(v) for v in volumes)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Choose the epoch whose batches the next iteration yields (default 0).
+
+        Raises:
+            ValueError: If ``epoch`` is not a non-negative integer.
+        """
+        if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+            raise ValueError(
+                f"SliceStream.set_epoch(): 'epoch' must be an integer >= 0, got {epoch!r}"
+            )
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        """``config.num_batches``; an endless stream has no length (``TypeError``)."""
+        if self.config.num_batches is None:
+            raise TypeError("SliceStream: an endless stream (num_batches=None) has no length")
+        return self.config.num_batches
+
+    def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        """Yield this worker's share of the epoch's batches (module docstring)."""
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        total = self.config.num_batches
+        indices = (
+            itertools.count(worker, workers) if total is None else range(worker, total, workers)
+        )
+        epoch = self.epoch
+        for index in indices:
+            yield self.batch(index, epoch)
+
+    def batch(self, index: int, epoch: int | None = None) -> dict[str, Tensor]:
+        """Batch ``index`` of ``epoch`` (default: the current epoch), as the stream yields it.
+
+        Args:
+            index: Batch index in the epoch, >= 0.
+            epoch: Epoch, >= 0; ``None`` for :attr:`epoch`.
+
+        Returns:
+            The batch dict (class docstring).
+
+        Raises:
+            ValueError: If ``index`` or ``epoch`` is not a non-negative integer.
+            RuntimeError: If ``config.max_resample_rounds`` rounds of redrawing leave poses that
+                break the empty-slice rule.
+        """
+        epoch = self.epoch if epoch is None else epoch
+        for name, value in (("index", index), ("epoch", epoch)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(
+                    f"SliceStream.batch(): '{name}' must be an integer >= 0, got {value!r}"
+                )
+        cfg = self.config
+        generator = torch.Generator().manual_seed(_batch_seed(cfg.seed, epoch, index))
+        b, n = cfg.batch_size, len(self.volumes)
+        slice_config = self._draw_slice_config(generator)
+        if cfg.mix_volumes:
+            volume_index = torch.randint(n, (b,), generator=generator)
+        else:
+            volume_index = torch.randint(n, (1,), generator=generator).repeat(b)
+        poses = self._draw_poses(volume_index, slice_config, generator)
+
+        slices = torch.empty((b, *slice_config.size), dtype=torch.float32, device=self.device)
+        for v in volume_index.unique().tolist():
+            chosen = volume_index == v
+            slices[chosen.to(self.device)] = sample_slices(
+                self.volumes[v].image, poses[chosen].to(self.device), slice_config
+            ).float()
+        if cfg.augment is not None:
+            slices = apply_augment(slices, draw_augment_params(cfg.augment, b, generator))
+        thickness = slice_config.thickness_mm or 0.0
+        kw = {"dtype": torch.float64, "device": self.device}
+        return {
+            "slices": slices.unsqueeze(1),
+            "labels": pose_labels(poses, cfg.representation).to(self.device, torch.float32),
+            "poses": poses.to(self.device),
+            "volume_index": volume_index.to(self.device),
+            "spacing_mm": torch.full((b,), slice_config.spacing_mm, **kw),
+            "thickness_mm": torch.full((b,), thickness, **kw),
+        }
+
+    def _draw_slice_config(self, generator: torch.Generator) -> SliceConfig:
+        """The batch's slice configuration, with jittered spacing and thickness."""
+        cfg = self.config
+        u = torch.rand(2, generator=generator, dtype=torch.float64).tolist()
+        spacing, thickness = cfg.slice.spacing_mm, cfg.slice.thickness_mm
+        if cfg.spacing_range_mm is not None:
+            low, high = cfg.spacing_range_mm
+            spacing = low + (high - low) * u[0]
+        if cfg.thickness_range_mm is not None:
+            low, high = cfg.thickness_range_mm
+            thickness = low + (high - low) * u[1]
+        return dataclasses.replace(cfg.slice, spacing_mm=spacing, thickness_mm=thickness)
+
+    def _draw_poses(
+        self, volume_index: Tensor, slice_config: SliceConfig, generator: torch.Generator
+    ) -> Tensor:
+        """(B, 6) float64 CPU poses obeying the empty-slice rule, each in its slice's volume."""
+        cfg = self.config
+        poses = torch.empty(len(volume_index), 6, dtype=torch.float64)
+        missing = torch.ones(len(volume_index), dtype=torch.bool)
+        for _ in range(cfg.max_resample_rounds):
+            slots = torch.nonzero(missing).flatten()
+            k = len(slots)
+            candidates = random_slice_poses(
+                k, generator, cfg.angle_range_deg, cfg.tz_range_mm, cfg.rotation
+            )
+            shifts = 2.0 * torch.rand(k, 2, generator=generator, dtype=torch.float64) - 1.0
+            candidates = shift_poses(candidates, shifts * cfg.shift_mm)
+            keep = torch.ones(k, dtype=torch.bool)
+            if cfg.min_brain_fraction > 0:
+                for v in volume_index[slots].unique().tolist():
+                    chosen = volume_index[slots] == v
+                    fraction = brain_fraction(
+                        self._masks[v], candidates[chosen].to(self.device), slice_config
+                    )
+                    keep[chosen] = fraction.cpu() >= cfg.min_brain_fraction
+            poses[slots[keep]] = candidates[keep]
+            missing[slots[keep]] = False
+            if not bool(missing.any()):
+                return poses
+        raise RuntimeError(
+            f"SliceStream: {int(missing.sum())} of {len(missing)} slices still had a brain "
+            f"fraction below min_brain_fraction={cfg.min_brain_fraction} after "
+            f"max_resample_rounds={cfg.max_resample_rounds}; lower 'min_brain_fraction', "
+            "'tz_range_mm' or 'shift_mm', or enlarge the slices"
+        )
+
+
+class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
+    """Slices of one volume at the Euler-grid poses that pass the empty-slice rule (map-style).
+
+    The kept poses are found once, on construction, by sweeping the grid in chunks of
+    ``chunk_size`` poses (:func:`sampling.poses.iter_euler_grid_poses`); slices are sampled when
+    read. Item ``i`` is ``(slice, label)``: a (1, H, W) float32 slice at ``poses[i]`` and its
+    (D,) float32 label in ``representation``. ``DataLoader`` reads whole batches at once through
+    :meth:`__getitems__`.
+
+    Args:
+        volume: The canonical volume (sampling runs on its device).
+        grid_config: The Euler grid (default: the paper's, 54,571 poses).
+        slice_config: Slice size, spacing, PSF and interpolation.
+        min_brain_fraction: The empty-slice rule (module docstring), in [0, 1].
+        representation: Label representation, one of :data:`sampling.poses.REPRESENTATIONS`.
+        chunk_size: Poses per chunk of the sweep, >= 1.
+
+    Attributes:
+        grid_indices: (K,) int64 indices of the kept poses in the grid order of
+            :func:`sampling.poses.euler_grid_poses`, increasing.
+        poses: (K, 6) float64 kept poses (rad, mm), slice plane -> canonical frame, on the CPU.
+        labels: (K, D) float32 labels of ``poses``, on the CPU.
+
+    Raises:
+        ValueError: Naming the argument, if ``min_brain_fraction``, ``representation`` or
+            ``chunk_size`` is invalid.
+    """
+
+    def __init__(
+        self,
+        volume: CanonicalVolume,
+        grid_config: EulerGridConfig = DEFAULT_EULER_GRID,
+        slice_config: SliceConfig | None = None,
+        min_brain_fraction: float = DEFAULT_MIN_BRAIN_FRACTION,
+        representation: Representation = "se3",
+        chunk_size: int = 4096,
+    ) -> None:
+        super().__init__()
+        _check_fraction(min_brain_fraction, "EulerGridDataset")
+        _check_representation(representation, "EulerGridDataset")
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+            raise ValueError(
+                f"EulerGridDataset: 'chunk_size' must be an integer >= 1, got {chunk_size!r}"
+            )
+        self.volume = volume
+        self.slice_config = SliceConfig() if slice_config is None else slice_config
+        self.representation = representation
+        device = volume.image.data.device
+        mask = _mask_image(volume)
+        indices, poses, start = [], [], 0
+        for chunk in iter_euler_grid_poses(grid_config, chunk_size):
+            if min_brain_fraction > 0:
+                fraction = brain_fraction(mask, chunk.to(device), self.slice_config).cpu()
+                keep = torch.nonzero(fraction >= min_brain_fraction).flatten()
+            else:
+                keep = torch.arange(len(chunk))
+            indices.append(keep + start)
+            poses.append(chunk[keep])
+            start += len(chunk)
+        self.grid_indices = torch.cat(indices)
+        self.poses = torch.cat(poses)
+        self.labels = pose_labels(self.poses, representation).float()
+
+    def __len__(self) -> int:
+        """Number ``K`` of kept poses."""
+        return len(self.grid_indices)
+
+    def __getitem__(self, index: int) -> tuple[Tensor, Tensor]:
+        """Item ``index``: ``(slice (1, H, W), label (D,))``, float32, on the volume's device."""
+        return self.__getitems__([index])[0]
+
+    def __getitems__(self, indices: Sequence[int]) -> list[tuple[Tensor, Tensor]]:
+        """Several items, sampled in one call (``DataLoader``'s batched fetch).
+
+        Raises:
+            IndexError: If an index is out of range.
+        """
+        device = self.volume.image.data.device
+        index = torch.as_tensor(list(indices), dtype=torch.int64)
+        if len(index) and not bool(((index >= -len(self)) & (index < len(self))).all()):
+            raise IndexError(f"EulerGridDataset: index out of range for {len(self)} items")
+        slices = sample_slices(self.volume.image, self.poses[index].to(device), self.slice_config)
+        labels = self.labels[index].to(device)
+        return [(s[None].float(), label) for s, label in zip(slices, labels, strict=True)]
