@@ -9,8 +9,9 @@ normal is ``R[:, 2]``.
 Point-spread function: a slice of thickness ``T`` mm integrates the volume along its normal with a
 Gaussian of FWHM ``T`` (sigma = T / 2.3548), as the peers model it; the in-plane PSF (optional) is a
 Gaussian of sigma = 1.2067 s / 2.3548 (NeSVoR's). Both are integrated by Gauss-Hermite quadrature:
-the slice is the weighted sum of plain samples at a few offsets. All sampling goes through
-:func:`svr.image.sample_world` (trilinear ``grid_sample``, zero outside the volume).
+the slice is the weighted sum of plain samples at a few offsets. Sampling goes through
+:func:`svr.image.sample_grid` with :func:`svr.image.world_to_grid` folded into each slice's
+origin and pixel steps (trilinear ``grid_sample``, zero outside the volume).
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ from torch import Tensor
 
 from svr.geometry import se3_from_vector
 from svr.geometry._validation import check_tensor
-from svr.image import Image, sample_world
+from svr.image import Image, sample_grid, world_to_grid
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 IN_PLANE_PSF_FWHM = 1.2067  # in-plane PSF FWHM in units of the pixel spacing (NeSVoR)
+_POINTS_PER_CHUNK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,41 @@ def pose_matrices(poses: Tensor, func: str = "pose_matrices") -> Tensor:
     )
 
 
+def _slice_frames(
+    poses: Tensor, size: tuple[int, int], spacing_mm: float, offset_mm: tuple[float, float, float]
+) -> tuple[Tensor, Tensor, Tensor]:
+    """World position of pixel (0, 0) and the steps to the next pixel along axes 0 and 1.
+
+    Returns:
+        Three (B, 3) float64 tensors: origin, step along axis 0 (u), step along axis 1 (v), in mm.
+    """
+    T = pose_matrices(poses, "slice_points").to(torch.float64)
+    h, w = size
+    R = T[:, :3, :3]
+    step_u, step_v = R[:, :, 0] * spacing_mm, R[:, :, 1] * spacing_mm
+    origin = (
+        T[:, :3, 3]
+        + offset_mm[2] * R[:, :, 2]
+        + step_u * (offset_mm[0] / spacing_mm - (h - 1) / 2)
+        + step_v * (offset_mm[1] / spacing_mm - (w - 1) / 2)
+    )
+    return origin, step_u, step_v
+
+
+def _plane(
+    origin: Tensor, step_u: Tensor, step_v: Tensor, size: tuple[int, int], dtype: torch.dtype
+) -> Tensor:
+    """(B, H, W, 3) points ``origin + a step_u + b step_v`` for pixels (a, b), in ``dtype``."""
+    kw = {"dtype": dtype, "device": origin.device}
+    a = torch.arange(size[0], **kw)[None, :, None, None]
+    b = torch.arange(size[1], **kw)[None, None, :, None]
+    return (
+        origin.to(dtype)[:, None, None, :]
+        + a * step_u.to(dtype)[:, None, None, :]
+        + b * step_v.to(dtype)[:, None, None, :]
+    )
+
+
 def slice_points(
     poses: Tensor,
     size: tuple[int, int],
@@ -106,23 +143,7 @@ def slice_points(
     Returns:
         (B, H, W, 3) world points in mm.
     """
-    T = pose_matrices(poses, "slice_points").to(torch.float64)
-    h, w = size
-    R = T[:, :3, :3]
-    origin = T[:, :3, 3] + offset_mm[2] * R[:, :, 2]
-    axis_u = R[:, :, 0] * spacing_mm
-    axis_v = R[:, :, 1] * spacing_mm
-    origin = origin + axis_u * (offset_mm[0] / spacing_mm - (h - 1) / 2)
-    origin = origin + axis_v * (offset_mm[1] / spacing_mm - (w - 1) / 2)
-    dtype = dtype or poses.dtype
-    kw = {"dtype": dtype, "device": T.device}
-    a = torch.arange(h, **kw)[None, :, None, None]
-    b = torch.arange(w, **kw)[None, None, :, None]
-    return (
-        origin.to(dtype)[:, None, None, :]
-        + a * axis_u.to(dtype)[:, None, None, :]
-        + b * axis_v.to(dtype)[:, None, None, :]
-    )
+    return _plane(*_slice_frames(poses, size, spacing_mm, offset_mm), size, dtype or poses.dtype)
 
 
 def _gauss_hermite(n: int, sigma: float) -> list[tuple[float, float]]:
@@ -165,11 +186,24 @@ def sample_slices(volume: Image, poses: Tensor, config: SliceConfig = SliceConfi
         (B, H, W) slices in the dtype of ``volume.data``.
     """
     T = pose_matrices(poses, "sample_slices").to(torch.float64)
-    out = None
-    for offset, weight in psf_offsets(config):
-        points = slice_points(T, config.size, config.spacing_mm, offset, volume.data.dtype)
-        values = sample_world(volume, points, config.mode)
-        out = values * weight if out is None else out.add_(values, alpha=weight)
+    to_grid = world_to_grid(volume).to(T.device)
+    h, w = config.size
+    out = volume.data.new_zeros((T.shape[0], h, w))
+    # Chunks of ~1M points keep each grid in cache between being built and being sampled.
+    chunk = max(1, _POINTS_PER_CHUNK // (h * w))
+    for start in range(0, T.shape[0], chunk):
+        part = T[start : start + chunk]
+        for offset, weight in psf_offsets(config):
+            # Each slice's origin and pixel steps are mapped to grid coordinates once (B x 3).
+            origin, step_u, step_v = _slice_frames(part, config.size, config.spacing_mm, offset)
+            grid = _plane(
+                origin @ to_grid[:, :3].T + to_grid[:, 3],
+                step_u @ to_grid[:, :3].T,
+                step_v @ to_grid[:, :3].T,
+                config.size,
+                volume.data.dtype,
+            )
+            out[start : start + chunk].add_(sample_grid(volume, grid, config.mode), alpha=weight)
     return out
 
 

@@ -3,9 +3,10 @@
 Conventions (``DESIGN.md``):
     * An image is ``data`` (I, J, K) in NIfTI array order and a (4, 4) float64 ``affine`` mapping
       voxel indices ``(i, j, k)`` (voxel centres at integers) to world ``(x, y, z)`` in mm (RAS+).
-    * :func:`sample_world` is the one place that turns world points into ``grid_sample``
-      coordinates: it owns the ``(x, y, z) <-> (W, H, D)`` reordering and uses
-      ``align_corners=True`` (index ``0`` and ``n - 1`` map to -1 and +1).
+    * :func:`world_to_grid` is the one place that maps world points to ``grid_sample``
+      coordinates: it owns the ``(x, y, z) <-> (W, H, D)`` reordering and ``align_corners=True``
+      (index ``0`` and ``n - 1`` map to -1 and +1); :func:`sample_grid` is the one place that calls
+      ``grid_sample``, and :func:`sample_world` composes the two.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from torch import Tensor
 from svr.files import check_output_path
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
+_MIN_POINTS_PER_PART = 16384  # below this, splitting grid_sample over threads does not pay
 
 
 class ImageError(ValueError):
@@ -179,6 +181,38 @@ def world_to_grid(image: Image) -> Tensor:
     return to_grid.flip(0)
 
 
+def sample_grid(image: Image, grid: Tensor, mode: str = "bilinear") -> Tensor:
+    """Sample an image at ``grid_sample`` coordinates (from :func:`world_to_grid`); zero outside.
+
+    On the CPU, ``grid_sample`` parallelises only over its batch dimension, so the points are
+    split into one batch per thread over a zero-copy expansion of the volume.
+
+    Args:
+        image: The image.
+        grid: (..., 3) normalised coordinates ``(x, y, z)``, on ``image``'s device.
+        mode: ``"bilinear"`` (trilinear in 3D) or ``"nearest"``.
+
+    Returns:
+        (...) sampled values in the dtype of ``image.data``.
+    """
+    flat = grid.reshape(-1, 3).to(image.data.dtype)
+    count = flat.shape[0]
+    parts = torch.get_num_threads() if image.data.device.type == "cpu" else 1
+    parts = max(1, min(parts, count // _MIN_POINTS_PER_PART))
+    per_part = -(-count // parts)
+    if per_part * parts != count:
+        flat = torch.cat([flat, flat.new_full((per_part * parts - count, 3), 2.0)])
+    volume = image.data[None, None].expand(parts, 1, *image.shape)
+    out = torch.nn.functional.grid_sample(
+        volume,
+        flat.reshape(parts, 1, 1, per_part, 3),
+        mode=mode,
+        padding_mode="zeros",
+        align_corners=True,
+    )
+    return out.reshape(-1)[:count].reshape(grid.shape[:-1])
+
+
 def sample_world(image: Image, points: Tensor, mode: str = "bilinear") -> Tensor:
     """Sample an image at world points; zero outside the image.
 
@@ -194,14 +228,8 @@ def sample_world(image: Image, points: Tensor, mode: str = "bilinear") -> Tensor
         raise ValueError(
             f"sample_world(): 'points' must have shape (..., 3), got {tuple(points.shape)}"
         )
-    m = world_to_grid(image).to(image.data.dtype)
+    m = world_to_grid(image).to(device=points.device, dtype=image.data.dtype)
     flat = points.reshape(-1, 3).to(image.data.dtype)
-    grid = torch.addmm(m[:, 3], flat, m[:, :3].T)
-    out = torch.nn.functional.grid_sample(
-        image.data[None, None],
-        grid.reshape(1, 1, 1, -1, 3),
-        mode=mode,
-        padding_mode="zeros",
-        align_corners=True,
+    return sample_grid(image, torch.addmm(m[:, 3], flat, m[:, :3].T), mode).reshape(
+        points.shape[:-1]
     )
-    return out.reshape(points.shape[:-1])

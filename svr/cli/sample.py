@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from svr.cli.common import (
     CliError,
@@ -33,6 +34,9 @@ examples:
   svr sample --input-volume srr.nii.gz --input-mask mask.nii.gz --num-slices 1000 \\
       --thickness 3 --output-dataset train_slices
 """
+
+
+SAMPLE_CHUNK = 256  # slices sampled at once (bounds the memory of the sampling grid)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -132,7 +136,15 @@ def run(args: argparse.Namespace) -> int:
             f"only {len(poses)} of {args.num_slices} slices reach --min-brain-fraction "
             f"{args.min_brain_fraction}; lower it or check the mask"
         )
-    slices = sample_slices(volume.image, poses.to(device), config).cpu()
+    chunks = torch.split(poses, SAMPLE_CHUNK)
+    slices = torch.cat(
+        [
+            sample_slices(volume.image, chunk.to(device), config).cpu()
+            for chunk in tqdm(
+                chunks, desc="slices", unit="chunk", disable=args.quiet or len(chunks) < 2
+            )
+        ]
+    )
     if args.output_preview is not None:
         _preview_png(slices, args.output_preview, args.overwrite)
         print(f"wrote {args.output_preview}")
