@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from sampling._validation import check_positive_range, is_finite_number
 from svr.geometry import so3_exp
 
 NOISE_REFERENCE_PERCENTILE = 99.0
@@ -56,24 +57,8 @@ def _check_probability(value: float, name: str) -> None:
         )
 
 
-def _check_factor_range(value: tuple[float, float], name: str) -> None:
-    ok = (
-        isinstance(value, tuple)
-        and len(value) == 2
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-        and all(math.isfinite(v) for v in value)
-        and 0.0 < value[0] <= value[1]
-    )
-    if not ok:
-        raise ValueError(
-            f"SliceAugmentConfig: '{name}' must be a tuple (low, high) of finite numbers with "
-            f"0 < low <= high, got {value!r}"
-        )
-
-
 def _check_non_negative(value: float, name: str) -> None:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if not (ok and value >= 0):
+    if not (is_finite_number(value) and value >= 0):
         raise ValueError(
             f"SliceAugmentConfig: '{name}' must be a finite number >= 0, got {value!r}"
         )
@@ -120,8 +105,8 @@ class SliceAugmentConfig:
     def __post_init__(self) -> None:
         for name in ("scale_prob", "gamma_prob", "bias_prob", "noise_prob"):
             _check_probability(getattr(self, name), name)
-        _check_factor_range(self.scale_range, "scale_range")
-        _check_factor_range(self.gamma_range, "gamma_range")
+        check_positive_range(self.scale_range, "SliceAugmentConfig", "scale_range")
+        check_positive_range(self.gamma_range, "SliceAugmentConfig", "gamma_range")
         if (
             isinstance(self.bias_order, bool)
             or not isinstance(self.bias_order, int)

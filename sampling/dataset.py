@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -36,6 +35,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
+from sampling._validation import check_positive_range, is_finite_number
 from sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
 from sampling.poses import (
     DEFAULT_EULER_GRID,
@@ -59,26 +59,8 @@ the brain are dropped, while a young fetal brain (a mid-slice of ~15 % of the fi
 most of its off-centre slices."""
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _check_positive_range(value: tuple[float, float] | None, name: str) -> None:
-    ok = value is None or (
-        isinstance(value, tuple)
-        and len(value) == 2
-        and all(_is_number(v) for v in value)
-        and 0.0 < value[0] <= value[1]
-    )
-    if not ok:
-        raise ValueError(
-            f"SliceDatasetConfig: '{name}' must be None or a tuple (low, high) of finite numbers "
-            f"with 0 < low <= high, got {value!r}"
-        )
-
-
 def _check_fraction(value: float, owner: str) -> None:
-    if not (_is_number(value) and 0.0 <= value <= 1.0):
+    if not (is_finite_number(value) and 0.0 <= value <= 1.0):
         raise ValueError(f"{owner}: 'min_brain_fraction' must be in [0, 1], got {value!r}")
 
 
@@ -154,15 +136,15 @@ class SliceDatasetConfig:
             raise ValueError(
                 f"{owner}: 'slice' must be a SliceConfig, got {type(self.slice).__name__}"
             )
-        _check_positive_range(self.thickness_range_mm, "thickness_range_mm")
-        _check_positive_range(self.spacing_range_mm, "spacing_range_mm")
+        for name in ("thickness_range_mm", "spacing_range_mm"):
+            check_positive_range(getattr(self, name), "SliceDatasetConfig", name, allow_none=True)
         if self.rotation not in ("euler", "uniform"):
             raise ValueError(
                 f"{owner}: 'rotation' must be 'euler' or 'uniform', got {self.rotation!r}"
             )
         for name in ("angle_range_deg", "tz_range_mm", "shift_mm"):
             value = getattr(self, name)
-            if not (_is_number(value) and value >= 0):
+            if not (is_finite_number(value) and value >= 0):
                 raise ValueError(f"{owner}: '{name}' must be a finite number >= 0, got {value!r}")
         _check_fraction(self.min_brain_fraction, owner)
         _check_int(self.max_resample_rounds, "max_resample_rounds", 1)
