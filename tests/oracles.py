@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 from scipy.spatial.transform import Rotation
 
 
@@ -51,3 +52,18 @@ def np_gram_schmidt(d6: np.ndarray) -> np.ndarray:
     u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
     b2 = u2 / np.linalg.norm(u2, axis=-1, keepdims=True)
     return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
+
+
+def truth_poses(entry: dict, frame: str) -> torch.Tensor:
+    """(N, 4, 4) poses of one stack's slices from a bench-style ``truth_slices.json`` entry."""
+    poses = torch.eye(4, dtype=torch.float64).repeat(len(entry["slices"]), 1, 1)
+    for k, s in enumerate(entry["slices"]):
+        poses[k, :3, :3] = torch.tensor(s[frame]["R"])
+        poses[k, :3, 3] = torch.tensor(s[frame]["t"])
+    return poses
+
+
+def foreground_cc(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Pearson correlation over the pixels that are non-zero in either image."""
+    keep = (a > 0) | (b > 0)
+    return float(np.corrcoef(a[keep].numpy(), b[keep].numpy())[0, 1])

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from oracles import foreground_cc, truth_poses
 from scipy.ndimage import gaussian_filter
 
 from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
@@ -44,19 +45,6 @@ def brain():
     )
 
 
-def poses_from_truth(entry: dict, frame: str) -> torch.Tensor:
-    T = torch.eye(4, dtype=torch.float64).repeat(len(entry["slices"]), 1, 1)
-    for k, s in enumerate(entry["slices"]):
-        T[k, :3, :3] = torch.tensor(s[frame]["R"])
-        T[k, :3, 3] = torch.tensor(s[frame]["t"])
-    return T
-
-
-def cc(a: torch.Tensor, b: torch.Tensor) -> float:
-    keep = (a > 0) | (b > 0)
-    return float(np.corrcoef(a[keep].numpy(), b[keep].numpy())[0, 1])
-
-
 def test_written_case_round_trips_in_both_frames(brain, tmp_path):
     config = SimulationConfig(
         noise=0.0,
@@ -74,11 +62,13 @@ def test_written_case_round_trips_in_both_frames(brain, tmp_path):
         stack = load_nifti(out / entry["file"])
         slices = stack.data.permute(2, 0, 1)
         cfg = SliceConfig(size=stack.shape[:2], spacing_mm=2.0, thickness_mm=4.0)
-        assert cc(sample_slices(gt, poses_from_truth(entry, "scanner"), cfg), slices) > 0.999
-        assert cc(sample_slices(source, poses_from_truth(entry, "atlas"), cfg), slices) > 0.999
+        assert foreground_cc(sample_slices(gt, truth_poses(entry, "scanner"), cfg), slices) > 0.999
+        assert (
+            foreground_cc(sample_slices(source, truth_poses(entry, "atlas"), cfg), slices) > 0.999
+        )
         # motion happened: the true rotations are not the stack's nominal orientation
         orientation = stack.affine[:3, :3] / stack.affine[:3, :3].norm(dim=0)
-        rotations = poses_from_truth(entry, "scanner")[:, :3, :3]
+        rotations = truth_poses(entry, "scanner")[:, :3, :3]
         assert (rotations - orientation).abs().amax(dim=(1, 2)).max() > 0.01
 
 
@@ -202,7 +192,7 @@ def test_noise_bias_and_voids_change_the_slices(brain):
     assert (b >= 0).all()
     background = clean.stacks[0].mask.data < 0.5
     assert b[background & (a == 0)].mean() > 0.01  # Rician floor in the background
-    assert 0.6 < cc(a, b) < 0.999
+    assert 0.6 < foreground_cc(a, b) < 0.999
 
 
 def test_determinism_and_seeds(brain):
