@@ -163,6 +163,17 @@ def test_bench_stacks_are_reproduced_at_their_true_poses(shared_data):
         assert foreground_cc(sample_slices(gt, T, config), stack.data.permute(2, 0, 1)) > 0.99
 
 
+def test_float16_volume_on_cpu(rng):
+    vol = smooth_volume(rng)
+    poses = random_poses(rng, 8)
+    config = SliceConfig(size=(24, 24), thickness_mm=2.0)
+    full = sample_slices(vol, poses, config)
+    half = sample_slices(vol.to(dtype=torch.float16), poses, config)
+    assert half.dtype == torch.float16
+    scale = float(full.abs().max())
+    torch.testing.assert_close(half.float(), full, atol=2e-2 * scale, rtol=0)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16])
