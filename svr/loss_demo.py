@@ -1,7 +1,7 @@
 """Pose recovery by gradient descent with each pose loss: a self-contained demonstration.
 
-Target poses are drawn like the paper's validation slices (extrinsic x-y-z Euler angles uniform in
-[-90, 90] degrees, through-plane offset ``Tz`` uniform in [-40, 40] mm, ``t = R (0, 0, Tz)``). Every
+The ``svr demo`` command draws the target poses like the paper's validation slices (extrinsic
+x-y-z Euler angles uniform in [-90, 90] degrees, offsets ``Tz`` uniform in [-40, 40] mm). Every
 method starts from the same initial poses (the identity rotation at the origin, i.e. a slice
 through the centre, as a zero-initialised network head would predict), optimises its own output
 representation with Adam, and is scored the same way: its parameters are converted back to pose
@@ -11,7 +11,6 @@ vectors and compared with the targets by :func:`svr.metrics.pose_errors`.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -22,13 +21,11 @@ from tqdm import tqdm
 
 from svr.geometry import (
     anchor_points_to_pose,
-    euler_to_matrix,
     pose_to_anchor_points,
     pose_to_quat_translation,
     pose_to_rotation6d_translation,
     quat_translation_to_pose,
     rotation6d_translation_to_pose,
-    so3_log,
 )
 from svr.losses import (
     DEFAULT_LENGTH_SCALE_MM,
@@ -47,7 +44,7 @@ class LossDemoConfig:
     """Settings of :func:`run_loss_demo`.
 
     Attributes:
-        num_poses: Number of target poses, > 0.
+        num_poses: Number of target poses, > 0 (drawn by the caller).
         steps: Adam steps per method, > 0.
         learning_rate: Adam learning rate, > 0.
         seed: Seed of the target poses.
@@ -114,36 +111,17 @@ METHODS = (
 )
 
 
-def random_slice_poses(num: int, generator: torch.Generator, device: str = "cpu") -> Tensor:
-    """Poses like the paper's validation slices: Euler angles in ±90°, Tz in ±40 mm.
-
-    Args:
-        num: Number of poses.
-        generator: Source of randomness.
-        device: Device of the result.
-
-    Returns:
-        (num, 6) float32 pose vectors, ``t = R (0, 0, Tz)``.
-    """
-    u = torch.rand(num, 4, generator=generator, dtype=torch.float64)
-    angles = (u[:, :3] - 0.5) * math.pi
-    tz = (u[:, 3] - 0.5) * 80.0
-    R = euler_to_matrix(angles, "xyz")
-    t = R[:, :, 2] * tz[:, None]
-    return torch.cat([so3_log(R), t], dim=1).float().to(device)
-
-
-def run_loss_demo(config: LossDemoConfig) -> list[LossDemoResult]:
-    """Recover random poses with each loss and report how close each method gets.
+def run_loss_demo(config: LossDemoConfig, targets: Tensor) -> list[LossDemoResult]:
+    """Recover target poses with each loss and report how close each method gets.
 
     Args:
         config: The settings.
+        targets: (N, 6) float32 target poses, e.g. ``sampling.poses.random_slice_poses``.
 
     Returns:
         One result per method, in the order se3, posenet, anchor, rot6d.
     """
-    generator = torch.Generator().manual_seed(config.seed)
-    targets = random_slice_poses(config.num_poses, generator, config.device)
+    targets = targets.to(device=config.device, dtype=torch.float32)
     start = torch.zeros_like(targets)
     results = []
     for method in METHODS:

@@ -6,6 +6,8 @@ import argparse
 import json
 from dataclasses import asdict
 
+import torch
+
 from svr.cli.common import (
     HelpFormatter,
     add_common_options,
@@ -82,7 +84,10 @@ def run(args: argparse.Namespace) -> int:
         device=resolve_device(args.device),
         progress=not args.quiet,
     )
-    results = run_loss_demo(config)
+    from sampling.poses import random_slice_poses
+
+    targets = random_slice_poses(config.num_poses, torch.Generator().manual_seed(config.seed))
+    results = run_loss_demo(config, targets)
     print(format_table(results))
     print("recovered: rotation error < 1 deg and translation error < 1 mm")
     if args.output is not None:
