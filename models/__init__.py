@@ -1,0 +1,1 @@
+"""Slice-pose CNNs: backbones, pose heads, training, prediction and evaluation."""
