@@ -14,10 +14,15 @@ import sys
 from collections.abc import Sequence
 
 from svr import __version__
-from svr.cli import demo, sample, simulate
+from svr.cli import demo, sample, simulate, train
 from svr.cli.common import CliError
 
-SUBCOMMANDS = {"simulate": simulate, "sample": sample, "demo": demo}
+SUBCOMMANDS = {
+    "simulate": simulate,
+    "sample": sample,
+    "train": train,
+    "demo": demo,
+}
 
 log = logging.getLogger("svr")
 

@@ -1,0 +1,245 @@
+"""Slice-pose networks: a backbone and a pose head, their configuration, and the matching loss.
+
+A :class:`SlicePoseNet` maps ``(B, 1, H, W)`` slices (in-plane spacing ``spacing_mm``, normally
+``input_size`` pixels) to the labels of its representation (:func:`sampling.poses.pose_labels`,
+rad and mm); :meth:`SlicePoseNet.predict_poses` turns them into pose vectors in the canonical
+frame. :func:`loss_function` gives the loss that trains each representation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from models.backbones import BackboneConfig, build_backbone
+from models.heads import PoseHead, check_length, check_representation
+from sampling.poses import Representation
+from svr.geometry import ANCHOR_HALF_SIZE_MM
+from svr.losses import (
+    DEFAULT_LENGTH_SCALE_MM,
+    anchor_point_loss,
+    posenet_loss,
+    rotation6d_loss,
+    se3_geodesic_loss,
+    validate_metric_weights,
+)
+
+MIN_INPUT_SIZE = 32
+"""Smallest height and width (pixels) of ``ModelConfig.input_size``."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture and input conventions of a :class:`SlicePoseNet`.
+
+    Attributes:
+        backbone: The backbone's architecture.
+        representation: One of :data:`sampling.poses.REPRESENTATIONS`.
+        input_size: ``(H, W)`` in pixels (each >= 32) of the slices the model is trained on; the
+            network itself accepts any size.
+        spacing_mm: In-plane pixel spacing (mm) of the slices the model expects, > 0.
+        translation_scale_mm: Millimetres per unit of the head's raw translation outputs, > 0.
+        anchor_half_size_mm: Half-size (mm) of the anchor-point triangle, > 0.
+
+    Raises:
+        ValueError: Naming the field, for a value of the wrong type or out of range.
+    """
+
+    backbone: BackboneConfig = dataclasses.field(default_factory=BackboneConfig)
+    representation: Representation = "se3"
+    input_size: tuple[int, int] = (128, 128)
+    spacing_mm: float = 1.0
+    translation_scale_mm: float = DEFAULT_LENGTH_SCALE_MM
+    anchor_half_size_mm: float = ANCHOR_HALF_SIZE_MM
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.backbone, BackboneConfig):
+            raise ValueError(
+                "ModelConfig: 'backbone' must be a BackboneConfig, got "
+                f"{type(self.backbone).__name__}"
+            )
+        check_representation(self.representation, "ModelConfig")
+        size = self.input_size
+        ok = isinstance(size, tuple | list) and len(size) == 2
+        if not (ok and all(type(n) is int and n >= MIN_INPUT_SIZE for n in size)):
+            raise ValueError(
+                f"ModelConfig: 'input_size' must be two integers >= {MIN_INPUT_SIZE} (H, W), "
+                f"got {size!r}"
+            )
+        object.__setattr__(self, "input_size", tuple(size))
+        for name in ("spacing_mm", "translation_scale_mm", "anchor_half_size_mm"):
+            check_length(getattr(self, name), "ModelConfig", name)
+            object.__setattr__(self, name, float(getattr(self, name)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-serialisable form of the fields.
+
+        Returns:
+            The fields by name, ``backbone`` as a nested dict and ``input_size`` as a list.
+        """
+        d = dataclasses.asdict(self)
+        d["input_size"] = list(self.input_size)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        """Configuration from :meth:`to_dict`'s form; missing keys take their defaults.
+
+        Args:
+            d: Field values, ``backbone`` a dict of :class:`BackboneConfig` fields.
+
+        Returns:
+            The configuration.
+
+        Raises:
+            ValueError: For an unknown key (named, ``backbone.<key>`` inside the backbone) or a bad
+                value (the field named).
+        """
+        values = dict(_check_keys(d, cls, "ModelConfig.from_dict()", ""))
+        if "backbone" in values:
+            backbone = _check_keys(
+                values["backbone"], BackboneConfig, "ModelConfig.from_dict()", "backbone."
+            )
+            values["backbone"] = BackboneConfig(**backbone)
+        return cls(**values)
+
+
+def _check_keys(d: object, config: type, func: str, prefix: str) -> dict[str, Any]:
+    """``d`` itself after checking that it is a dict whose keys are fields of ``config``."""
+    if not isinstance(d, dict):
+        raise ValueError(f"{func}: '{prefix.rstrip('.') or 'd'}' must be a dict, got {d!r}")
+    fields = {f.name for f in dataclasses.fields(config)}
+    unknown = [k for k in d if k not in fields]
+    if unknown:
+        raise ValueError(
+            f"{func}: unknown key '{prefix}{unknown[0]}'; "
+            f"valid keys are {', '.join(sorted(fields))}"
+        )
+    return d
+
+
+class SlicePoseNet(nn.Module):
+    """CNN that regresses the pose of a 2D slice in the canonical frame.
+
+    Args:
+        config: The architecture and input conventions.
+
+    Attributes:
+        config: The configuration it was built from.
+        backbone: Module mapping (B, 1, H, W) slices to (B, F) features.
+        head: The :class:`models.heads.PoseHead` of ``config.representation``.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        if not isinstance(config, ModelConfig):
+            raise ValueError(
+                f"SlicePoseNet: 'config' must be a ModelConfig, got {type(config).__name__}"
+            )
+        self.config = config
+        self.backbone = build_backbone(config.backbone)
+        self.head = PoseHead(
+            self.backbone.out_features,
+            config.representation,
+            config.translation_scale_mm,
+            config.anchor_half_size_mm,
+        )
+
+    def forward(self, slices: Tensor) -> Tensor:
+        """Labels predicted for slices.
+
+        Args:
+            slices: (B, 1, H, W) float images, normally ``config.input_size`` pixels at
+                ``config.spacing_mm``.
+
+        Returns:
+            (B, D) outputs in the label units of the representation (rad, mm), ``D =
+            OUTPUT_SIZES[config.representation]``.
+
+        Raises:
+            ValueError: If ``slices`` is not a (B, 1, H, W) floating-point tensor.
+        """
+        if not (
+            isinstance(slices, Tensor)
+            and slices.is_floating_point()
+            and slices.dim() == 4
+            and slices.shape[1] == 1
+        ):
+            raise ValueError(
+                "SlicePoseNet.forward(): 'slices' must be a floating-point tensor of shape "
+                f"(B, 1, H, W), got {getattr(slices, 'shape', type(slices).__name__)}"
+            )
+        return self.head(self.backbone(slices))
+
+    def predict_poses(self, slices: Tensor) -> Tensor:
+        """Pose vectors predicted for slices, without gradients.
+
+        The module's mode is left as it is: call ``eval()`` first for inference.
+
+        Args:
+            slices: (B, 1, H, W) float images.
+
+        Returns:
+            (B, 6) pose vectors ``(r, t)`` (rotation vector with angle in ``[0, pi]``, rad;
+            translation, mm) mapping the slice plane to the canonical frame.
+        """
+        with torch.no_grad():
+            return self.head.to_pose(self(slices))
+
+
+def build_model(config: ModelConfig) -> SlicePoseNet:
+    """Build the network described by ``config``.
+
+    Args:
+        config: The architecture and input conventions.
+
+    Returns:
+        The untrained network, which predicts the identity pose for every slice.
+    """
+    return SlicePoseNet(config)
+
+
+def loss_function(
+    representation: Representation, weights: Tensor | None = None
+) -> Callable[[Tensor, Tensor], Tensor]:
+    """The loss that trains a representation, reduced by the mean over the batch.
+
+    * ``"se3"``: :func:`svr.losses.se3_geodesic_loss` with metric weights ``weights``;
+    * ``"quat_translation"``: :func:`svr.losses.posenet_loss`;
+    * ``"anchor_points"``: :func:`svr.losses.anchor_point_loss`;
+    * ``"rotation6d_translation"``: :func:`svr.losses.rotation6d_loss`;
+
+    the baselines with their default parameters.
+
+    Args:
+        representation: One of :data:`sampling.poses.REPRESENTATIONS`.
+        weights: Z as a (6,) diagonal or (6, 6) SPD matrix (rad, mm), or ``None`` for the
+            default; ``"se3"`` only.
+
+    Returns:
+        A function ``loss(outputs, labels)`` of (B, D) network outputs and (B, D) labels of the
+        representation, returning a scalar.
+
+    Raises:
+        ValueError: For an unknown representation, or weights given for a baseline or invalid.
+    """
+    check_representation(representation, "loss_function()")
+    if representation == "se3":
+        if weights is not None:
+            validate_metric_weights(weights, "loss_function")
+        return functools.partial(se3_geodesic_loss, weights=weights)
+    if weights is not None:
+        raise ValueError(
+            f"loss_function(): 'weights' apply to the 'se3' loss only, not {representation!r}"
+        )
+    if representation == "quat_translation":
+        return posenet_loss
+    if representation == "anchor_points":
+        return anchor_point_loss
+    return rotation6d_loss

@@ -1,0 +1,349 @@
+"""Training slice-pose networks: the loop behind ``svr train``.
+
+Data: :class:`sampling.dataset.SliceStream` batches are addressed by index, so step ``s`` always
+trains on the same batch whatever the interruptions: a run resumed from its latest checkpoint
+continues exactly as if it had not stopped (up to floating-point nondeterminism of the device).
+
+Outputs in ``output_dir``: ``checkpoints/step_NNNNNNNNN/`` (:mod:`models.checkpoint`; the newest
+``keep_checkpoints`` are kept), ``log.csv`` and TensorBoard event files
+(:mod:`models.training_log`), and ``train_config.json``.
+
+Distributed data-parallel training: launched with ``torchrun --nproc_per_node N``, each process
+takes every N-th batch (``gloo`` on the CPU, ``nccl`` on CUDA); rank 0 writes the outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import torch
+import torch.distributed as dist
+from torch import Tensor, nn
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from models.checkpoint import (
+    checkpoint_name,
+    latest_checkpoint,
+    load_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+)
+from models.network import ModelConfig, build_model, loss_function
+from models.training_log import TrainingLog
+from sampling.dataset import SliceDatasetConfig, SliceStream
+from sampling.volume import CanonicalVolume
+from svr.files import OutputExistsError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Optimiser and learning-rate schedule.
+
+    Attributes:
+        name: ``"adamw"`` or ``"sgd"`` (with Nesterov momentum 0.9).
+        lr: Peak learning rate, > 0.
+        weight_decay: Decoupled weight decay, >= 0.
+        schedule: ``"cosine"`` (to 0 at the last step) or ``"constant"``, after a linear warm-up.
+        warmup_steps: Linear warm-up steps, >= 0.
+    """
+
+    name: Literal["adamw", "sgd"] = "adamw"
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    schedule: Literal["cosine", "constant"] = "cosine"
+    warmup_steps: int = 100
+
+    def __post_init__(self) -> None:
+        if self.name not in ("adamw", "sgd"):
+            raise ValueError(f"OptimConfig: 'name' must be 'adamw' or 'sgd', got {self.name!r}")
+        if self.schedule not in ("cosine", "constant"):
+            raise ValueError(
+                f"OptimConfig: 'schedule' must be 'cosine' or 'constant', got {self.schedule!r}"
+            )
+        if not self.lr > 0:
+            raise ValueError(f"OptimConfig: 'lr' must be > 0, got {self.lr}")
+        if not self.weight_decay >= 0:
+            raise ValueError(f"OptimConfig: 'weight_decay' must be >= 0, got {self.weight_decay}")
+        if self.warmup_steps < 0:
+            raise ValueError(f"OptimConfig: 'warmup_steps' must be >= 0, got {self.warmup_steps}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run.
+
+    Attributes:
+        output_dir: Folder of checkpoints and logs.
+        model: Architecture and output representation.
+        data: Slices and augmentation; its ``representation`` must be the model's.
+        optim: Optimiser and schedule.
+        steps: Optimisation steps, >= 1.
+        metric_weights: For the SE(3) loss, Z as 6 (diagonal) or 36 (row-major 6x6) numbers;
+            ``None``: the default Z.
+        checkpoint_every: Steps between checkpoints, >= 1 (a last one is always written).
+        keep_checkpoints: How many checkpoints to keep, >= 1.
+        log_every: Steps between log lines, >= 1.
+        workers: ``DataLoader`` worker processes (0: batches made in the main process).
+        device: Torch device.
+        amp: Mixed precision (float16 autocast with loss scaling); CUDA only.
+        seed: Seed of the weight initialisation.
+        data_sources: Names of the training volumes, recorded in checkpoints.
+    """
+
+    output_dir: str
+    model: ModelConfig = field(default_factory=ModelConfig)
+    data: SliceDatasetConfig = field(default_factory=SliceDatasetConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    steps: int = 1000
+    metric_weights: tuple[float, ...] | None = None
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 10
+    workers: int = 0
+    device: str = "cpu"
+    amp: bool = False
+    seed: int = 0
+    data_sources: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "checkpoint_every", "keep_checkpoints", "log_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"TrainConfig: '{name}' must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise ValueError(f"TrainConfig: 'workers' must be >= 0, got {self.workers}")
+        if self.data.representation != self.model.representation:
+            raise ValueError(
+                "TrainConfig: 'data.representation' "
+                f"({self.data.representation!r}) must equal 'model.representation' "
+                f"({self.model.representation!r})"
+            )
+        if self.metric_weights is not None:
+            if self.model.representation != "se3":
+                raise ValueError("TrainConfig: 'metric_weights' only applies to the se3 loss")
+            if len(self.metric_weights) not in (6, 36):
+                raise ValueError(
+                    "TrainConfig: 'metric_weights' must have 6 or 36 numbers, "
+                    f"got {len(self.metric_weights)}"
+                )
+
+    def weights_tensor(self) -> Tensor | None:
+        """Z as a (6,) or (6, 6) float32 tensor, or ``None``."""
+        if self.metric_weights is None:
+            return None
+        z = torch.tensor(self.metric_weights, dtype=torch.float32)
+        return z if z.numel() == 6 else z.reshape(6, 6)
+
+    def to_dict(self) -> dict:
+        """A JSON-serialisable description of the run."""
+        d = asdict(self)
+        d["model"] = self.model.to_dict()
+        return d
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """The outcome of :func:`train`: the final checkpoint and the last logged loss."""
+
+    checkpoint: Path
+    last_loss: float
+    steps_done: int
+
+
+class _StepBatches(Dataset):
+    """Map-style view of a stream's batches ``start, start + stride, ...`` (one per step)."""
+
+    def __init__(self, stream: SliceStream, steps: Sequence[int]) -> None:
+        self.stream = stream
+        self.steps = list(steps)
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def __getitem__(self, i: int) -> dict[str, Tensor]:
+        return self.stream.batch(self.steps[i])
+
+
+def _schedule(config: OptimConfig, steps: int) -> Callable[[int], float]:
+    def factor(step: int) -> float:
+        if step < config.warmup_steps:
+            return (step + 1) / config.warmup_steps
+        if config.schedule == "constant":
+            return 1.0
+        progress = (step - config.warmup_steps) / max(1, steps - config.warmup_steps)
+        return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+    return factor
+
+
+def _optimizer(model: nn.Module, config: OptimConfig) -> torch.optim.Optimizer:
+    if config.name == "sgd":
+        return torch.optim.SGD(
+            model.parameters(),
+            lr=config.lr,
+            momentum=0.9,
+            nesterov=True,
+            weight_decay=config.weight_decay,
+        )
+    return torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+
+
+def _distributed() -> tuple[int, int]:
+    """(rank, world size), initialising the process group when launched by torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return (dist.get_rank(), world) if world > 1 else (0, 1)
+
+
+def checkpoint_config(config: TrainConfig, step: int) -> dict:
+    """The JSON config stored with a checkpoint (what a predictor needs, and provenance)."""
+    return {
+        "model": config.model.to_dict(),
+        "representation": config.model.representation,
+        "input_size": list(config.model.input_size),
+        "spacing_mm": config.model.spacing_mm,
+        "metric_weights": None if config.metric_weights is None else list(config.metric_weights),
+        "training": {
+            "step": step,
+            "steps": config.steps,
+            "data_sources": list(config.data_sources),
+            "run": config.to_dict(),
+        },
+    }
+
+
+def train(
+    config: TrainConfig,
+    volumes: Sequence[CanonicalVolume],
+    *,
+    resume: bool = True,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> TrainResult:
+    """Train a slice-pose network, resuming from the newest checkpoint in ``output_dir``.
+
+    Args:
+        config: The run.
+        volumes: Canonical training volumes (moved to ``config.device``).
+        resume: Continue from the newest complete checkpoint if there is one.
+        overwrite: Start afresh even if ``output_dir`` holds checkpoints (they are kept until
+            pruned by the new run).
+        progress: Show a progress bar.
+
+    Returns:
+        The final checkpoint, the last loss and the number of steps done.
+
+    Raises:
+        OutputExistsError: If ``output_dir`` holds checkpoints and neither ``resume`` nor
+            ``overwrite`` is set.
+    """
+    rank, world = _distributed()
+    device = torch.device(config.device)
+    out = Path(config.output_dir)
+    ckpt_dir = out / "checkpoints"
+    previous = latest_checkpoint(ckpt_dir) if ckpt_dir.is_dir() else None
+    if previous is not None and not resume and not overwrite:
+        raise OutputExistsError(f"{out}: holds checkpoints; resume, or pass --overwrite")
+
+    torch.manual_seed(config.seed)
+    model = build_model(config.model).to(device)
+    optimizer = _optimizer(model, config.optim)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _schedule(config.optim, config.steps))
+    scaler = torch.amp.GradScaler("cuda", enabled=config.amp and device.type == "cuda")
+    start = 0
+    if previous is not None and resume:
+        ckpt = load_checkpoint(previous, map_location=device, with_training_state=True)
+        model.load_state_dict(ckpt.state_dict)
+        state = ckpt.training_state or {}
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        scaler.load_state_dict(state["scaler"])
+        start = int(state["step"])
+        log.info("resumed from %s at step %d", previous, start)
+    net: nn.Module = model
+    if world > 1:
+        net = nn.parallel.DistributedDataParallel(
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
+
+    criterion = loss_function(config.model.representation, config.weights_tensor())
+    stream = SliceStream(
+        [v.to(device) for v in volumes] if config.workers == 0 else volumes, config.data
+    )
+    batches = _StepBatches(stream, range(start * world + rank, config.steps * world, world))
+    loader = DataLoader(
+        batches, batch_size=None, num_workers=config.workers, persistent_workers=False
+    )
+
+    log_file = TrainingLog(out, ["loss", "lr", "images_per_s"]) if rank == 0 else None
+    if rank == 0:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        (out / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1) + "\n")
+
+    def save(step: int) -> Path:
+        state = {
+            "optimizer": optimizer.state_dict(),
+            "scheduler": scheduler.state_dict(),
+            "scaler": scaler.state_dict(),
+            "step": step,
+        }
+        path = save_checkpoint(
+            ckpt_dir / checkpoint_name(step),
+            model.state_dict(),
+            checkpoint_config(config, step),
+            training_state=state,
+            overwrite=True,
+        )
+        prune_checkpoints(ckpt_dir, config.keep_checkpoints)
+        return path
+
+    model.train()
+    last_loss, step, seen, tick = float("nan"), start, 0, time.perf_counter()
+    final = previous
+    bar = tqdm(
+        loader, total=len(batches), initial=0, desc="train", disable=not progress or rank != 0
+    )
+    for step, batch in enumerate(bar, start=start + 1):
+        slices = batch["slices"].to(device, non_blocking=True)
+        labels = batch["labels"].to(device, non_blocking=True)
+        with torch.autocast(device.type, dtype=torch.float16, enabled=scaler.is_enabled()):
+            outputs = net(slices)
+        loss = criterion(outputs.float(), labels)
+        optimizer.zero_grad(set_to_none=True)
+        scaler.scale(loss).backward()
+        scaler.step(optimizer)
+        scaler.update()
+        scheduler.step()
+        seen += slices.shape[0] * world
+        if step % config.log_every == 0 or step == config.steps:
+            last_loss = float(loss.detach())
+            now = time.perf_counter()
+            if log_file is not None:
+                log_file.write(
+                    step,
+                    loss=last_loss,
+                    lr=scheduler.get_last_lr()[0],
+                    images_per_s=seen / (now - tick),
+                )
+                bar.set_postfix(loss=f"{last_loss:.4g}")
+            seen, tick = 0, now
+        if rank == 0 and (step % config.checkpoint_every == 0 or step == config.steps):
+            final = save(step)
+        if world > 1 and step % config.checkpoint_every == 0:
+            dist.barrier()
+    if log_file is not None:
+        log_file.close()
+    if final is None:  # nothing left to do and no checkpoint: only when steps == start == 0
+        final = save(step)
+    return TrainResult(Path(final), last_loss, step)

@@ -1,0 +1,250 @@
+"""Training: the loss falls, checkpoints resume exactly, DDP runs, and the CLI drives it."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter
+
+from models.backbones import BackboneConfig
+from models.checkpoint import latest_checkpoint, load_checkpoint
+from models.network import ModelConfig, build_model, loss_function
+from models.train import OptimConfig, TrainConfig, train
+from sampling.dataset import SliceDatasetConfig, SliceStream
+from sampling.slicer import SliceConfig
+from sampling.volume import canonicalize
+from svr.cli import main
+from svr.files import OutputExistsError
+from svr.image import Image, save_nifti
+
+REPRESENTATIONS = {
+    "se3": "se3",
+    "posenet": "quat_translation",
+    "anchor": "anchor_points",
+    "rot6d": "rotation6d_translation",
+}
+
+
+@pytest.fixture(scope="module")
+def volume():
+    rng = np.random.default_rng(11)
+    n = 32
+    grid = (np.indices((n, n, n)) - (n - 1) / 2) * 2.0
+    mask = np.sqrt((grid[0] / 22) ** 2 + (grid[1] / 28) ** 2 + (grid[2] / 18) ** 2) < 1
+    data = mask * (1 + 3 * gaussian_filter(rng.normal(size=(n, n, n)), 1.5)).clip(0)
+    affine = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0], dtype=torch.float64))
+    return canonicalize(
+        Image(torch.from_numpy(data).float(), affine), Image(torch.from_numpy(mask).float(), affine)
+    )
+
+
+def small_config(out: Path, representation: str = "se3", steps: int = 6, **kw) -> TrainConfig:
+    size = (32, 32)
+    return TrainConfig(
+        output_dir=str(out),
+        model=ModelConfig(
+            backbone=BackboneConfig(width=8, depth=2),
+            representation=representation,
+            input_size=size,
+            spacing_mm=2.0,
+        ),
+        data=SliceDatasetConfig(
+            slice=SliceConfig(size=size, spacing_mm=2.0),
+            batch_size=8,
+            angle_range_deg=30.0,
+            tz_range_mm=10.0,
+            representation=representation,
+        ),
+        optim=OptimConfig(lr=3e-3, warmup_steps=0),
+        steps=steps,
+        checkpoint_every=3,
+        log_every=1,
+        **kw,
+    )
+
+
+def logged(out: Path) -> list[float]:
+    with (out / "log.csv").open() as f:
+        return [float(r["loss"]) for r in csv.DictReader(f)]
+
+
+@pytest.mark.parametrize("loss", sorted(REPRESENTATIONS))
+def test_training_reduces_each_loss(volume, tmp_path, loss, monkeypatch):
+    """The loop optimises: trained on one fixed batch, the loss on that batch falls."""
+    import models.train
+
+    monkeypatch.setattr(
+        models.train._StepBatches, "__getitem__", lambda self, i: self.stream.batch(0)
+    )
+    config = small_config(tmp_path / loss, REPRESENTATIONS[loss], steps=30)
+    result = train(config, [volume], progress=False)
+    assert len(logged(tmp_path / loss)) == 30 and result.steps_done == 30
+    batch = SliceStream([volume], config.data).batch(0)
+    criterion = loss_function(config.model.representation)
+    torch.manual_seed(config.seed)
+    untrained, trained = build_model(config.model), build_model(config.model)
+    ckpt = load_checkpoint(result.checkpoint)
+    trained.load_state_dict(ckpt.state_dict)
+    assert ckpt.config["representation"] == REPRESENTATIONS[loss]
+    with torch.no_grad():  # train-mode normalisation, as during the steps
+        before = criterion(untrained(batch["slices"]), batch["labels"])
+        after = criterion(trained(batch["slices"]), batch["labels"])
+    assert after < 0.75 * before
+
+
+def test_resume_after_a_kill_reproduces_the_run(volume, tmp_path):
+    straight = train(small_config(tmp_path / "a"), [volume], progress=False)
+    # b: the same run, killed after its step-3 checkpoint (the step-6 one never written)
+    train(small_config(tmp_path / "b"), [volume], progress=False)
+    shutil.rmtree(tmp_path / "b" / "checkpoints" / "step_000000006")
+    assert latest_checkpoint(tmp_path / "b" / "checkpoints").name == "step_000000003"
+    resumed = train(small_config(tmp_path / "b"), [volume], progress=False)
+    a, b = load_checkpoint(straight.checkpoint), load_checkpoint(resumed.checkpoint)
+    assert resumed.checkpoint.name == "step_000000006"
+    for name, tensor in a.state_dict.items():
+        torch.testing.assert_close(b.state_dict[name], tensor, rtol=0, atol=0)
+
+
+def test_existing_run_is_not_silently_restarted(volume, tmp_path):
+    train(small_config(tmp_path / "r", steps=3), [volume], progress=False)
+    with pytest.raises(OutputExistsError, match="--overwrite"):
+        train(small_config(tmp_path / "r", steps=3), [volume], resume=False, progress=False)
+    fresh = train(
+        small_config(tmp_path / "r", steps=3),
+        [volume],
+        resume=False,
+        overwrite=True,
+        progress=False,
+    )
+    assert fresh.steps_done == 3
+
+
+def test_config_validation(tmp_path):
+    with pytest.raises(ValueError, match=r"must equal 'model\.representation'"):
+        TrainConfig(
+            output_dir=str(tmp_path),
+            model=ModelConfig(representation="se3"),
+            data=SliceDatasetConfig(representation="anchor_points"),
+        )
+    with pytest.raises(ValueError, match="'metric_weights' only applies"):
+        TrainConfig(
+            output_dir=str(tmp_path),
+            model=ModelConfig(representation="anchor_points"),
+            data=SliceDatasetConfig(representation="anchor_points"),
+            metric_weights=(1.0,) * 6,
+        )
+    with pytest.raises(ValueError, match="'steps'"):
+        TrainConfig(output_dir=str(tmp_path), steps=0)
+
+
+@pytest.fixture(scope="module")
+def volume_files(volume, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("vol")
+    save_nifti(volume.image, folder / "v.nii.gz")
+    save_nifti(Image(volume.mask.float(), volume.image.affine), folder / "m.nii.gz")
+    return ["--input-volumes", str(folder / "v.nii.gz"), "--input-masks", str(folder / "m.nii.gz")]
+
+
+TINY = [
+    "--size",
+    "32",
+    "--spacing",
+    "2",
+    "--width",
+    "8",
+    "--depth",
+    "2",
+    "--batch-size",
+    "4",
+    "--warmup-steps",
+    "0",
+    "--device",
+    "cpu",
+    "--quiet",
+]
+
+
+def test_cli_trains_and_resumes(volume_files, tmp_path, capsys):
+    out = tmp_path / "run"
+    args = [
+        "train",
+        "--output-dir",
+        str(out),
+        *volume_files,
+        *TINY,
+        "--steps",
+        "4",
+        "--checkpoint-every",
+        "2",
+        "--loss",
+        "anchor",
+    ]
+    assert main(args) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["steps"] == 4 and Path(summary["checkpoint"]).name == "step_000000004"
+    assert main([*args[:-4], "--steps", "6", "--checkpoint-every", "2", "--loss", "anchor"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 6
+
+
+def test_cli_errors(tmp_path, capsys):
+    assert (
+        main(["train", "--output-dir", str(tmp_path / "o"), "--input-volumes", "a.nii.gz", *TINY])
+        == 1
+    )
+    assert "must pair up" in capsys.readouterr().err
+    assert (
+        main(
+            [
+                "train",
+                "--output-dir",
+                str(tmp_path / "o"),
+                "--atlas-dir",
+                str(tmp_path / "none"),
+                *TINY,
+            ]
+        )
+        == 1
+    )
+    assert "is not a folder" in capsys.readouterr().err
+
+
+def test_ddp_with_two_cpu_processes(volume_files, tmp_path):
+    torchrun = Path(sys.executable).parent / "torchrun"
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(
+        [
+            str(torchrun),
+            "--nproc_per_node",
+            "2",
+            "--master_port",
+            "29517",
+            "-m",
+            "svr",
+            "train",
+            "--output-dir",
+            str(out),
+            *volume_files,
+            *TINY,
+            "--steps",
+            "3",
+            "--checkpoint-every",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert latest_checkpoint(out / "checkpoints").name == "step_000000003"
+    assert len(list(out.glob("events.out.tfevents.*"))) == 1  # only rank 0 logs
