@@ -252,7 +252,7 @@ def train(
     device = torch.device(config.device)
     out = Path(config.output_dir)
     ckpt_dir = out / "checkpoints"
-    previous = latest_checkpoint(ckpt_dir) if ckpt_dir.is_dir() else None
+    previous = latest_checkpoint(ckpt_dir)
     if previous is not None and not resume and not overwrite:
         raise OutputExistsError(f"{out}: holds checkpoints; resume, or pass --overwrite")
 
@@ -265,7 +265,7 @@ def train(
     if previous is not None and resume:
         ckpt = load_checkpoint(previous, map_location=device, with_training_state=True)
         model.load_state_dict(ckpt.state_dict)
-        state = ckpt.training_state or {}
+        state = ckpt.training_state
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         scaler.load_state_dict(state["scaler"])
