@@ -1,0 +1,398 @@
+"""``svr evaluate``: the paper's Table 3 for trained slice-pose networks on held-out volumes."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from svr.cli.common import (
+    CliError,
+    HelpFormatter,
+    add_common_options,
+    positive_float,
+    positive_int,
+    resolve_device,
+)
+from svr.cli.train import _atlas_pairs
+
+if TYPE_CHECKING:
+    from models.network import SlicePoseNet
+    from sampling.slicer import SliceConfig
+    from sampling.volume import CanonicalVolume
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """\
+Evaluate one or more trained slice-pose networks on held-out brain volumes (volume/mask pairs,
+the gestational ages of an atlas folder that training held out, or built-in phantoms). Every
+checkpoint sees the same slices: --num-slices per volume, cut at random validation poses
+(seeded by --seed) that pass the empty-slice rule, with the models' input size and spacing. Each
+slice is compared with the slice resampled from the ground-truth volume at the predicted pose
+(CC, MSE, PSNR, SSIM) and the pose errors are measured (geodesic distance, Euler angles in
+degrees, translation in mm). --output-dir receives summary.md (the paper's Table 3: mean / median
+per method, and paired t-tests and Wilcoxon tests between methods), summary.csv, per_slice.csv,
+paired_tests.csv, poses.csv (true and predicted pose of every slice), evaluation.json, error
+histograms and example slices (worst and median cases by geodesic distance). The Markdown summary
+is also printed.
+
+A checkpoint DIR is a checkpoint folder (config.json + model.safetensors), a folder of step_*
+checkpoints or a training --output-dir; the last two give their newest checkpoint. NAME=DIR
+names the method in the tables; a plain DIR is named after the folder.
+
+examples:
+  svr evaluate --checkpoints runs/phantom --output-dir eval/phantom
+  svr evaluate --checkpoints se3=runs/se3 posenet=runs/posenet \\
+      --atlas-dir ../shared/data/atlas/sb-fidon2021 --only-ga 24 28 32 \\
+      --num-slices 500 --thickness 3 --output-dir eval/atlas
+"""
+
+NUM_EXAMPLES = 3  # worst and median cases by geodesic distance shown per method
+MAX_DRAW_ROUNDS = 100  # rounds of redrawing poses that break the empty-slice rule
+POSE_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
+
+
+@dataclass
+class _Method:
+    """A checkpoint to evaluate: its label, folder and network (in eval mode)."""
+
+    name: str
+    folder: Path
+    model: SlicePoseNet
+
+
+@dataclass
+class _VolumeSlices:
+    """The validation slices of one volume, shared by every method."""
+
+    source: str
+    volume: CanonicalVolume
+    poses: torch.Tensor  # (N, 6) float64 true poses, on the volume's device
+    slices: torch.Tensor  # (N, H, W) float32 ground-truth slices, on the volume's device
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svr evaluate``."""
+    p = subparsers.add_parser(
+        "evaluate",
+        help="Table-3 evaluation of trained checkpoints",
+        description=DESCRIPTION,
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "--checkpoints",
+        nargs="+",
+        required=True,
+        metavar="[NAME=]DIR",
+        help="checkpoints to compare, each labelled NAME (default: the folder name)",
+    )
+    p.add_argument("--output-dir", required=True, help="the report folder to create")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --output-dir")
+    data = p.add_argument_group("evaluation volumes (default: built-in phantoms)")
+    data.add_argument("--atlas-dir", help="folder of GA*/srr.nii.gz + GA*/mask.nii.gz volumes")
+    data.add_argument(
+        "--only-ga",
+        type=float,
+        nargs="+",
+        default=None,
+        help="gestational ages (weeks) of --atlas-dir to evaluate on (training's --hold-out); "
+        "default: all",
+    )
+    data.add_argument("--input-volumes", nargs="*", default=[], help="volume files")
+    data.add_argument("--input-masks", nargs="*", default=[], help="their masks, in order")
+    data.add_argument(
+        "--phantom-ga",
+        type=positive_float,
+        nargs="+",
+        default=[26.0, 30.0],
+        help="gestational ages of built-in phantoms, without other volumes (training's default "
+        "phantoms are 24, 28 and 32 weeks)",
+    )
+    slices = p.add_argument_group("validation slices")
+    slices.add_argument("--num-slices", type=positive_int, default=200, help="slices per volume")
+    slices.add_argument(
+        "--rotation",
+        choices=["euler", "uniform"],
+        default="euler",
+        help="euler: angles in ±90° (the paper); uniform: all of SO(3)",
+    )
+    slices.add_argument(
+        "--thickness",
+        type=positive_float,
+        default=None,
+        help="slice thickness in mm (Gaussian PSF); default: thin slices",
+    )
+    slices.add_argument(
+        "--min-brain-fraction",
+        type=float,
+        default=0.1,
+        help="redraw poses whose slice has a smaller fraction of pixels in the brain mask",
+    )
+    p.add_argument("--batch-size", type=positive_int, default=64, help="slices per forward pass")
+    add_common_options(p)
+
+
+def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, Path]]:
+    """``[NAME=]DIR`` arguments as (name, folder) pairs with distinct names."""
+    named = []
+    for spec in specs:
+        name, sep, folder = spec.partition("=")
+        if not sep:
+            name, folder = Path(spec).resolve().name, spec
+        if not name or not folder:
+            raise CliError(f"--checkpoints: {spec!r} is not NAME=DIR or DIR")
+        named.append((name, Path(folder)))
+    names = [name for name, _ in named]
+    duplicates = sorted({name for name in names if names.count(name) > 1})
+    if duplicates:
+        raise CliError(
+            f"--checkpoints: method names must differ, {', '.join(duplicates)} appear twice "
+            "(label them NAME=DIR)"
+        )
+    return named
+
+
+def _checkpoint_folder(path: Path) -> Path:
+    """The checkpoint that ``path`` names: itself, or the newest in it or in its checkpoints/."""
+    from models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint
+
+    if not path.is_dir():
+        raise CliError(f"--checkpoints: {path} is not a folder")
+    if (path / CHECKPOINT_CONFIG).is_file():
+        return path
+    for folder in (path / "checkpoints", path):
+        latest = latest_checkpoint(folder)
+        if latest is not None:
+            return latest
+    raise CliError(
+        f"--checkpoints: {path} holds no checkpoint ({CHECKPOINT_CONFIG}, step_*/ or "
+        "checkpoints/step_*/)"
+    )
+
+
+def _load_method(name: str, path: Path, device: str) -> _Method:
+    """Load a checkpoint's network onto ``device``, in eval mode."""
+    from models.checkpoint import load_checkpoint
+    from models.network import ModelConfig, build_model
+
+    folder = _checkpoint_folder(path)
+    checkpoint = load_checkpoint(folder, map_location=device)
+    if not isinstance(checkpoint.config.get("model"), dict):
+        raise CliError(f"--checkpoints: {folder} records no model configuration")
+    try:
+        model = build_model(ModelConfig.from_dict(checkpoint.config["model"]))
+    except ValueError as err:
+        raise CliError(f"--checkpoints: {folder}: bad model configuration: {err}") from err
+    try:
+        model.load_state_dict(checkpoint.state_dict)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0]
+        raise CliError(f"--checkpoints: {folder}: weights do not fit the model: {first}") from err
+    log.info("%s: %s (%s)", name, folder, model.config.representation)
+    return _Method(name, folder, model.to(device).eval())
+
+
+def _common_geometry(methods: list[_Method]) -> tuple[tuple[int, int], float]:
+    """The input size and spacing that every model shares.
+
+    Raises:
+        CliError: If the models differ in either.
+    """
+    geometry = {m.name: (m.model.config.input_size, m.model.config.spacing_mm) for m in methods}
+    if len(set(geometry.values())) > 1:
+        listed = ", ".join(
+            f"{name} {size[0]}x{size[1]} px at {spacing:g} mm"
+            for name, (size, spacing) in geometry.items()
+        )
+        raise CliError(
+            f"--checkpoints: the models must share input size and spacing to see the same "
+            f"slices, got {listed}"
+        )
+    return next(iter(geometry.values()))
+
+
+def _volumes(args: argparse.Namespace) -> tuple[list[CanonicalVolume], list[str]]:
+    """The evaluation volumes named by the options, and a name for each."""
+    from sampling.phantom import gestational_age_config, make_phantom
+    from sampling.volume import canonicalize, load_canonical_volume
+
+    if len(args.input_volumes) != len(args.input_masks):
+        raise CliError(
+            f"--input-volumes ({len(args.input_volumes)}) and --input-masks "
+            f"({len(args.input_masks)}) must pair up"
+        )
+    if args.only_ga is not None and not args.atlas_dir:
+        raise CliError("--only-ga needs --atlas-dir")
+    pairs = [(Path(v), Path(m)) for v, m in zip(args.input_volumes, args.input_masks, strict=True)]
+    if args.atlas_dir:
+        atlas = _atlas_pairs(args.atlas_dir, [])
+        if args.only_ga is not None:
+            try:
+                others = set(_atlas_pairs(args.atlas_dir, args.only_ga))
+            except CliError:  # --only-ga names every volume of the folder
+                others = set()
+            atlas = [pair for pair in atlas if pair not in others]
+            if not atlas:
+                ages = " ".join(f"{ga:g}" for ga in args.only_ga)
+                raise CliError(f"--only-ga {ages}: no such GA*/srr.nii.gz in {args.atlas_dir}")
+        pairs += atlas
+    if pairs:
+        return [load_canonical_volume(v, m) for v, m in pairs], [str(v) for v, _ in pairs]
+    volumes = [
+        canonicalize(*make_phantom(gestational_age_config(ga)), name="phantom")
+        for ga in args.phantom_ga
+    ]
+    return volumes, [f"phantom GA {ga:g}" for ga in args.phantom_ga]
+
+
+def _validation_slices(
+    volume: CanonicalVolume,
+    source: str,
+    config: SliceConfig,
+    args: argparse.Namespace,
+    generator: torch.Generator,
+) -> _VolumeSlices:
+    """Random validation poses of one volume that pass the empty-slice rule, and their slices."""
+    from sampling.poses import random_slice_poses
+    from sampling.slicer import brain_fraction, sample_slices
+    from svr.image import Image
+
+    device = volume.image.data.device
+    mask = Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
+    kept: list[torch.Tensor] = []
+    count = 0
+    for _ in range(MAX_DRAW_ROUNDS):
+        poses = random_slice_poses(2 * args.num_slices, generator, rotation=args.rotation)
+        keep = brain_fraction(mask, poses.to(device), config).cpu() >= args.min_brain_fraction
+        kept.append(poses[keep])
+        count += int(keep.sum())
+        if count >= args.num_slices:
+            break
+    if count < args.num_slices:
+        raise CliError(
+            f"{source}: only {count} of {args.num_slices} slices reach --min-brain-fraction "
+            f"{args.min_brain_fraction}; lower it or check the mask"
+        )
+    poses = torch.cat(kept)[: args.num_slices].to(device)
+    return _VolumeSlices(source, volume, poses, sample_slices(volume.image, poses, config).float())
+
+
+def _predict(model: SlicePoseNet, slices: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """(N, 6) predicted poses of (N, H, W) slices, in batches, without gradients."""
+    return torch.cat(
+        [model.predict_poses(batch.unsqueeze(1)) for batch in torch.split(slices, batch_size)]
+    )
+
+
+def _example_indices(geodesic: np.ndarray) -> list[int]:
+    """The slices with the largest geodesic errors, then those around the median."""
+    order = np.argsort(geodesic, kind="stable")
+    worst = order[::-1][:NUM_EXAMPLES].tolist()
+    start = max(0, len(order) // 2 - NUM_EXAMPLES // 2)
+    median = [i for i in order[start : start + NUM_EXAMPLES].tolist() if i not in worst]
+    return worst + median
+
+
+def _examples(
+    data: list[_VolumeSlices],
+    per_slice: dict[str, np.ndarray],
+    predicted: torch.Tensor,
+    config: SliceConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth and predicted-pose slices of a method's worst and median cases."""
+    from sampling.slicer import sample_slices
+
+    volume_of = np.concatenate([np.full(len(d.poses), v) for v, d in enumerate(data)])
+    first = np.cumsum([0] + [len(d.poses) for d in data])
+    truth, resampled = [], []
+    for i in _example_indices(per_slice["geodesic"]):
+        d, j = data[volume_of[i]], i - first[volume_of[i]]
+        truth.append(d.slices[j].cpu().numpy())
+        pose = predicted[i : i + 1].to(d.volume.image.data.device, torch.float64)
+        resampled.append(sample_slices(d.volume.image, pose, config)[0].float().cpu().numpy())
+    return np.stack(truth), np.stack(resampled)
+
+
+def _poses_csv(data: list[_VolumeSlices], predicted: dict[str, torch.Tensor]) -> str:
+    """CSV of the true pose (``poses = true``) and each method's prediction of every slice."""
+    sources = [d.source for d in data for _ in range(len(d.poses))]
+    true = torch.cat([d.poses.cpu() for d in data])
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["poses", "slice", "volume", *POSE_COLUMNS])
+    for label, poses in {"true": true, **predicted}.items():
+        for i, pose in enumerate(poses.double().tolist()):
+            writer.writerow([label, i, sources[i], *(format(x, ".10g") for x in pose)])
+    return buffer.getvalue()
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``svr evaluate``."""
+    from models.evaluation import EvalConfig, evaluate_poses, write_report
+    from sampling.slicer import SliceConfig
+    from svr.files import atomic_write_text, check_output_path
+
+    if not 0 <= args.min_brain_fraction < 1:
+        raise CliError(f"--min-brain-fraction must be in [0, 1), got {args.min_brain_fraction}")
+    out = check_output_path(args.output_dir, args.overwrite)
+    device = resolve_device(args.device)
+    named = _parse_checkpoint_specs(args.checkpoints)
+    methods = [_load_method(name, path, device) for name, path in named]
+    size, spacing = _common_geometry(methods)
+    config = SliceConfig(size=size, spacing_mm=spacing, thickness_mm=args.thickness)
+    volumes, sources = _volumes(args)
+
+    generator = torch.Generator().manual_seed(args.seed)
+    data = [
+        _validation_slices(volume.to(device), source, config, args, generator)
+        for volume, source in zip(volumes, sources, strict=True)
+    ]
+    eval_config = EvalConfig(slice=config)
+    results: dict[str, dict[str, np.ndarray]] = {}
+    predicted: dict[str, torch.Tensor] = {}
+    for method in methods:
+        per_volume = []
+        poses = []
+        for d in data:
+            pred = _predict(method.model, d.slices, args.batch_size)
+            per_volume.append(evaluate_poses(d.volume, d.poses, pred, eval_config, d.slices))
+            poses.append(pred.cpu())
+        results[method.name] = {
+            key: np.concatenate([r[key] for r in per_volume]) for key in per_volume[0]
+        }
+        predicted[method.name] = torch.cat(poses)
+        log.info(
+            "%s: median geodesic %.3f",
+            method.name,
+            float(np.median(results[method.name]["geodesic"])),
+        )
+    examples = {
+        name: _examples(data, per_slice, predicted[name], config)
+        for name, per_slice in results.items()
+    }
+    write_report(results, out, args.overwrite, examples=examples)
+    atomic_write_text(out / "poses.csv", _poses_csv(data, predicted))
+    info = {
+        "checkpoints": {m.name: str(m.folder) for m in methods},
+        "volumes": sources,
+        "slices_per_volume": args.num_slices,
+        "rotation": args.rotation,
+        "input_size": list(size),
+        "spacing_mm": spacing,
+        "thickness_mm": args.thickness,
+        "min_brain_fraction": args.min_brain_fraction,
+        "seed": args.seed,
+    }
+    atomic_write_text(out / "evaluation.json", json.dumps(info, indent=1) + "\n")
+    total = sum(len(d.poses) for d in data)
+    print(f"wrote {out}: {len(methods)} methods on {total} slices from {len(data)} volumes\n")
+    print((out / "summary.md").read_text(encoding="utf-8"), end="")
+    return 0
