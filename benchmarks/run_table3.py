@@ -74,7 +74,7 @@ BUDGETS = {
         z_slices=64,
     ),
     "cpu": Budget(
-        steps=1500,
+        steps=16000,
         batch_size=32,
         size=96,
         spacing_mm=1.4,
