@@ -22,7 +22,10 @@ def test_help_lists_subcommands(capsys):
         main(["--help"])
     assert info.value.code == 0
     out = capsys.readouterr().out
-    assert all(c in out for c in ("demo", "simulate", "sample")) and "usage: svr" in out
+    assert (
+        all(c in out for c in ("demo", "simulate", "sample", "train", "predict", "evaluate"))
+        and "usage: svr" in out
+    )
 
 
 def test_demo_help_describes_options(capsys):

@@ -14,13 +14,14 @@ import sys
 from collections.abc import Sequence
 
 from svr import __version__
-from svr.cli import demo, evaluate, sample, simulate, train
+from svr.cli import demo, evaluate, predict, sample, simulate, train
 from svr.cli.common import CliError
 
 SUBCOMMANDS = {
     "simulate": simulate,
     "sample": sample,
     "train": train,
+    "predict": predict,
     "evaluate": evaluate,
     "demo": demo,
 }
