@@ -2,7 +2,7 @@
 
 Run from the repository root::
 
-    python benchmarks/bench_train.py [--batch-size 32] [--width 32] [--depth 4] [--warmup 2]
+    python benchmarks/bench_train.py [--batch-size 32] [--width 32] [--depth 4] [--warmup 3]
         [--repeats 5] [--threads 2] [--device cpu|cuda|all]
 
 For the ResNet and Inception backbones (``--width``, ``--depth``) with the SE(3) pose head and
@@ -124,14 +124,14 @@ class Case:
         kind: ``"model"`` (model step), ``"data"`` (stream batches) or ``"train"`` (``train()``).
         device: ``"cpu"`` or ``"cuda"``.
         backbone: The backbone name, ``"-"`` for data rows.
-        data: The stream of a data row, a key of :data:`DATA_CONFIGS`.
+        data: The stream of a data row, a key of :data:`DATA_CONFIGS`; ``"-"`` for other rows.
         amp: Float16 autocast and loss scaling (model rows on CUDA).
     """
 
     kind: Literal["model", "data", "train"]
     device: str
     backbone: str = "-"
-    data: str = THIN
+    data: str = "-"
     amp: bool = False
 
     @property
@@ -296,7 +296,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=32, help="slices per step")
     parser.add_argument("--width", type=int, default=32, help="backbone width")
     parser.add_argument("--depth", type=int, default=4, help="backbone depth")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed steps first")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first")
     parser.add_argument("--repeats", type=int, default=5, help="timed steps per row")
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     parser.add_argument(
