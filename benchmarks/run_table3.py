@@ -29,7 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -173,8 +173,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="default: runs/table3-BUDGET")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--steps", type=int, default=None, help="override the budget's steps")
     args = parser.parse_args()
     budget = BUDGETS[args.budget]
+    if args.steps is not None:
+        budget = replace(budget, steps=args.steps)
     out = args.out or ROOT / "runs" / f"table3-{args.budget}"
     out.mkdir(parents=True, exist_ok=True)
     device = (
