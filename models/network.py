@@ -243,3 +243,17 @@ def loss_function(
     if representation == "anchor_points":
         return anchor_point_loss
     return rotation6d_loss
+
+
+def checkpoint_model_config(config: ModelConfig) -> dict:
+    """The part of a checkpoint's JSON config that a predictor needs.
+
+    ``model`` (:meth:`ModelConfig.to_dict`), and for readers of the JSON its ``representation``,
+    ``input_size`` (pixels) and ``spacing_mm``.
+    """
+    return {
+        "model": config.to_dict(),
+        "representation": config.representation,
+        "input_size": list(config.input_size),
+        "spacing_mm": config.spacing_mm,
+    }

@@ -37,7 +37,7 @@ from models.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from models.network import ModelConfig, build_model, loss_function
+from models.network import ModelConfig, build_model, checkpoint_model_config, loss_function
 from models.training_log import TrainingLog
 from sampling.dataset import SliceDatasetConfig, SliceStream
 from sampling.volume import CanonicalVolume
@@ -209,10 +209,7 @@ def _distributed() -> tuple[int, int]:
 def checkpoint_config(config: TrainConfig, step: int) -> dict:
     """The JSON config stored with a checkpoint (what a predictor needs, and provenance)."""
     return {
-        "model": config.model.to_dict(),
-        "representation": config.model.representation,
-        "input_size": list(config.model.input_size),
-        "spacing_mm": config.model.spacing_mm,
+        **checkpoint_model_config(config.model),
         "metric_weights": None if config.metric_weights is None else list(config.metric_weights),
         "training": {
             "step": step,

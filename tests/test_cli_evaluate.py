@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 import torch
-from scipy.ndimage import gaussian_filter
+from synthetic import ellipsoid_brain
 
 from models.backbones import BackboneConfig
 from models.checkpoint import checkpoint_name, save_checkpoint
-from models.network import ModelConfig, build_model
+from models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.cli import evaluate, main
-from svr.image import Image, save_nifti
+from svr.image import save_nifti
 
 
 def _save_model(folder, representation, size=32, seed=0):
@@ -28,26 +28,15 @@ def _save_model(folder, representation, size=32, seed=0):
     torch.manual_seed(seed)
     model = build_model(cfg)
     torch.nn.init.normal_(model.head.linear.weight, std=0.5)
-    config = {
-        "model": cfg.to_dict(),
-        "representation": cfg.representation,
-        "input_size": list(cfg.input_size),
-        "spacing_mm": cfg.spacing_mm,
-    }
-    return save_checkpoint(folder, model.state_dict(), config)
+    return save_checkpoint(folder, model.state_dict(), checkpoint_model_config(cfg))
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("evaluate")
-    rng = np.random.default_rng(3)
-    n = 40
-    grid = (np.indices((n, n, n)) - (n - 1) / 2) * 1.5
-    mask = np.sqrt((grid[0] / 22) ** 2 + (grid[1] / 26) ** 2 + (grid[2] / 20) ** 2) < 1
-    data = mask * (1 + 2 * gaussian_filter(rng.normal(size=(n, n, n)), 2)).clip(0)
-    affine = torch.diag(torch.tensor([1.5, 1.5, 1.5, 1.0], dtype=torch.float64))
-    save_nifti(Image(torch.from_numpy(data).float(), affine), folder / "brain.nii.gz")
-    save_nifti(Image(torch.from_numpy(mask).float(), affine), folder / "mask.nii.gz")
+    volume, mask = ellipsoid_brain(40, 1.5, (22, 26, 20), seed=3)
+    save_nifti(volume, folder / "brain.nii.gz")
+    save_nifti(mask, folder / "mask.nii.gz")
     run_dir = folder / "run_se3" / "checkpoints"
     run_dir.mkdir(parents=True)
     _save_model(run_dir / checkpoint_name(10), "se3", seed=1)

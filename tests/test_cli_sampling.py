@@ -4,30 +4,22 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
 import pytest
-import torch
 from oracles import foreground_cc, truth_poses
-from scipy.ndimage import gaussian_filter
+from synthetic import ellipsoid_brain
 
 from sampling.slicer import SliceConfig, sample_slices
 from svr.cli import main
-from svr.image import Image, load_nifti, save_nifti
+from svr.image import load_nifti, save_nifti
 from svr.pose_io import read_pose_table
 
 
 @pytest.fixture(scope="module")
 def brain_files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("brain")
-    rng = np.random.default_rng(5)
-    n = 40
-    grid = (np.indices((n, n, n)) - (n - 1) / 2) * 1.5
-    mask = np.sqrt((grid[0] / 22) ** 2 + (grid[1] / 26) ** 2 + (grid[2] / 20) ** 2) < 1
-    data = mask * (1 + 2 * gaussian_filter(rng.normal(size=(n, n, n)), 2)).clip(0)
-    affine = torch.diag(torch.tensor([1.5, 1.5, 1.5, 1.0], dtype=torch.float64))
-    affine[:3, 3] = torch.tensor([-20.0, -35.0, 10.0])
-    save_nifti(Image(torch.from_numpy(data).float(), affine), folder / "brain.nii.gz")
-    save_nifti(Image(torch.from_numpy(mask).float(), affine), folder / "mask.nii.gz")
+    volume, mask = ellipsoid_brain(40, 1.5, (22, 26, 20), seed=5, origin_mm=(-20.0, -35.0, 10.0))
+    save_nifti(volume, folder / "brain.nii.gz")
+    save_nifti(mask, folder / "mask.nii.gz")
     return [
         "--input-volume",
         str(folder / "brain.nii.gz"),

@@ -12,7 +12,7 @@ import torch
 import svr.cli
 from models.backbones import BackboneConfig
 from models.checkpoint import CheckpointError, save_checkpoint
-from models.network import ModelConfig, build_model
+from models.network import ModelConfig, build_model, checkpoint_model_config
 from models.predict import (
     load_pose_model,
     load_slice_folder,
@@ -31,13 +31,7 @@ F64 = torch.float64
 
 
 def save_model(folder: Path, model: torch.nn.Module, config: ModelConfig = CONFIG) -> Path:
-    info = {
-        "model": config.to_dict(),
-        "representation": config.representation,
-        "input_size": list(config.input_size),
-        "spacing_mm": config.spacing_mm,
-    }
-    return save_checkpoint(folder, model.state_dict(), info)
+    return save_checkpoint(folder, model.state_dict(), checkpoint_model_config(config))
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from oracles import foreground_cc, truth_poses
-from scipy.ndimage import gaussian_filter
+from synthetic import ellipsoid_brain
 
 from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
 from sampling.simulate import (
@@ -30,18 +30,9 @@ SMALL = {"in_plane_mm": 2.0, "thickness_mm": 4.0, "margin_mm": 2.0}
 
 @pytest.fixture(scope="module")
 def brain():
-    rng = np.random.default_rng(3)
-    n, spacing = 36, 1.5
-    grid = (np.indices((n, n, n)) - (n - 1) / 2) * spacing
-    r = np.sqrt((grid[0] / 20) ** 2 + (grid[1] / 24) ** 2 + (grid[2] / 18) ** 2)
-    mask = (r < 1).astype(np.float32)
-    texture = gaussian_filter(rng.normal(size=(n, n, n)), 2.0)
-    data = (mask * (1.0 + 3.0 * texture)).clip(0).astype(np.float32)
-    affine = torch.eye(4, dtype=torch.float64)
-    affine[:3, :3] *= spacing
-    affine[:3, 3] = torch.tensor([5.0, -7.0, 3.0])  # the source frame is not centred
+    # The source frame is not centred on the brain.
     return canonicalize(
-        Image(torch.from_numpy(data), affine), Image(torch.from_numpy(mask), affine)
+        *ellipsoid_brain(36, 1.5, (20, 24, 18), seed=3, texture=3.0, origin_mm=(5.0, -7.0, 3.0))
     )
 
 

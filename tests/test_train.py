@@ -10,10 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from scipy.ndimage import gaussian_filter
+from synthetic import ellipsoid_brain
 
 from models.backbones import BackboneConfig
 from models.checkpoint import latest_checkpoint, load_checkpoint
@@ -36,14 +35,8 @@ REPRESENTATIONS = {
 
 @pytest.fixture(scope="module")
 def volume():
-    rng = np.random.default_rng(11)
-    n = 32
-    grid = (np.indices((n, n, n)) - (n - 1) / 2) * 2.0
-    mask = np.sqrt((grid[0] / 22) ** 2 + (grid[1] / 28) ** 2 + (grid[2] / 18) ** 2) < 1
-    data = mask * (1 + 3 * gaussian_filter(rng.normal(size=(n, n, n)), 1.5)).clip(0)
-    affine = torch.diag(torch.tensor([2.0, 2.0, 2.0, 1.0], dtype=torch.float64))
     return canonicalize(
-        Image(torch.from_numpy(data).float(), affine), Image(torch.from_numpy(mask).float(), affine)
+        *ellipsoid_brain(32, 2.0, (22, 28, 18), seed=11, texture=3.0, smoothing=1.5)
     )
 
 
