@@ -20,8 +20,8 @@ Steps, all through the ``svr`` command line (so the run is what a user would do)
        and translation errors) with paired tests, written under ``OUT/report``.
 
 Budgets (per model): ``smoke`` a few steps of a tiny network (about 30 s in all); ``cpu`` 16,000
-steps of 32 slices (measured ~430 slices/s on 2 cores: ~20 min a model, ~1.5 h in all, within the
-2 h budget); ``gpu`` the paper-scale run.
+steps of 32 slices (estimated from the measured ~430 slices/s on 2 cores: ~20 min a model,
+~1.5 h in all, within the 2 h budget); ``gpu`` the paper-scale run.
 """
 
 from __future__ import annotations
