@@ -26,6 +26,7 @@ from collections.abc import Callable
 from functools import partial
 
 import torch
+from bench_common import add_device_options, resolve_devices
 from torch import Tensor
 
 from svr.geometry import (
@@ -101,21 +102,9 @@ def run(device: torch.device, n: int, repeats: int) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=200, help="timed calls per case")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument(
-        "--device",
-        choices=["cpu", "cuda", "all"],
-        default=None,
-        help="default: cpu, plus cuda when available",
-    )
+    add_device_options(parser)
     args = parser.parse_args()
-    if args.device in ("cuda", "all") and not torch.cuda.is_available():
-        parser.error("CUDA is not available")
-    if args.device is None:
-        devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
-    else:
-        devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
-    torch.set_num_threads(args.threads)
+    devices = resolve_devices(parser, args)
 
     print(f"torch {torch.__version__}, {args.threads} CPU threads, median of {args.repeats}")
     print(f"{'loss':<16}{'N':>6}  {'device':<7}{'time us':>10}{'x mse':>8}{'exact / this':>14}")

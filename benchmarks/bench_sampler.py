@@ -53,6 +53,7 @@ import numpy as np
 import scipy
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
 import torch
+from bench_common import add_device_options, resolve_devices
 from scipy import ndimage
 from torch import Tensor
 
@@ -347,24 +348,12 @@ def main() -> None:
     parser.add_argument("--mask", type=Path, default=None, help="NIfTI brain mask of --volume")
     parser.add_argument("--batch", type=int, default=256, help="slices per call")
     parser.add_argument("--repeats", type=int, default=7, help="timed calls per method")
-    parser.add_argument("--threads", type=int, default=2, help="CPU threads for every method")
     parser.add_argument("--seed", type=int, default=0, help="seed of the pose generator")
-    parser.add_argument(
-        "--device",
-        choices=["cpu", "cuda", "all"],
-        default=None,
-        help="default: cpu, plus cuda (ours only) when available",
-    )
+    add_device_options(parser, cuda_note=" (ours only)")
     args = parser.parse_args()
     if (args.volume is None) != (args.mask is None):
         parser.error("--volume and --mask go together")
-    if args.device in ("cuda", "all") and not torch.cuda.is_available():
-        parser.error("CUDA is not available")
-    if args.device is None:
-        devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
-    else:
-        devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
-    torch.set_num_threads(args.threads)
+    devices = resolve_devices(parser, args)
 
     volume, source = load_volume(args.volume, args.mask)
     poses = random_poses(args.batch, torch.Generator().manual_seed(args.seed))

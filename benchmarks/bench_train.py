@@ -53,6 +53,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+from bench_common import add_device_options, resolve_devices
 from bench_sampler import status_kib
 
 from models.backbones import BACKBONE_NAMES, BackboneConfig
@@ -298,24 +299,12 @@ def main() -> None:
     parser.add_argument("--depth", type=int, default=4, help="backbone depth")
     parser.add_argument("--warmup", type=int, default=3, help="untimed steps first")
     parser.add_argument("--repeats", type=int, default=5, help="timed steps per row")
-    parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")
-    parser.add_argument(
-        "--device",
-        choices=["cpu", "cuda", "all"],
-        default=None,
-        help="default: cpu, plus cuda when available",
-    )
+    add_device_options(parser)
     args = parser.parse_args()
-    if args.device in ("cuda", "all") and not torch.cuda.is_available():
-        parser.error("CUDA is not available")
-    if args.device is None:
-        devices = ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
-    else:
-        devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
+    devices = resolve_devices(parser, args)
     settings = Settings(
         args.batch_size, args.width, args.depth, args.warmup, args.repeats, args.threads
     )
-    torch.set_num_threads(args.threads)
 
     inputs = make_inputs(args.batch_size)
     print(

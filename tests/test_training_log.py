@@ -30,41 +30,32 @@ def read_records(path):
     return records
 
 
+def read_varint(buf, i):
+    """A protobuf varint at ``buf[i]``: (value, index after it)."""
+    value, shift = 0, 0
+    while True:
+        b = buf[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        shift += 7
+        if not b & 0x80:
+            return value, i
+
+
 def parse(buf):
     """A minimal protobuf reader: {field number: [values]} (varint, fixed64, bytes, fixed32)."""
     out, i = {}, 0
     while i < len(buf):
-        key, shift = 0, 0
-        while True:
-            b = buf[i]
-            i += 1
-            key |= (b & 0x7F) << shift
-            shift += 7
-            if not b & 0x80:
-                break
+        key, i = read_varint(buf, i)
         number, wire = key >> 3, key & 7
         if wire == 0:
-            value, shift = 0, 0
-            while True:
-                b = buf[i]
-                i += 1
-                value |= (b & 0x7F) << shift
-                shift += 7
-                if not b & 0x80:
-                    break
+            value, i = read_varint(buf, i)
         elif wire == 1:
             value, i = buf[i : i + 8], i + 8
         elif wire == 5:
             value, i = buf[i : i + 4], i + 4
         else:
-            length, shift = 0, 0
-            while True:
-                b = buf[i]
-                i += 1
-                length |= (b & 0x7F) << shift
-                shift += 7
-                if not b & 0x80:
-                    break
+            length, i = read_varint(buf, i)
             value, i = buf[i : i + length], i + length
         out.setdefault(number, []).append(value)
     return out
