@@ -38,8 +38,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from models.checkpoint import CheckpointError, load_checkpoint
+from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 from models.network import ModelConfig, SlicePoseNet, build_model
+from models.pretrained import resolve_model_path
 from sampling.slicer import SliceConfig, sample_slices
 from sampling.volume import DEFAULT_PERCENTILE
 from svr.geometry import se3_compose, se3_from_vector, se3_inverse, se3_to_vector
@@ -50,6 +51,7 @@ __all__ = [
     "SliceFile",
     "load_pose_model",
     "load_slice_folder",
+    "pose_model_from_checkpoint",
     "predict_slice_folder",
     "predict_stack_poses",
     "prepare_stack_slices",
@@ -91,22 +93,46 @@ class _Prepared:
 def load_pose_model(
     path: str | os.PathLike[str], device: str | torch.device = "cpu"
 ) -> tuple[SlicePoseNet, ModelConfig]:
-    """Load a slice-pose network from a checkpoint folder, ready for inference.
+    """Load a slice-pose network from a checkpoint folder or the shipped model, for inference.
 
     Args:
         path: A checkpoint folder written by :func:`models.checkpoint.save_checkpoint` whose config
-            has a ``"model"`` section (:meth:`ModelConfig.to_dict`), as ``svr train`` writes.
+            has a ``"model"`` section (:meth:`ModelConfig.to_dict`), as ``svr train`` and
+            :func:`models.pretrained.export.export_model` write; or the name ``"default"``
+            (:data:`models.pretrained.DEFAULT_MODEL`) for the model shipped in the package.
+            Weights stored in float16 are cast back to their recorded float32.
         device: Where the network runs.
 
     Returns:
         The network in eval mode on ``device``, and its configuration.
 
     Raises:
-        CheckpointError: Naming the path, if the checkpoint cannot be read (see
-            :func:`~models.checkpoint.load_checkpoint`), its config has no usable ``"model"``
-            section, or its weights do not fit the network that section describes.
+        CheckpointError: Naming the path, if ``"default"`` is asked for but the shipped model is
+            not installed, the checkpoint cannot be read (see
+            :func:`~models.checkpoint.load_checkpoint`; nothing in it is executed), or
+            :func:`pose_model_from_checkpoint` refuses it.
     """
-    checkpoint = load_checkpoint(path, map_location=device)
+    checkpoint = load_checkpoint(resolve_model_path(path), map_location=device)
+    return pose_model_from_checkpoint(checkpoint, device)
+
+
+def pose_model_from_checkpoint(
+    checkpoint: Checkpoint, device: str | torch.device = "cpu"
+) -> tuple[SlicePoseNet, ModelConfig]:
+    """Build the slice-pose network that a loaded checkpoint describes, with its weights.
+
+    Args:
+        checkpoint: A loaded checkpoint (:func:`~models.checkpoint.load_checkpoint`).
+        device: Where the network runs.
+
+    Returns:
+        The network in eval mode on ``device``, and its configuration.
+
+    Raises:
+        CheckpointError: Naming the checkpoint's folder, if its config has no usable ``"model"``
+            section or its weights do not fit the network that section describes.
+    """
+    path = checkpoint.path
     try:
         config = ModelConfig.from_dict(checkpoint.config["model"])
     except KeyError as err:

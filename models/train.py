@@ -1,7 +1,9 @@
 """Training slice-pose networks: the loop behind ``svr train``.
 
-Data: :class:`sampling.dataset.SliceStream` batches are addressed by index, so step ``s`` always
-trains on the same batch whatever the interruptions: a run resumed from its latest checkpoint
+Data: :class:`sampling.dataset.SliceStream` batches (random poses) or
+:class:`sampling.dataset.EulerGridStream` batches (the shuffled Euler grid,
+``TrainConfig.pose_sampling="grid"``) are addressed by index, so step ``s`` always trains on the
+same batch whatever the interruptions: a run resumed from its latest checkpoint
 continues exactly as if it had not stopped (up to floating-point nondeterminism of the device).
 
 Outputs in ``output_dir``: ``checkpoints/step_NNNNNNNNN/`` (:mod:`models.checkpoint`; the newest
@@ -39,7 +41,8 @@ from models.checkpoint import (
 )
 from models.network import ModelConfig, build_model, checkpoint_model_config, loss_function
 from models.training_log import TrainingLog
-from sampling.dataset import SliceDatasetConfig, SliceStream
+from sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
+from sampling.poses import DEFAULT_EULER_GRID, EulerGridConfig
 from sampling.volume import CanonicalVolume
 from svr.files import OutputExistsError
 
@@ -99,6 +102,12 @@ class TrainConfig:
         amp: Mixed precision (float16 autocast with loss scaling); CUDA only.
         seed: Seed of the weight initialisation.
         data_sources: Names of the training volumes, recorded in checkpoints.
+        pose_sampling: ``"random"``: random poses drawn per batch
+            (:class:`~sampling.dataset.SliceStream`);
+            ``"grid"``: the Euler-grid poses of every volume, shuffled
+            (:class:`~sampling.dataset.EulerGridStream`; needs ``data.rotation == "euler"``, and
+            ``data.angle_range_deg`` and ``data.tz_range_mm`` are replaced by ``grid``'s).
+        grid: The Euler grid of ``pose_sampling="grid"`` (default: the paper's).
     """
 
     output_dir: str
@@ -115,8 +124,20 @@ class TrainConfig:
     amp: bool = False
     seed: int = 0
     data_sources: tuple[str, ...] = ()
+    pose_sampling: Literal["random", "grid"] = "random"
+    grid: EulerGridConfig = DEFAULT_EULER_GRID
 
     def __post_init__(self) -> None:
+        if self.pose_sampling not in ("random", "grid"):
+            raise ValueError(
+                "TrainConfig: 'pose_sampling' must be 'random' or 'grid', "
+                f"got {self.pose_sampling!r}"
+            )
+        if self.pose_sampling == "grid" and self.data.rotation != "euler":
+            raise ValueError(
+                "TrainConfig: 'pose_sampling' 'grid' samples Euler angles; 'data.rotation' must "
+                f"be 'euler', got {self.data.rotation!r}"
+            )
         for name in ("steps", "checkpoint_every", "keep_checkpoints", "log_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig: '{name}' must be >= 1, got {getattr(self, name)}")
@@ -275,9 +296,11 @@ def train(
         )
 
     criterion = loss_function(config.model.representation, config.weights_tensor())
-    stream = SliceStream(
-        [v.to(device) for v in volumes] if config.workers == 0 else volumes, config.data
-    )
+    sources = [v.to(device) for v in volumes] if config.workers == 0 else volumes
+    if config.pose_sampling == "grid":
+        stream = EulerGridStream(sources, config.data, config.grid)
+    else:
+        stream = SliceStream(sources, config.data)
     batches = _StepBatches(stream, range(start * world + rank, config.steps * world, world))
     loader = DataLoader(
         batches, batch_size=None, num_workers=config.workers, persistent_workers=False

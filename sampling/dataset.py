@@ -5,7 +5,8 @@
   in-plane shifts), the empty-slice rule, per-batch in-plane spacing and thickness jitter, and
   intensity augmentation (:mod:`sampling.augment`).
 * :class:`EulerGridDataset`: the paper's regular Euler grid over one volume (map-style), for the
-  paper-scale experiment.
+  paper-scale experiment; :class:`EulerGridStream`: the grids of several volumes as a shuffled,
+  resumable training stream with :class:`SliceStream`'s batches and augmentation.
 
 **Empty-slice rule.** A slice is kept only if at least ``min_brain_fraction`` of its pixels lie
 inside the brain mask (:func:`sampling.slicer.brain_fraction`: the mask sampled by nearest
@@ -166,6 +167,9 @@ def _mask_image(volume: CanonicalVolume) -> Image:
     return Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
 
 
+_GRID_ORDER_TAG = 0x67726964  # keeps the seeds of grid passes apart from those of batches
+
+
 def _batch_seed(seed: int, epoch: int, index: int) -> int:
     """A 64-bit seed hashed from the stream seed, the epoch and the batch index."""
     return int(np.random.SeedSequence([seed, epoch, index]).generate_state(1, np.uint64)[0])
@@ -275,13 +279,9 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
                 )
         cfg = self.config
         generator = torch.Generator().manual_seed(_batch_seed(cfg.seed, epoch, index))
-        b, n = cfg.batch_size, len(self.volumes)
+        b = cfg.batch_size
         slice_config = self._draw_slice_config(generator)
-        if cfg.mix_volumes:
-            volume_index = torch.randint(n, (b,), generator=generator)
-        else:
-            volume_index = torch.randint(n, (1,), generator=generator).repeat(b)
-        poses = self._draw_poses(volume_index, slice_config, generator)
+        volume_index, poses = self._batch_poses(index, epoch, slice_config, generator)
 
         slices = torch.empty((b, *slice_config.size), dtype=torch.float32, device=self.device)
         for v in volume_index.unique().tolist():
@@ -314,6 +314,22 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
             low, high = cfg.thickness_range_mm
             thickness = low + (high - low) * u[1]
         return dataclasses.replace(cfg.slice, spacing_mm=spacing, thickness_mm=thickness)
+
+    def _batch_poses(
+        self, index: int, epoch: int, slice_config: SliceConfig, generator: torch.Generator
+    ) -> tuple[Tensor, Tensor]:
+        """The batch's (B,) int64 volume indices and (B, 6) float64 CPU poses.
+
+        Random poses here (each batch from one volume unless ``config.mix_volumes``); subclasses
+        choose them otherwise. ``index`` and ``epoch`` identify the batch; ``generator`` is its
+        random stream, after the slice configuration's draws.
+        """
+        b, n = self.config.batch_size, len(self.volumes)
+        if self.config.mix_volumes:
+            volume_index = torch.randint(n, (b,), generator=generator)
+        else:
+            volume_index = torch.randint(n, (1,), generator=generator).repeat(b)
+        return volume_index, self._draw_poses(volume_index, slice_config, generator)
 
     def _draw_poses(
         self, volume_index: Tensor, slice_config: SliceConfig, generator: torch.Generator
@@ -348,6 +364,87 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
             f"max_resample_rounds={cfg.max_resample_rounds}; lower 'min_brain_fraction', "
             "'tz_range_mm' or 'shift_mm', or enlarge the slices"
         )
+
+
+class EulerGridStream(SliceStream):
+    """Training batches at the Euler-grid poses of every volume, shuffled (the paper's data).
+
+    The items are the ``(volume, grid pose)`` pairs that pass the empty-slice rule: the poses of an
+    :class:`EulerGridDataset` of each volume, built with ``config.slice`` (size and nominal
+    spacing) and ``config.min_brain_fraction``. The stream goes through all ``N`` items in
+    *passes*: pass ``p`` of epoch ``e`` is a permutation of the items seeded by
+    ``(config.seed, e, p)``, cut into ``N // batch_size`` full batches (the last ``N mod
+    batch_size`` items of the permutation are left out of that pass). Batch ``i`` is batch
+    ``i mod (N // batch_size)`` of pass ``i // (N // batch_size)``, so, as in
+    :class:`SliceStream`, a batch is a pure function of ``(config.seed, epoch, index)`` and a
+    training run resumed at step ``s`` sees the batches it would have seen.
+
+    Everything else is :class:`SliceStream`'s: the batch dict, per-batch spacing and thickness
+    jitter, in-plane shifts of up to ``config.shift_mm`` (applied to the grid pose; the label is
+    that of the shifted slice) and intensity augmentation, all drawn from the batch's generator.
+    The grid replaces the random poses: ``config.rotation``, ``angle_range_deg``,
+    ``tz_range_mm``, ``mix_volumes`` and ``max_resample_rounds`` are not used.
+
+    Args:
+        volumes: One or more canonical volumes, all on one device (where the grid is swept and
+            slices are sampled).
+        config: How batches are drawn; ``None`` for ``SliceDatasetConfig()``.
+        grid: The Euler grid (default: the paper's, 54,571 poses per volume).
+
+    Attributes:
+        grid_volume_index: (N,) int64 volume of each item, on the CPU.
+        grid_poses: (N, 6) float64 grid pose of each item (rad, mm), on the CPU.
+        batches_per_pass: ``N // config.batch_size``.
+
+    Raises:
+        ValueError: As :class:`SliceStream`, or if fewer than ``config.batch_size`` grid poses
+            pass the empty-slice rule.
+    """
+
+    def __init__(
+        self,
+        volumes: Sequence[CanonicalVolume],
+        config: SliceDatasetConfig | None = None,
+        grid: EulerGridConfig = DEFAULT_EULER_GRID,
+    ) -> None:
+        super().__init__(volumes, config)
+        cfg = self.config
+        grids = [
+            EulerGridDataset(v, grid, cfg.slice, cfg.min_brain_fraction, cfg.representation)
+            for v in self.volumes
+        ]
+        self.grid_volume_index = torch.cat(
+            [torch.full((len(g),), v, dtype=torch.int64) for v, g in enumerate(grids)]
+        )
+        self.grid_poses = torch.cat([g.poses for g in grids])
+        self.batches_per_pass = len(self.grid_poses) // cfg.batch_size
+        if self.batches_per_pass == 0:
+            raise ValueError(
+                f"EulerGridStream: only {len(self.grid_poses)} grid poses pass the empty-slice "
+                f"rule, fewer than batch_size={cfg.batch_size}; use a finer grid, more volumes "
+                "or a lower 'min_brain_fraction'"
+            )
+        self._order: tuple[tuple[int, int], Tensor] | None = None
+
+    def _pass_order(self, epoch: int, pass_index: int) -> Tensor:
+        """(N,) int64 permutation of the items in pass ``pass_index`` of ``epoch`` (cached)."""
+        key = (epoch, pass_index)
+        if self._order is None or self._order[0] != key:
+            seed = np.random.SeedSequence([self.config.seed, epoch, pass_index, _GRID_ORDER_TAG])
+            generator = torch.Generator().manual_seed(int(seed.generate_state(1, np.uint64)[0]))
+            self._order = key, torch.randperm(len(self.grid_poses), generator=generator)
+        return self._order[1]
+
+    def _batch_poses(
+        self, index: int, epoch: int, slice_config: SliceConfig, generator: torch.Generator
+    ) -> tuple[Tensor, Tensor]:
+        """The batch's items of its pass, with in-plane shifts drawn from ``generator``."""
+        b = self.config.batch_size
+        pass_index, position = divmod(index, self.batches_per_pass)
+        items = self._pass_order(epoch, pass_index)[position * b : (position + 1) * b]
+        shifts = 2.0 * torch.rand(b, 2, generator=generator, dtype=torch.float64) - 1.0
+        poses = shift_poses(self.grid_poses[items], shifts * self.config.shift_mm)
+        return self.grid_volume_index[items], poses
 
 
 class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):

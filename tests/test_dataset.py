@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from torch.utils.data import DataLoader
 
 from sampling.augment import SliceAugmentConfig, shift_poses
-from sampling.dataset import EulerGridDataset, SliceDatasetConfig, SliceStream
+from sampling.dataset import EulerGridDataset, EulerGridStream, SliceDatasetConfig, SliceStream
 from sampling.poses import EulerGridConfig, euler_grid_poses, pose_labels
 from sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from sampling.volume import CanonicalVolume, canonicalize
@@ -279,3 +279,53 @@ def test_euler_grid_dataset_without_rule_keeps_everything(volumes):
 def test_euler_grid_dataset_bad_arguments(volumes, kwargs, field):
     with pytest.raises(ValueError, match=field):
         EulerGridDataset(volumes[0], GRID, SLICE, **kwargs)
+
+
+def item_counts(volume_index: torch.Tensor, poses: torch.Tensor) -> dict[tuple, int]:
+    """How often each (volume, pose) occurs (the grid repeats rotations at gimbal lock)."""
+    keys = torch.cat([volume_index[:, None].double(), poses.round(decimals=6)], dim=1)
+    rows, counts = keys.unique(dim=0, return_counts=True)
+    return {tuple(r): int(c) for r, c in zip(rows.tolist(), counts.tolist(), strict=True)}
+
+
+def test_euler_grid_stream_visits_every_kept_pose_once_per_pass(volumes):
+    cfg = config(batch_size=7, num_batches=None, augment=SliceAugmentConfig())
+    stream = EulerGridStream(volumes, cfg, GRID)
+    per_volume = [EulerGridDataset(v, GRID, SLICE, cfg.min_brain_fraction) for v in volumes]
+    assert torch.equal(stream.grid_poses, torch.cat([d.poses for d in per_volume]))
+    n = len(stream.grid_poses)
+    assert stream.batches_per_pass == n // 7 > 2
+    batches = [stream.batch(i) for i in range(stream.batches_per_pass)]
+    seen = item_counts(
+        torch.cat([b["volume_index"] for b in batches]), torch.cat([b["poses"] for b in batches])
+    )
+    available = item_counts(stream.grid_volume_index, stream.grid_poses)
+    assert sum(seen.values()) == 7 * (n // 7)
+    assert all(count <= available.get(key, 0) for key, count in seen.items())  # none twice
+    assert set(stream.batch(0)["volume_index"].tolist()) <= {0, 1}
+    # The next pass is another permutation; batches are pure functions of (seed, epoch, index).
+    assert not torch.equal(stream.batch(0)["poses"], stream.batch(stream.batches_per_pass)["poses"])
+    fresh = EulerGridStream(volumes, cfg, GRID)
+    for i in (stream.batches_per_pass + 1, 3, 0):
+        assert_batches_equal(fresh.batch(i), stream.batch(i))
+    assert not torch.equal(fresh.batch(0, epoch=1)["poses"], stream.batch(0)["poses"])
+
+
+def test_euler_grid_stream_batches_are_cut_and_labelled_at_their_shifted_poses(volumes):
+    cfg = config(batch_size=5, shift_mm=3.0, thickness_range_mm=(1.0, 3.0))
+    stream = EulerGridStream(volumes, cfg, GRID)
+    batch = stream.batch(4)
+    in_plane = batch["poses"][:, None, :] - stream.grid_poses[None]
+    assert not bool((in_plane.abs().amax(-1) < 1e-9).any())  # every pose shifted
+    torch.testing.assert_close(batch["labels"], pose_labels(batch["poses"], "se3").float())
+    for v in batch["volume_index"].unique().tolist():
+        chosen = batch["volume_index"] == v
+        expected = sample_slices(
+            volumes[v].image, batch["poses"][chosen], batch_slice_config(batch)
+        )
+        torch.testing.assert_close(batch["slices"][chosen, 0], expected.float())
+
+
+def test_euler_grid_stream_needs_a_full_batch(volumes):
+    with pytest.raises(ValueError, match="fewer than batch_size=100000"):
+        EulerGridStream(volumes[:1], config(batch_size=100000), GRID)

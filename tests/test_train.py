@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import shutil
@@ -18,13 +19,15 @@ from models.backbones import BackboneConfig
 from models.checkpoint import latest_checkpoint, load_checkpoint
 from models.network import ModelConfig, build_model, loss_function
 from models.train import OptimConfig, TrainConfig, train
-from sampling.dataset import SliceDatasetConfig, SliceStream
+from sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
+from sampling.poses import EulerGridConfig
 from sampling.slicer import SliceConfig
 from sampling.volume import canonicalize
 from svr.cli import main
 from svr.files import OutputExistsError
 from svr.image import Image, save_nifti
 
+COARSE_GRID = EulerGridConfig(angle_step_deg=45.0, tz_step_mm=10.0, tz_range_mm=20.0)
 REPRESENTATIONS = {
     "se3": "se3",
     "posenet": "quat_translation",
@@ -94,17 +97,44 @@ def test_training_reduces_each_loss(volume, tmp_path, loss, monkeypatch):
     assert after < 0.75 * before
 
 
-def test_resume_after_a_kill_reproduces_the_run(volume, tmp_path):
-    straight = train(small_config(tmp_path / "a"), [volume], progress=False)
+@pytest.mark.parametrize("pose_sampling", ["random", "grid"])
+def test_resume_after_a_kill_reproduces_the_run(volume, tmp_path, pose_sampling):
+    kw = {"pose_sampling": pose_sampling, "grid": COARSE_GRID}
+    straight = train(small_config(tmp_path / "a", **kw), [volume], progress=False)
     # b: the same run, killed after its step-3 checkpoint (the step-6 one never written)
-    train(small_config(tmp_path / "b"), [volume], progress=False)
+    train(small_config(tmp_path / "b", **kw), [volume], progress=False)
     shutil.rmtree(tmp_path / "b" / "checkpoints" / "step_000000006")
     assert latest_checkpoint(tmp_path / "b" / "checkpoints").name == "step_000000003"
-    resumed = train(small_config(tmp_path / "b"), [volume], progress=False)
+    resumed = train(small_config(tmp_path / "b", **kw), [volume], progress=False)
     a, b = load_checkpoint(straight.checkpoint), load_checkpoint(resumed.checkpoint)
     assert resumed.checkpoint.name == "step_000000006"
     for name, tensor in a.state_dict.items():
         torch.testing.assert_close(b.state_dict[name], tensor, rtol=0, atol=0)
+
+
+def test_grid_sampling_trains_on_the_shuffled_grid(volume, tmp_path, monkeypatch):
+    """With pose_sampling="grid" step s trains on batch s - 1 of the EulerGridStream."""
+    import models.train
+
+    trained_on = []
+    original = models.train._StepBatches.__getitem__
+
+    def record(self, i):
+        batch = original(self, i)
+        trained_on.append((type(self.stream), batch["poses"]))
+        return batch
+
+    monkeypatch.setattr(models.train._StepBatches, "__getitem__", record)
+    config = small_config(tmp_path / "grid", steps=4, pose_sampling="grid", grid=COARSE_GRID)
+    result = train(config, [volume], progress=False)
+    assert result.steps_done == 4 and len(logged(tmp_path / "grid")) == 4
+    stream = EulerGridStream([volume], config.data, COARSE_GRID)
+    assert stream.batches_per_pass >= 4
+    for step, (kind, poses) in enumerate(trained_on):
+        assert kind is EulerGridStream
+        torch.testing.assert_close(poses, stream.batch(step)["poses"], rtol=0, atol=0)
+    run = load_checkpoint(result.checkpoint).config["training"]["run"]
+    assert run["pose_sampling"] == "grid" and run["grid"]["angle_step_deg"] == 45.0
 
 
 def test_existing_run_is_not_silently_restarted(volume, tmp_path):
@@ -137,6 +167,14 @@ def test_config_validation(tmp_path):
         )
     with pytest.raises(ValueError, match="'steps'"):
         TrainConfig(output_dir=str(tmp_path), steps=0)
+    with pytest.raises(ValueError, match="'pose_sampling' must be 'random' or 'grid'"):
+        TrainConfig(output_dir=str(tmp_path), pose_sampling="lattice")
+    with pytest.raises(ValueError, match=r"'data\.rotation' must be 'euler'"):
+        TrainConfig(
+            output_dir=str(tmp_path),
+            data=SliceDatasetConfig(rotation="uniform"),
+            pose_sampling="grid",
+        )
 
 
 @pytest.fixture(scope="module")
@@ -186,6 +224,18 @@ def test_cli_trains_and_resumes(volume_files, tmp_path, capsys):
     assert summary["steps"] == 4 and Path(summary["checkpoint"]).name == "step_000000004"
     assert main([*args[:-4], "--steps", "6", "--checkpoint-every", "2", "--loss", "anchor"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 6
+
+
+def test_cli_trains_on_the_paper_grid(volume_files, tmp_path, capsys):
+    out = tmp_path / "grid"
+    args = ["train", "--output-dir", str(out), *volume_files, *TINY, "--steps", "2"]
+    assert main([*args, "--pose-sampling", "grid"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 2
+    run = json.loads((out / "train_config.json").read_text())
+    assert run["pose_sampling"] == "grid" and run["grid"] == dataclasses.asdict(EulerGridConfig())
+    uniform = [*args, "--pose-sampling", "grid", "--rotation", "uniform", "--overwrite"]
+    assert main(uniform) == 1
+    assert "'data.rotation' must be 'euler'" in capsys.readouterr().err
 
 
 def test_cli_errors(tmp_path, capsys):

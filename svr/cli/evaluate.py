@@ -45,18 +45,19 @@ histograms and example slices (worst and median cases by geodesic distance). The
 is also printed.
 
 A checkpoint DIR is a checkpoint folder (config.json + model.safetensors), a folder of step_*
-checkpoints or a training --output-dir; the last two give their newest checkpoint. NAME=DIR
-names the method in the tables; a plain DIR is named after the folder.
+checkpoints, a training --output-dir (the last two give their newest checkpoint), or `default`:
+the model shipped with the package (write ./default for a folder of that name). NAME=DIR names
+the method in the tables; a plain DIR is named after the folder.
 
 examples:
   svr evaluate --checkpoints runs/phantom --output-dir eval/phantom
+  svr evaluate --checkpoints shipped=default mine=runs/se3 --output-dir eval/compare
   svr evaluate --checkpoints se3=runs/se3 posenet=runs/posenet \\
       --atlas-dir ../shared/data/atlas/sb-fidon2021 --only-ga 24 28 32 \\
       --num-slices 500 --thickness 3 --output-dir eval/atlas
 """
 
 NUM_EXAMPLES = 3  # worst and median cases by geodesic distance shown per method
-MAX_DRAW_ROUNDS = 100  # rounds of redrawing poses that break the empty-slice rule
 POSE_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
 
 
@@ -92,7 +93,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         required=True,
         metavar="[NAME=]DIR",
-        help="checkpoints to compare, each labelled NAME (default: the folder name)",
+        help="checkpoints to compare, each labelled NAME (default: the folder name); DIR "
+        "'default' is the model shipped with the package",
     )
     p.add_argument("--output-dir", required=True, help="the report folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --output-dir")
@@ -140,8 +142,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
-def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, Path]]:
-    """``[NAME=]DIR`` arguments as (name, folder) pairs with distinct names."""
+def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, str]]:
+    """``[NAME=]DIR`` arguments as (name, DIR) pairs with distinct names."""
     named = []
     for spec in specs:
         name, sep, folder = spec.partition("=")
@@ -149,7 +151,7 @@ def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, Path]]:
             name, folder = Path(spec).resolve().name, spec
         if not name or not folder:
             raise CliError(f"--checkpoints: {spec!r} is not NAME=DIR or DIR")
-        named.append((name, Path(folder)))
+        named.append((name, folder))
     names = [name for name, _ in named]
     duplicates = sorted({name for name in names if names.count(name) > 1})
     if duplicates:
@@ -160,10 +162,14 @@ def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, Path]]:
     return named
 
 
-def _checkpoint_folder(path: Path) -> Path:
-    """The checkpoint that ``path`` names: itself, or the newest in it or in its checkpoints/."""
+def _checkpoint_folder(spec: str) -> Path:
+    """The checkpoint a DIR names: the shipped model, the folder, or its newest step_*/."""
     from models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint
+    from models.pretrained import DEFAULT_MODEL, resolve_model_path
 
+    if spec == DEFAULT_MODEL:
+        return resolve_model_path(spec)
+    path = Path(spec)
     if not path.is_dir():
         raise CliError(f"--checkpoints: {path} is not a folder")
     if (path / CHECKPOINT_CONFIG).is_file():
@@ -178,26 +184,14 @@ def _checkpoint_folder(path: Path) -> Path:
     )
 
 
-def _load_method(name: str, path: Path, device: str) -> _Method:
-    """Load a checkpoint's network onto ``device``, in eval mode."""
-    from models.checkpoint import load_checkpoint
-    from models.network import ModelConfig, build_model
+def _load_method(name: str, spec: str, device: str) -> _Method:
+    """Load the network of a ``--checkpoints`` DIR onto ``device``, in eval mode."""
+    from models.predict import load_pose_model
 
-    folder = _checkpoint_folder(path)
-    checkpoint = load_checkpoint(folder, map_location=device)
-    if not isinstance(checkpoint.config.get("model"), dict):
-        raise CliError(f"--checkpoints: {folder} records no model configuration")
-    try:
-        model = build_model(ModelConfig.from_dict(checkpoint.config["model"]))
-    except ValueError as err:
-        raise CliError(f"--checkpoints: {folder}: bad model configuration: {err}") from err
-    try:
-        model.load_state_dict(checkpoint.state_dict)
-    except RuntimeError as err:
-        first = str(err).splitlines()[0]
-        raise CliError(f"--checkpoints: {folder}: weights do not fit the model: {first}") from err
-    log.info("%s: %s (%s)", name, folder, model.config.representation)
-    return _Method(name, folder, model.to(device).eval())
+    folder = _checkpoint_folder(spec)
+    model, config = load_pose_model(folder, device)
+    log.info("%s: %s (%s)", name, folder, config.representation)
+    return _Method(name, folder, model)
 
 
 def _common_geometry(methods: list[_Method]) -> tuple[tuple[int, int], float]:
@@ -261,27 +255,15 @@ def _validation_slices(
     generator: torch.Generator,
 ) -> _VolumeSlices:
     """Random validation poses of one volume that pass the empty-slice rule, and their slices."""
-    from sampling.poses import random_slice_poses
-    from sampling.slicer import brain_fraction, sample_slices
-    from svr.image import Image
+    from models.evaluation import draw_validation_poses
+    from sampling.slicer import sample_slices
 
-    device = volume.image.data.device
-    mask = Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
-    kept: list[torch.Tensor] = []
-    count = 0
-    for _ in range(MAX_DRAW_ROUNDS):
-        poses = random_slice_poses(2 * args.num_slices, generator, rotation=args.rotation)
-        keep = brain_fraction(mask, poses.to(device), config).cpu() >= args.min_brain_fraction
-        kept.append(poses[keep])
-        count += int(keep.sum())
-        if count >= args.num_slices:
-            break
-    if count < args.num_slices:
-        raise CliError(
-            f"{source}: only {count} of {args.num_slices} slices reach --min-brain-fraction "
-            f"{args.min_brain_fraction}; lower it or check the mask"
+    try:
+        poses = draw_validation_poses(
+            volume, args.num_slices, config, generator, args.rotation, args.min_brain_fraction
         )
-    poses = torch.cat(kept)[: args.num_slices].to(device)
+    except ValueError as err:
+        raise CliError(f"{source}: {err} (--min-brain-fraction)") from err
     return _VolumeSlices(source, volume, poses, sample_slices(volume.image, poses, config).float())
 
 
@@ -345,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output_path(args.output_dir, args.overwrite)
     device = resolve_device(args.device)
     named = _parse_checkpoint_specs(args.checkpoints)
-    methods = [_load_method(name, path, device) for name, path in named]
+    methods = [_load_method(name, spec, device) for name, spec in named]
     size, spacing = _common_geometry(methods)
     config = SliceConfig(size=size, spacing_mm=spacing, thickness_mm=args.thickness)
     volumes, sources = _volumes(args)

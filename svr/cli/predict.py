@@ -23,6 +23,8 @@ A slices.nii.gz written by `svr sample` is a stack; --input-slices reads NeSVoR-
 folders (0.nii.gz, 1.nii.gz, ... and optional mask_0.nii.gz, ...).
 
 examples:
+  svr predict --model default --input-stacks ax.nii.gz --stack-masks ax_mask.nii.gz \\
+      --output-poses poses.csv
   svr predict --model runs/se3/step_000020000 --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
       --stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --output-poses poses.csv
   svr predict --model runs/se3/step_000020000 --input-stacks slices.nii.gz \\
@@ -41,7 +43,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=HelpFormatter,
     )
     p.add_argument(
-        "--model", required=True, metavar="CHECKPOINT_DIR", help="checkpoint folder from svr train"
+        "--model",
+        required=True,
+        metavar="CHECKPOINT_DIR",
+        help="checkpoint folder from svr train, or 'default': the model shipped with the package "
+        "(write ./default for a folder of that name)",
     )
     p.add_argument("--input-stacks", nargs="+", default=[], metavar="STACK", help="stacks (NIfTI)")
     p.add_argument(

@@ -25,13 +25,16 @@ LOSSES = {
 DESCRIPTION = """\
 Train a CNN that predicts each 2D slice's pose in canonical (atlas) space, on slices cut on the
 fly from brain volumes (an atlas folder, volume/mask pairs, or the built-in phantom) at random
-poses, with scanner-like augmentation. Checkpoints (safetensors + JSON) are written every
---checkpoint-every steps; rerunning the same command resumes from the newest one.
+poses or at the paper's Euler grid (--pose-sampling grid), with scanner-like augmentation.
+Checkpoints (safetensors + JSON) are written every --checkpoint-every steps; rerunning the same
+command resumes from the newest one.
 
 examples:
   svr train --output-dir runs/phantom --steps 200
   svr train --output-dir runs/se3 --atlas-dir ../shared/data/atlas/sb-fidon2021 \\
       --hold-out 24 28 32 --loss se3 --steps 20000 --thickness-range 1 4 --augment
+  svr train --output-dir runs/grid --atlas-dir ../shared/data/atlas/sb-fidon2021 \\
+      --hold-out 24 28 32 --pose-sampling grid --steps 60000 --device cuda
   torchrun --nproc_per_node 2 -m svr train --output-dir runs/ddp --steps 1000
 """
 
@@ -101,6 +104,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         choices=["euler", "uniform"],
         default="euler",
         help="euler: angles in ±90° (the paper); uniform: all of SO(3)",
+    )
+    slices.add_argument(
+        "--pose-sampling",
+        choices=["random", "grid"],
+        default="random",
+        help="random: new random poses every batch (--rotation); grid: the paper's Euler grid "
+        "(Rx, Ry, Rz in 18° steps over ±90°, Tz in 2 mm steps over ±40 mm) of every volume, "
+        "shuffled (needs --rotation euler; the sweep at the start takes a while on a CPU)",
     )
     slices.add_argument("--shift-mm", type=float, default=0.0, help="in-plane shift range")
     slices.add_argument(
@@ -212,6 +223,7 @@ def run(args: argparse.Namespace) -> int:
         device=resolve_device(args.device),
         amp=args.amp,
         seed=args.seed,
+        pose_sampling=args.pose_sampling,
     )
     volumes, sources = _volumes(args)
     config = TrainConfig(**{**config.__dict__, "data_sources": tuple(sources)})

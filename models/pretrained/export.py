@@ -1,0 +1,131 @@
+"""Export a trained checkpoint as a small, self-describing model to ship or share.
+
+An exported model is a checkpoint folder (:mod:`models.checkpoint`) without a training state:
+``model.safetensors`` with the weights in float16 (their float32 dtype recorded, so loading casts
+them back) and ``config.json`` holding exactly what :func:`models.predict.load_pose_model` needs
+(the ``"model"`` section), the source run's ``"training"`` section, the caller's
+``"provenance"`` and an ``"export"`` section (source checkpoint, its step and weights hash, library
+versions). It is written atomically and is at most :data:`models.pretrained.MAX_MODEL_BYTES`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import safetensors
+import torch
+
+from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from models.network import checkpoint_model_config
+from models.predict import pose_model_from_checkpoint
+from models.pretrained import MAX_MODEL_BYTES
+from svr import __version__ as svr_version
+
+__all__ = ["REQUIRED_PROVENANCE", "export_model"]
+
+REQUIRED_PROVENANCE = ("training_command", "data")
+"""Keys that the ``provenance`` of :func:`export_model` must have."""
+
+_HALF = torch.float16
+_BYTES_PER_TENSOR_RECORD = 512  # a tensor's entries in the safetensors header and the config
+
+
+def _stored_bytes(state_dict: dict[str, torch.Tensor]) -> int:
+    """Bytes of the tensors once floating-point ones are stored in float16."""
+    return sum(
+        t.numel() * (_HALF.itemsize if t.is_floating_point() else t.element_size())
+        for t in state_dict.values()
+    )
+
+
+def _check_provenance(out: Path, provenance: object) -> dict[str, Any]:
+    """``provenance`` itself, checked to be a JSON-serialisable dict with the required keys."""
+    if not isinstance(provenance, dict):
+        raise CheckpointError(out, f"provenance must be a dict, got {type(provenance).__name__}")
+    missing = [key for key in REQUIRED_PROVENANCE if not provenance.get(key)]
+    if missing:
+        raise CheckpointError(
+            out,
+            f"provenance must record {', '.join(repr(k) for k in REQUIRED_PROVENANCE)}; "
+            f"missing or empty: {', '.join(missing)}",
+        )
+    try:
+        json.dumps(provenance, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(out, f"provenance is not JSON-serialisable: {exc}") from exc
+    return provenance
+
+
+def export_model(
+    checkpoint_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    provenance: dict[str, Any],
+    overwrite: bool = False,
+) -> Path:
+    """Write a checkpoint's network as a float16 model folder with its provenance.
+
+    Args:
+        checkpoint_dir: A checkpoint folder written by ``svr train`` (its config has a ``"model"``
+            section and the weights fit it).
+        out_dir: The model folder to create; its parent folder must exist. It must not be
+            ``checkpoint_dir``.
+        provenance: JSON-serialisable description of how the model was made, stored verbatim as
+            the config's ``"provenance"``; must have non-empty ``"training_command"`` (the exact
+            command) and ``"data"`` (the training data, its source and licence) entries
+            (:data:`REQUIRED_PROVENANCE`).
+        overwrite: Whether an existing ``out_dir`` (the whole folder) may be replaced.
+
+    Returns:
+        ``out_dir``.
+
+    Raises:
+        CheckpointError: Naming the path, if the checkpoint cannot be loaded as a slice-pose
+            model, ``provenance`` lacks a required key or is not JSON-serialisable, a weight
+            overflows float16, or the model would exceed :data:`~models.pretrained.MAX_MODEL_BYTES`
+            (checked before anything is written).
+        OutputExistsError: If ``out_dir`` exists and ``overwrite`` is false.
+        ValueError: If ``out_dir`` is ``checkpoint_dir``.
+        FileNotFoundError: If the parent folder of ``out_dir`` does not exist.
+    """
+    source, out = Path(checkpoint_dir), Path(out_dir)
+    if out.resolve() == source.resolve():
+        raise ValueError(f"export_model(): 'out_dir' {out} is the checkpoint folder itself")
+    provenance = _check_provenance(out, provenance)
+    checkpoint = load_checkpoint(source)
+    model, config = pose_model_from_checkpoint(checkpoint)
+    state_dict = model.state_dict()
+    training = checkpoint.config.get("training")
+    export_config = {
+        **checkpoint_model_config(config),
+        "metric_weights": checkpoint.config.get("metric_weights"),
+        "training": training,
+        "provenance": provenance,
+        "export": {
+            "source_checkpoint": str(source),
+            "source_step": training.get("step") if isinstance(training, dict) else None,
+            "source_weights_sha256": checkpoint.config["checkpoint"]["weights_sha256"],
+            "weights_dtype": str(_HALF).removeprefix("torch."),
+            "versions": {
+                "fetal_svr": svr_version,
+                "torch": torch.__version__,
+                "safetensors": safetensors.__version__,
+                "numpy": np.__version__,
+                "python": platform.python_version(),
+            },
+        },
+    }
+    size = _stored_bytes(state_dict) + len(json.dumps(export_config, indent=2).encode())
+    size += _BYTES_PER_TENSOR_RECORD * len(state_dict)
+    if size > MAX_MODEL_BYTES:
+        raise CheckpointError(
+            source,
+            f"the exported model would take about {size / 1e6:.2f} MB; it must stay within "
+            f"{MAX_MODEL_BYTES / 1e6:g} MB (train a smaller model: --width, --depth)",
+        )
+    return save_checkpoint(out, state_dict, export_config, half_precision=True, overwrite=overwrite)

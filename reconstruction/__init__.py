@@ -1,0 +1,1 @@
+"""Slice-to-volume reconstruction: stacks to slices, pose initialisation, SVR, super-resolution."""

@@ -1,0 +1,289 @@
+"""Learned pose initialisation: CNN slice poses made rigid per stack by robust averaging.
+
+A slice-pose network (:mod:`models.predict`) predicts the canonical pose ``P_i`` of every slice
+independently, so single predictions can be far off. Within a stack the slices are (up to fetal
+motion) one rigid body, so each prediction also proposes a scanner -> canonical transform
+
+    A_i = P_i o S_i^-1,
+
+with ``S_i`` the slice's acquisition (scanner-frame) pose. The robust mean ``A_s`` of a stack's
+``A_i`` (:func:`robust_mean_pose`) gives its consensus poses ``A_s o S_i``, which a minority of
+gross outliers cannot move; the robust mean ``A`` over all slices is the one map that brings
+scanner-frame poses (e.g. from stack registration) into canonical space.
+
+Frames and origins (``DESIGN.md``): :func:`models.predict.predict_stack_poses` returns poses of
+the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
+stack's (cropped) array, indexed by that array's ``k``. A :class:`~reconstruction.slices.SliceSet`
+slice has its origin at the centre of its zero-padded array and is indexed by the file's ``k``
+(``Stack.k_indices``). With ``C_k`` the k-plane's scanner pose
+(:func:`models.predict.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the slice's
+predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
+between the two origins; hence ``A_i = T_k o C_k^-1``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from models.network import ModelConfig, SlicePoseNet
+from models.predict import predict_stack_poses, stack_slice_poses
+from reconstruction.slices import SliceSet, Stack
+from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp, so3_log
+
+__all__ = ["CnnInitialisation", "cnn_slice_poses", "robust_mean_pose"]
+
+_DISTANCE_FLOOR = 1e-12  # rad or mm: Weiszfeld weights are 1 / max(distance, this)
+_PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plane
+
+
+@dataclass(frozen=True)
+class CnnInitialisation:
+    """Learned slice poses of a :class:`~reconstruction.slices.SliceSet` and their consensus.
+
+    All poses are float64 on the slice set's device and map slice-plane mm (origin at the centre
+    of the slice set's padded array) to the canonical frame; transforms map scanner mm to
+    canonical mm.
+
+    Attributes:
+        predicted_poses: (N, 4, 4) each slice's pose as the network predicted it, ``P_i``.
+        consensus_poses: (N, 4, 4) ``A_s o S_i``: the slice's scanner pose ``S_i`` moved by its
+            stack's transform, so the slices of a stack stay rigid with each other.
+        stack_transforms: (S, 4, 4) ``A_s``, the robust mean of ``P_i o S_i^-1`` over the slices
+            of stack ``s``; all NaN for a stack with no slice in the slice set.
+        global_transform: (4, 4) ``A``, the robust mean of ``P_i o S_i^-1`` over all slices.
+        rotation_deviation_deg: (N,) angle between each prediction's rotation and its consensus
+            pose's (degrees), to report outlier predictions.
+        translation_deviation_mm: (N,) distance between each prediction's slice centre and its
+            consensus pose's (mm).
+    """
+
+    predicted_poses: Tensor
+    consensus_poses: Tensor
+    stack_transforms: Tensor
+    global_transform: Tensor
+    rotation_deviation_deg: Tensor
+    translation_deviation_mm: Tensor
+
+
+def _weiszfeld_step(offsets: Tensor, weights: Tensor) -> Tensor:
+    """One Weiszfeld step of the weighted geometric median, from the current estimate.
+
+    Args:
+        offsets: (M, 3) the points relative to the current estimate.
+        weights: (M,) non-negative weights.
+
+    Returns:
+        (3,) the move to the next estimate: ``sum(w_i x_i / |x_i|) / sum(w_i / |x_i|)``, with
+        distances floored at ``_DISTANCE_FLOOR`` (a point on the estimate pulls hardest).
+    """
+    inverse = weights / offsets.norm(dim=-1).clamp_min(_DISTANCE_FLOOR)
+    return (inverse[:, None] * offsets).sum(dim=0) / inverse.sum()
+
+
+def _chordal_mean(rotations: Tensor, weights: Tensor) -> Tensor:
+    """(3, 3) weighted mean of (M, 3, 3) rotation matrices projected to SO(3) by SVD."""
+    u, _, vh = torch.linalg.svd((weights[:, None, None] * rotations).sum(dim=0))
+    flip = torch.ones(3, dtype=rotations.dtype, device=rotations.device)
+    flip[2] = torch.sign(torch.linalg.det(u @ vh))
+    return u @ torch.diag(flip) @ vh
+
+
+def robust_mean_pose(
+    transforms: Tensor,
+    weights: Tensor | None = None,
+    max_iterations: int = 100,
+    tolerance: float = 1e-12,
+) -> Tensor:
+    """A robust average of rigid transforms: geodesic L1 median rotation, geometric median shift.
+
+    The rotation minimises ``sum_i w_i angle(R^T R_i)`` (the L1 median under the bi-invariant
+    metric of SO(3)) by Weiszfeld iterations in the tangent space, ``R <- R exp(d)`` with ``d``
+    the Weiszfeld step of ``log(R^T R_i)``, started at the chordal mean projected to SO(3) by
+    SVD (Hartley et al., "L1 rotation averaging using the Weiszfeld algorithm", CVPR 2011). The
+    translation minimises ``sum_i w_i |t - t_i|`` by Weiszfeld iterations from the weighted mean.
+    Both medians tolerate up to half of the weight in gross outliers, and the result is
+    equivariant: ``robust_mean_pose(G o T_i) = G o robust_mean_pose(T_i)`` for any rigid ``G``.
+
+    Args:
+        transforms: (M, 4, 4) rigid transforms, M >= 1 (any float dtype; computed in float64).
+        weights: (M,) non-negative weights, not all zero; default all 1.
+        max_iterations: Most Weiszfeld iterations for each of rotation and translation, >= 1.
+        tolerance: The iterations stop once a step is shorter than this (rad for the rotation,
+            mm for the translation), > 0.
+
+    Returns:
+        (4, 4) float64 rigid transform on the device of ``transforms``.
+
+    Raises:
+        TypeError: If ``transforms`` is not a floating-point tensor.
+        ValueError: Naming the argument, for a wrong shape, an empty batch, non-finite values,
+            negative or all-zero weights, ``max_iterations`` < 1 or ``tolerance`` <= 0.
+    """
+    if not isinstance(transforms, Tensor) or not transforms.is_floating_point():
+        raise TypeError(
+            "robust_mean_pose(): 'transforms' must be a floating-point tensor (M, 4, 4), got "
+            f"{getattr(transforms, 'dtype', type(transforms).__name__)}"
+        )
+    if transforms.dim() != 3 or tuple(transforms.shape[1:]) != (4, 4) or len(transforms) == 0:
+        raise ValueError(
+            "robust_mean_pose(): 'transforms' must have shape (M, 4, 4) with M >= 1, got "
+            f"{tuple(transforms.shape)}"
+        )
+    if not bool(transforms.isfinite().all()):
+        raise ValueError("robust_mean_pose(): 'transforms' holds non-finite values")
+    T = transforms.to(torch.float64)
+    if weights is None:
+        w = torch.ones(len(T), dtype=torch.float64, device=T.device)
+    else:
+        w = weights.to(device=T.device, dtype=torch.float64)
+        if tuple(w.shape) != (len(T),):
+            raise ValueError(
+                f"robust_mean_pose(): 'weights' must have shape ({len(T)},), got {tuple(w.shape)}"
+            )
+        if not bool(w.isfinite().all()) or bool((w < 0).any()) or not bool((w > 0).any()):
+            raise ValueError(
+                "robust_mean_pose(): 'weights' must be finite, non-negative and not all zero"
+            )
+    if not (isinstance(max_iterations, int) and max_iterations >= 1):
+        raise ValueError(
+            f"robust_mean_pose(): 'max_iterations' must be an int >= 1, got {max_iterations!r}"
+        )
+    if not tolerance > 0:
+        raise ValueError(f"robust_mean_pose(): 'tolerance' must be > 0, got {tolerance!r}")
+    rotations, translations = T[:, :3, :3], T[:, :3, 3]
+    R = _chordal_mean(rotations, w)
+    for _ in range(max_iterations):
+        step = _weiszfeld_step(so3_log(R.T @ rotations), w)
+        R = R @ so3_exp(step)
+        if float(step.norm()) < tolerance:
+            break
+    t = (w[:, None] * translations).sum(dim=0) / w.sum()
+    for _ in range(max_iterations):
+        step = _weiszfeld_step(translations - t, w)
+        t = t + step
+        if float(step.norm()) < tolerance:
+            break
+    out = torch.eye(4, dtype=torch.float64, device=T.device)
+    out[:3, :3], out[:3, 3] = R, t
+    return out
+
+
+def _stack_scanner_to_canonical(
+    model: SlicePoseNet,
+    model_config: ModelConfig,
+    stack: Stack,
+    scanner_poses: Tensor,
+    file_k: Tensor,
+    batch_size: int,
+) -> Tensor:
+    """``A_i = T_k o C_k^-1`` for the given slices of one stack (see the module docstring).
+
+    Args:
+        model: The network, in eval mode.
+        model_config: Its configuration.
+        stack: The stack.
+        scanner_poses: (M, 4, 4) float64 CPU scanner poses ``S_i`` of its slices in the slice set.
+        file_k: (M,) int64 CPU file k-plane index of each of those slices.
+        batch_size: Slices per forward pass.
+
+    Returns:
+        (M, 4, 4) float64 CPU scanner -> canonical transforms.
+
+    Raises:
+        ValueError: Naming the stack, if a slice has no prediction or does not lie on the k-plane
+            that its index names.
+    """
+    table = predict_stack_poses(
+        model, model_config, stack.image, stack.mask, batch_size=batch_size, name=stack.name
+    )
+    cropped_k = table.slice_indices.cpu()
+    row_of = {int(k): row for row, k in enumerate(stack.k_indices.cpu()[cropped_k].tolist())}
+    missing = [int(k) for k in file_k.tolist() if int(k) not in row_of]
+    if missing:
+        raise ValueError(
+            f"cnn_slice_poses(): stack {stack.name!r}: no prediction for the slices k = {missing} "
+            "of 'slices' (the stack's mask is empty there); were the slices cut from 'stacks'?"
+        )
+    rows = torch.tensor([row_of[int(k)] for k in file_k.tolist()], dtype=torch.long)
+    planes = stack_slice_poses(stack.image).cpu()[cropped_k[rows]]
+    shift = se3_compose(se3_inverse(planes), scanner_poses)
+    off_plane = torch.maximum(
+        (shift[:, :3, :3] - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(1, 2)),
+        shift[:, 2, 3].abs(),
+    )
+    if bool((off_plane > _PLANE_ATOL).any()):
+        raise ValueError(
+            f"cnn_slice_poses(): stack {stack.name!r}: slices of 'slices' do not lie on the "
+            "k-planes of the stack they name; were the slices cut from 'stacks'?"
+        )
+    predicted = se3_from_vector(table.poses[rows].to(torch.float64).cpu())
+    return se3_compose(predicted, se3_inverse(planes))
+
+
+def cnn_slice_poses(
+    model: SlicePoseNet,
+    model_config: ModelConfig,
+    stacks: list[Stack],
+    slices: SliceSet,
+    batch_size: int = 64,
+) -> CnnInitialisation:
+    """Predict every slice's canonical pose and the per-stack rigid consensus of the predictions.
+
+    Args:
+        model: The slice-pose network, in eval mode (:func:`models.predict.load_pose_model`).
+        model_config: Its configuration.
+        stacks: The stacks the slices were cut from, in the order of ``slices.stack_names``.
+        slices: The slices (:func:`reconstruction.slices.extract_slices`); their
+            ``scanner_poses`` are used, whatever frame ``poses`` is in.
+        batch_size: Slices per forward pass, >= 1.
+
+    Returns:
+        The predicted and consensus poses, transforms and deviations (:class:`CnnInitialisation`),
+        on ``slices.device``.
+
+    Raises:
+        ValueError: If ``stacks`` does not match ``slices.stack_names``, a slice has no
+            prediction (its mask is empty in the stack) or does not lie on its stack's k-plane,
+            ``slices`` is empty, or ``batch_size`` < 1.
+    """
+    names = tuple(stack.name for stack in stacks)
+    if names != slices.stack_names:
+        raise ValueError(
+            "cnn_slice_poses(): 'stacks' must be the stacks of 'slices', in order: got "
+            f"{list(names)}, the slices name {list(slices.stack_names)}"
+        )
+    if len(slices) == 0:
+        raise ValueError("cnn_slice_poses(): 'slices' is empty")
+    if not (isinstance(batch_size, int) and batch_size >= 1):
+        raise ValueError(f"cnn_slice_poses(): 'batch_size' must be an int >= 1, got {batch_size!r}")
+    scanner = slices.scanner_poses.to(torch.float64).cpu()
+    stack_ids = slices.stack_ids.cpu()
+    file_k = slices.slice_indices.cpu()
+    to_canonical = torch.empty_like(scanner)
+    stack_transforms = torch.full((len(stacks), 4, 4), math.nan, dtype=torch.float64)
+    for sid, stack in enumerate(stacks):
+        members = torch.nonzero(stack_ids == sid).flatten()
+        if len(members) == 0:
+            continue
+        to_canonical[members] = _stack_scanner_to_canonical(
+            model, model_config, stack, scanner[members], file_k[members], batch_size
+        )
+        stack_transforms[sid] = robust_mean_pose(to_canonical[members])
+    predicted = se3_compose(to_canonical, scanner)
+    consensus = se3_compose(stack_transforms[stack_ids], scanner)
+    relative = consensus[:, :3, :3].transpose(-1, -2) @ predicted[:, :3, :3]
+    device = slices.device
+    return CnnInitialisation(
+        predicted_poses=predicted.to(device),
+        consensus_poses=consensus.to(device),
+        stack_transforms=stack_transforms.to(device),
+        global_transform=robust_mean_pose(to_canonical).to(device),
+        rotation_deviation_deg=torch.rad2deg(so3_log(relative).norm(dim=-1)).to(device),
+        translation_deviation_mm=(predicted[:, :3, 3] - consensus[:, :3, 3])
+        .norm(dim=-1)
+        .to(device),
+    )

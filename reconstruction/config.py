@@ -1,0 +1,80 @@
+"""Settings and results of a reconstruction (dataclasses; no argparse below the CLI)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+from reconstruction.slices import SliceSet
+from svr.image import Image
+
+__all__ = ["REGISTRATIONS", "ReconstructionConfig", "ReconstructionResult"]
+
+REGISTRATIONS = ("cnn", "stack", "none")
+
+
+@dataclass(frozen=True)
+class ReconstructionConfig:
+    """How a reconstruction runs (defaults follow NeSVoR's ``svr`` where the meaning is the same).
+
+    Attributes:
+        output_resolution_mm: Isotropic voxel size of the output volume (mm).
+        registration: Pose initialisation: ``"cnn"`` (learned, canonical space, with the stack
+            registration as the fallback chosen per stack by NCC), ``"stack"`` (rigid stack-to-
+            template registration, scanner space) or ``"none"`` (the scanner's slice poses).
+        template: Index of the template stack for ``"stack"`` registration, or ``None`` to pick
+            the stack with the most brain voxels.
+        outer_iterations: Rounds of (SVR, super-resolution); SVR is skipped in the first.
+        sr_iterations: Conjugate-gradient iterations of super-resolution per round (one per round,
+            or a single number for all).
+        svr_levels: Resolution levels of slice-to-volume registration (coarse to fine).
+        svr_iterations: Optimiser steps per SVR level.
+        regularization: Weight of the edge-preserving regulariser.
+        edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
+        robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
+        ncc_threshold: Slices whose NCC with their simulation is below this are excluded.
+        bias_correction: N4 bias-field correction of each stack before slicing (SimpleITK).
+        seed: Random seed.
+    """
+
+    output_resolution_mm: float = 0.8
+    registration: str = "stack"
+    template: int | None = None
+    outer_iterations: int = 3
+    sr_iterations: tuple[int, ...] = (7, 7, 21)
+    svr_levels: int = 3
+    svr_iterations: int = 20
+    regularization: float = 0.02
+    edge_delta: float = 0.15
+    robust: bool = True
+    ncc_threshold: float = 0.5
+    bias_correction: bool = False
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ReconstructionResult:
+    """What a reconstruction produced.
+
+    Attributes:
+        volume: The reconstructed float32 volume (world frame ``slices.frame``).
+        mask: Its float32 brain mask (0/1) on the same grid.
+        initial_volume: The first estimate (scattered-data approximation at the initial poses).
+        slices: The slices with their final poses.
+        slice_ncc: (N,) NCC of each observed slice with the slice simulated from ``volume``.
+        slice_weights: (N,) EM slice-level inlier probability (1 without robust statistics).
+        excluded: (N,) bool, slices left out of the final volume.
+        initialisation: Per stack, the initialisation kept (``"cnn"``, ``"stack"``, ``"none"``).
+        timings_s: Wall time of each phase in seconds, in order.
+    """
+
+    volume: Image
+    mask: Image
+    initial_volume: Image
+    slices: SliceSet
+    slice_ncc: Tensor
+    slice_weights: Tensor
+    excluded: Tensor
+    initialisation: tuple[str, ...]
+    timings_s: dict[str, float] = field(default_factory=dict)

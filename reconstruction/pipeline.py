@@ -1,0 +1,267 @@
+"""The reconstruction pipeline: slices -> initial poses -> (SVR, super-resolution) rounds.
+
+Phases (each timed and logged):
+    1. slices: every stack cut into slices, each its own rigid body (:func:`extract_slices`);
+    2. initialisation: ``"none"`` keeps the scanner poses; ``"stack"`` registers every stack
+       rigidly to a volume estimated from the template stack; ``"cnn"`` predicts every slice's
+       canonical pose, takes a robust per-stack consensus, and keeps per stack whichever of the
+       consensus and the stack registration (mapped to canonical space) makes the simulated
+       slices match the observed ones better by NCC, as NeSVoR does;
+    3. rounds: slice-to-volume registration of every slice (skipped in the first round),
+       per-slice intensity scales, EM outlier weights, exclusion of slices whose NCC with their
+       simulation is below the threshold, then conjugate-gradient super-resolution.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from reconstruction.config import ReconstructionConfig, ReconstructionResult
+from reconstruction.operators import SliceProjector, VolumeGrid
+from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from reconstruction.robust import robust_weights
+from reconstruction.slices import SliceSet, Stack, extract_slices
+from reconstruction.superres import (
+    coverage,
+    output_grid,
+    scattered_data_approximation,
+    slice_intensity_scales,
+    super_resolution,
+)
+
+__all__ = ["reconstruct", "stack_registration"]
+
+log = logging.getLogger(__name__)
+
+STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=30, step_mm=2.0)
+SVR_PSF_SAMPLES = 3
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        yield
+        elapsed = time.perf_counter() - start
+        self.timings[name] = self.timings.get(name, 0.0) + elapsed
+        log.info("%s: %.1f s", name, elapsed)
+
+
+def _sda(slices: SliceSet, grid: VolumeGrid, psf_samples: int = SVR_PSF_SAMPLES) -> Tensor:
+    projector = SliceProjector(grid, slices, psf_samples=psf_samples)
+    observed = projector.gather(slices.images)
+    points = projector.grid_points(slices.poses)
+    return scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
+
+
+def stack_registration(
+    slices: SliceSet, resolution_mm: float, template: int | None = None
+) -> tuple[Tensor, int]:
+    """Rigid registration of every stack to a volume estimated from the template stack.
+
+    Args:
+        slices: All slices at their starting poses.
+        resolution_mm: Voxel size of the template volume.
+        template: Template stack index, or ``None`` for the stack with the most masked pixels.
+
+    Returns:
+        (N, 4, 4) registered poses (in the template stack's frame, i.e. unchanged for the
+        template's slices) and the template index.
+    """
+    num_stacks = len(slices.stack_names)
+    if template is None:
+        counts = torch.zeros(num_stacks, device=slices.device).index_add(
+            0, slices.stack_ids, slices.masks.flatten(1).sum(1).float()
+        )
+        template = int(counts.argmax())
+    if not 0 <= template < num_stacks:
+        raise ValueError(
+            f"stack_registration(): 'template' must be in [0, {num_stacks}), got {template}"
+        )
+    grid = output_grid(slices, 2 * resolution_mm)
+    reference = _sda(slices.subset(slices.stack_ids == template), grid)
+    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+    fixed = torch.zeros(num_stacks, dtype=torch.bool)
+    fixed[template] = True
+    poses = register_rigid(
+        projector,
+        reference,
+        slices.images,
+        slices.poses,
+        slices.stack_ids,
+        STACK_REGISTRATION,
+        fixed=fixed,
+    )
+    return poses, template
+
+
+def _iterations(config: ReconstructionConfig, round_index: int) -> int:
+    its = config.sr_iterations
+    return its[min(round_index, len(its) - 1)]
+
+
+def reconstruct(
+    stacks: list[Stack],
+    config: ReconstructionConfig | None = None,
+    initial_poses: Tensor | None = None,
+    frame: str = "scanner",
+    initialisation: tuple[str, ...] | None = None,
+    device: str | torch.device = "cpu",
+    progress: bool = True,
+) -> ReconstructionResult:
+    """Reconstruct a volume from prepared stacks.
+
+    Args:
+        stacks: The stacks (:func:`reconstruction.stacks.load_stacks`).
+        config: Settings.
+        initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``
+            (e.g. from the learned initialisation); ``None`` runs ``config.registration``
+            (``"stack"`` or ``"none"``) in the scanner frame.
+        frame: The frame of ``initial_poses``.
+        initialisation: Per stack, how ``initial_poses`` were obtained (for the report).
+        device: Where to compute.
+        progress: Show a progress bar.
+
+    Returns:
+        The result (volume in ``frame``).
+    """
+    config = config or ReconstructionConfig()
+    timer = _Timer()
+    generator_state = torch.random.get_rng_state()
+    torch.manual_seed(config.seed)
+    try:
+        with timer.phase("slices"):
+            slices = extract_slices(stacks).to(device)
+            log.info("%d slices from %d stacks", len(slices), len(stacks))
+        with timer.phase("initialisation"):
+            if initial_poses is not None:
+                slices = slices.with_poses(initial_poses.to(device), frame)
+                init = initialisation or ("given",) * len(stacks)
+            elif config.registration == "stack":
+                poses, template = stack_registration(
+                    slices, config.output_resolution_mm, config.template
+                )
+                log.info("stack registration to template stack %d", template)
+                slices = slices.with_poses(poses)
+                init = ("stack",) * len(stacks)
+            elif config.registration == "none":
+                init = ("none",) * len(stacks)
+            else:
+                raise ValueError(
+                    f"reconstruct(): registration {config.registration!r} needs initial_poses"
+                )
+        return _rounds(slices, config, init, timer, progress)
+    finally:
+        torch.random.set_rng_state(generator_state)
+
+
+def _rounds(
+    slices: SliceSet,
+    config: ReconstructionConfig,
+    init: tuple[str, ...],
+    timer: _Timer,
+    progress: bool,
+) -> ReconstructionResult:
+    with timer.phase("setup"):
+        grid = output_grid(slices, config.output_resolution_mm)
+        projector = SliceProjector(grid, slices)
+        svr_projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+        observed = projector.gather(slices.images)
+        poses = slices.poses
+        points = projector.grid_points(poses)
+        pixel_w = torch.ones_like(observed)
+        slice_w = torch.ones(len(slices), device=observed.device)
+        excluded = torch.zeros(len(slices), dtype=torch.bool, device=observed.device)
+        volume = scattered_data_approximation(projector, points, observed, pixel_w)
+        initial = volume.clone()
+        log.info(
+            "output grid %s at %.2f mm (%s frame)",
+            grid.shape,
+            config.output_resolution_mm,
+            slices.frame,
+        )
+    svr_config = RegistrationConfig(
+        levels=config.svr_levels, iterations=config.svr_iterations, step_mm=0.5
+    )
+    bar = tqdm(range(config.outer_iterations), desc="reconstruction", disable=not progress)
+    for round_index in bar:
+        if round_index > 0:
+            with timer.phase("slice-to-volume registration"):
+                poses = register_rigid(
+                    svr_projector,
+                    volume,
+                    slices.images,
+                    poses,
+                    torch.arange(len(slices), device=observed.device),
+                    svr_config,
+                    slice_weights=slice_w * (~excluded),
+                )
+                points = projector.grid_points(poses)
+        with timer.phase("outlier rejection"):
+            simulated = projector.forward(volume, points)
+            scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
+            ncc = slice_ncc(projector, simulated, observed)
+            excluded = ncc < config.ncc_threshold
+            if config.robust:
+                weights = robust_weights(
+                    observed - scales[projector.slice_of] * simulated,
+                    projector.slice_of,
+                    len(slices),
+                )
+                pixel_w, slice_w = weights.pixel, weights.slice
+            weights_now = pixel_w * (slice_w * (~excluded))[projector.slice_of]
+        with timer.phase("super-resolution"):
+            volume = super_resolution(
+                projector,
+                points,
+                observed,
+                weights_now,
+                scales,
+                volume,
+                _iterations(config, round_index),
+                config.regularization,
+                config.edge_delta,
+            )
+        bar.set_postfix(ncc=f"{float(ncc.mean()):.3f}", excluded=int(excluded.sum()))
+    with timer.phase("finish"):
+        simulated = projector.forward(volume, points)
+        scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
+        ncc = slice_ncc(projector, scales[projector.slice_of] * simulated, observed)
+        cover = coverage(projector, points, torch.ones_like(observed))
+        mask = (cover > 0.05 * float(torch.quantile(cover[cover > 0].float(), 0.99))).float()
+        volume = volume * mask
+    _report_exclusions(slices, excluded)
+    return ReconstructionResult(
+        volume=grid.image(volume.float()),
+        mask=grid.image(mask),
+        initial_volume=grid.image(initial.float()),
+        slices=slices.with_poses(poses),
+        slice_ncc=ncc.detach().cpu(),
+        slice_weights=slice_w.detach().cpu(),
+        excluded=excluded.cpu(),
+        initialisation=init,
+        timings_s=timer.timings,
+    )
+
+
+def _report_exclusions(slices: SliceSet, excluded: Tensor) -> None:
+    for sid, name in enumerate(slices.stack_names):
+        members = slices.stack_ids == sid
+        total = int(members.sum())
+        out = int((excluded & members).sum())
+        if total and out == total:
+            log.warning(
+                "%s: all %d slices excluded (NCC below threshold); check its mask", name, total
+            )
+        elif out:
+            log.info("%s: %d of %d slices excluded", name, out, total)

@@ -1,0 +1,259 @@
+"""Stacks and slices as the reconstruction sees them: every slice its own rigid body.
+
+Conventions (``DESIGN.md``): a slice's pose maps slice-plane mm ``(u, v, 0)`` (``u`` along array
+axis 0, ``v`` along axis 1, origin at the array centre ``((H - 1) / 2, (W - 1) / 2)``) to the
+target frame (``"scanner"`` or ``"canonical"``). A :class:`SliceSet` holds all slices of all
+stacks zero-padded to one ``(H, W)``; padding moves the array centre, so each slice also keeps
+``plane_offsets_mm``, the position of its array centre in the coordinates of its stack's k-plane
+(origin at voxel ``((I - 1) / 2, (J - 1) / 2, k)``), to report poses of the original k-planes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from models.predict import stack_slice_poses
+from svr.image import Image
+
+__all__ = ["SliceSet", "Stack", "extract_slices", "plane_poses"]
+
+FRAMES = ("scanner", "canonical")
+
+
+@dataclass(frozen=True)
+class Stack:
+    """One acquired thick-slice stack, ready to be cut into slices.
+
+    Attributes:
+        name: The file it came from (used in messages and output tables).
+        image: (I, J, K) float32 intensities, normalised, zero outside the mask; k indexes slices.
+        mask: (I, J, K) bool brain mask on the same grid (same affine).
+        thickness_mm: Slice thickness (FWHM of the through-plane PSF) in mm.
+        k_indices: (K,) int64 index of each k-plane in the file the stack was read from (cropping
+            may drop planes).
+        full_shape: (I, J) in-plane size of the file's array, whose centre defines the slice
+            origin of the poses that are reported.
+        crop_origin: (i0, j0) voxel of the file's array at the crop's voxel (0, 0).
+    """
+
+    name: str
+    image: Image
+    mask: Image
+    thickness_mm: float
+    k_indices: Tensor
+    full_shape: tuple[int, int]
+    crop_origin: tuple[int, int] = (0, 0)
+
+
+@dataclass(frozen=True)
+class SliceSet:
+    """N slices of common size (H, W), each with its own pose.
+
+    Attributes:
+        images: (N, H, W) float32 intensities, zero outside the mask and in the padding.
+        masks: (N, H, W) bool brain masks.
+        spacing_mm: (N, 2) float64 in-plane pixel spacing along array axes 0 and 1 (mm).
+        thickness_mm: (N,) float64 slice thickness (through-plane PSF FWHM, mm).
+        poses: (N, 4, 4) float64 slice plane (origin at the array centre) -> ``frame``.
+        frame: ``"scanner"`` or ``"canonical"``.
+        stack_ids: (N,) int64 index into ``stack_names``.
+        slice_indices: (N,) int64 k-plane index in the stack's file.
+        plane_offsets_mm: (N, 2) float64 ``(u, v)`` of the array centre in the k-plane's slice
+            coordinates (origin at the file's plane centre).
+        scanner_poses: (N, 4, 4) float64 acquisition poses (scanner frame), never changed.
+        stack_names: The stacks' file names.
+    """
+
+    images: Tensor
+    masks: Tensor
+    spacing_mm: Tensor
+    thickness_mm: Tensor
+    poses: Tensor
+    frame: str
+    stack_ids: Tensor
+    slice_indices: Tensor
+    plane_offsets_mm: Tensor
+    scanner_poses: Tensor
+    stack_names: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        if self.images.dim() != 3:
+            raise ValueError(
+                f"SliceSet: 'images' must be (N, H, W), got {tuple(self.images.shape)}"
+            )
+        n = self.images.shape[0]
+        if self.frame not in FRAMES:
+            raise ValueError(f"SliceSet: 'frame' must be one of {FRAMES}, got {self.frame!r}")
+        for name, shape in (
+            ("masks", tuple(self.images.shape)),
+            ("spacing_mm", (n, 2)),
+            ("thickness_mm", (n,)),
+            ("poses", (n, 4, 4)),
+            ("stack_ids", (n,)),
+            ("slice_indices", (n,)),
+            ("plane_offsets_mm", (n, 2)),
+            ("scanner_poses", (n, 4, 4)),
+        ):
+            if tuple(getattr(self, name).shape) != shape:
+                raise ValueError(
+                    f"SliceSet: '{name}' must have shape {shape}, "
+                    f"got {tuple(getattr(self, name).shape)}"
+                )
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(H, W) pixels."""
+        return (self.images.shape[1], self.images.shape[2])
+
+    @property
+    def device(self) -> torch.device:
+        """The device of the slice data."""
+        return self.images.device
+
+    def to(self, device: torch.device | str) -> SliceSet:
+        """A copy on ``device``."""
+        return replace(
+            self,
+            **{
+                name: getattr(self, name).to(device)
+                for name in (
+                    "images",
+                    "masks",
+                    "spacing_mm",
+                    "thickness_mm",
+                    "poses",
+                    "stack_ids",
+                    "slice_indices",
+                    "plane_offsets_mm",
+                    "scanner_poses",
+                )
+            },
+        )
+
+    def with_poses(self, poses: Tensor, frame: str | None = None) -> SliceSet:
+        """A copy with new (N, 4, 4) poses (and optionally a new frame)."""
+        return replace(self, poses=poses.to(self.poses), frame=frame or self.frame)
+
+    def subset(self, keep: Tensor) -> SliceSet:
+        """The slices selected by a (N,) bool mask or an index tensor."""
+        return replace(
+            self,
+            **{
+                name: getattr(self, name)[keep]
+                for name in (
+                    "images",
+                    "masks",
+                    "spacing_mm",
+                    "thickness_mm",
+                    "poses",
+                    "stack_ids",
+                    "slice_indices",
+                    "plane_offsets_mm",
+                    "scanner_poses",
+                )
+            },
+        )
+
+    def stack_slices(self, stack_id: int) -> Tensor:
+        """(M,) indices of the slices of stack ``stack_id``."""
+        return torch.nonzero(self.stack_ids == stack_id).flatten()
+
+
+def plane_poses(slices: SliceSet, poses: Tensor | None = None) -> Tensor:
+    """Poses of the slices' original k-planes (origin at the file's plane centre).
+
+    Args:
+        slices: The slices.
+        poses: (N, 4, 4) poses of the slices' arrays; default ``slices.poses``.
+
+    Returns:
+        (N, 4, 4) float64 ``T o Trans(-offset)``: the pose a pose table reports for ``(file, k)``.
+    """
+    T = (slices.poses if poses is None else poses).to(torch.float64)
+    shift = torch.zeros_like(T[:, :3, 3])
+    shift[:, :2] = -slices.plane_offsets_mm.to(T)
+    out = T.clone()
+    out[:, :3, 3] = T[:, :3, 3] + (T[:, :3, :3] @ shift[..., None])[..., 0]
+    return out
+
+
+def extract_slices(stacks: list[Stack]) -> SliceSet:
+    """Cut stacks into slices, drop those with an empty mask, and pad them to one size.
+
+    Args:
+        stacks: Prepared stacks (:func:`reconstruction.stacks.prepare_stacks`).
+
+    Returns:
+        The slices in the scanner frame, ordered by stack then k.
+
+    Raises:
+        ValueError: If ``stacks`` is empty or no slice has a nonempty mask.
+    """
+    if not stacks:
+        raise ValueError("extract_slices(): 'stacks' is empty")
+    kept = []
+    for sid, stack in enumerate(stacks):
+        has_brain = stack.mask.data.flatten(0, 1).any(dim=0)
+        ks = torch.nonzero(has_brain).flatten()
+        kept.append((sid, stack, ks))
+    if sum(len(ks) for _, _, ks in kept) == 0:
+        raise ValueError("extract_slices(): every slice of every stack has an empty mask")
+    height = max(stack.image.shape[0] for _, stack, ks in kept if len(ks))
+    width = max(stack.image.shape[1] for _, stack, ks in kept if len(ks))
+    parts: dict[str, list[Tensor]] = {
+        k: [] for k in ("img", "msk", "sp", "th", "T", "sid", "k", "off")
+    }
+    for sid, stack, ks in kept:
+        if not len(ks):
+            continue
+        i_n, j_n, _ = stack.image.shape
+        pad_i, pad_j = (height - i_n) // 2, (width - j_n) // 2
+        img = stack.image.data.new_zeros((len(ks), height, width))
+        msk = torch.zeros((len(ks), height, width), dtype=torch.bool, device=img.device)
+        img[:, pad_i : pad_i + i_n, pad_j : pad_j + j_n] = stack.image.data[:, :, ks].permute(
+            2, 0, 1
+        )
+        msk[:, pad_i : pad_i + i_n, pad_j : pad_j + j_n] = stack.mask.data[:, :, ks].permute(
+            2, 0, 1
+        )
+        # Padded voxel (a, b, k) is cropped voxel (a - pad_i, b - pad_j, k).
+        shift = torch.eye(4, dtype=torch.float64, device=stack.image.affine.device)
+        shift[0, 3], shift[1, 3] = -pad_i, -pad_j
+        affine = stack.image.affine.to(torch.float64) @ shift
+        grid = Image(img.new_zeros(1).expand(height, width, stack.image.shape[2]), affine)
+        T = stack_slice_poses(grid)[ks.to(affine.device)]
+        spacing = affine[:3, :3].norm(dim=0)[:2].cpu()
+        centre_in_file = torch.tensor(
+            [(height - 1) / 2 - pad_i, (width - 1) / 2 - pad_j], dtype=torch.float64
+        ) + torch.tensor(stack.crop_origin, dtype=torch.float64)
+        file_centre = (torch.tensor(stack.full_shape, dtype=torch.float64) - 1) / 2
+        offsets = (centre_in_file - file_centre) * spacing
+        parts["img"].append(img)
+        parts["msk"].append(msk)
+        parts["sp"].append(spacing.expand(len(ks), 2))
+        parts["th"].append(torch.full((len(ks),), float(stack.thickness_mm), dtype=torch.float64))
+        parts["T"].append(T)
+        parts["sid"].append(torch.full((len(ks),), sid, dtype=torch.int64))
+        parts["k"].append(stack.k_indices.to(torch.int64).cpu()[ks.cpu()])
+        parts["off"].append(offsets.expand(len(ks), 2))
+    device = parts["img"][0].device
+    poses = torch.cat(parts["T"]).to(device)
+    return SliceSet(
+        images=torch.cat(parts["img"]),
+        masks=torch.cat(parts["msk"]),
+        spacing_mm=torch.cat(parts["sp"]).to(device),
+        thickness_mm=torch.cat(parts["th"]).to(device),
+        poses=poses,
+        frame="scanner",
+        stack_ids=torch.cat(parts["sid"]).to(device),
+        slice_indices=torch.cat(parts["k"]).to(device),
+        plane_offsets_mm=torch.cat(parts["off"]).to(device),
+        scanner_poses=poses.clone(),
+        stack_names=tuple(stack.name for stack in stacks),
+    )

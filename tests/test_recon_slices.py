@@ -1,0 +1,108 @@
+"""Slices of prepared stacks: dropping empty planes, padding, bookkeeping, SliceSet checks."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from models.predict import stack_slice_poses
+from reconstruction.slices import SliceSet, Stack, extract_slices, plane_poses
+from svr.image import Image
+
+F64 = torch.float64
+
+
+def make_stack(
+    name: str,
+    shape: tuple[int, int, int],
+    planes_with_brain: list[int],
+    crop_origin: tuple[int, int],
+    k0: int,
+    full_shape: tuple[int, int],
+    file_affine: torch.Tensor,
+) -> Stack:
+    """A crop of a file with ``file_affine``: crop voxel (0, 0, k') is its (i0, j0, k0 + k')."""
+    mask = torch.zeros(shape, dtype=torch.bool)
+    mask[1:-1, 1:-1, planes_with_brain] = True
+    image = torch.arange(mask.numel(), dtype=torch.float32).reshape(shape) * mask
+    shift = torch.eye(4, dtype=F64)
+    shift[:3, 3] = torch.tensor([*crop_origin, k0], dtype=F64)
+    affine = file_affine @ shift
+    return Stack(
+        name=name,
+        image=Image(image, affine),
+        mask=Image(mask, affine.clone()),
+        thickness_mm=2.5,
+        k_indices=torch.arange(k0, k0 + shape[2]),
+        full_shape=full_shape,
+        crop_origin=crop_origin,
+    )
+
+
+AFFINE_A = torch.tensor(
+    [[0.0, 0.0, 3.0, -10.0], [-1.0, 0.0, 0.0, 20.0], [0.0, 1.5, 0.0, 5.0], [0, 0, 0, 1]], dtype=F64
+)
+AFFINE_C = torch.diag(torch.tensor([1.0, 2.0, 3.0, 1.0], dtype=F64))
+
+
+@pytest.fixture
+def stacks() -> list[Stack]:
+    return [
+        make_stack("a.nii.gz", (4, 7, 3), [0, 2], (2, 1), 5, (10, 12), AFFINE_A),
+        make_stack("empty.nii.gz", (6, 6, 2), [], (0, 0), 0, (6, 6), AFFINE_C),
+        make_stack("c.nii.gz", (7, 4, 2), [0, 1], (0, 3), 1, (9, 9), AFFINE_C),
+    ]
+
+
+def test_empty_planes_and_stacks_are_dropped_and_slices_padded(stacks):
+    slices = extract_slices(stacks)
+    assert slices.stack_names == ("a.nii.gz", "empty.nii.gz", "c.nii.gz")
+    assert slices.size == (7, 7) and len(slices) == 4 and slices.frame == "scanner"
+    assert slices.stack_ids.tolist() == [0, 0, 2, 2]
+    assert slices.slice_indices.tolist() == [5, 7, 1, 2]
+    torch.testing.assert_close(slices.thickness_mm, torch.full((4,), 2.5, dtype=F64))
+    torch.testing.assert_close(slices.spacing_mm[0], torch.tensor([1.0, 1.5], dtype=F64))
+    torch.testing.assert_close(slices.poses, slices.scanner_poses)
+    for n, (sid, k) in enumerate([(0, 0), (0, 2), (2, 0), (2, 1)]):
+        stack = stacks[sid]
+        # The stack's plane sits somewhere in the padded array; the rest is zero and unmasked.
+        image, mask = slices.images[n], slices.masks[n]
+        assert image.sum() == stack.image.data[:, :, k].sum()
+        assert mask.sum() == stack.mask.data[:, :, k].sum()
+        assert not (image[~mask] != 0).any()
+
+
+def test_plane_poses_are_the_files_k_plane_poses(stacks):
+    slices = extract_slices(stacks)
+    for sid, affine, shape in ((0, AFFINE_A, (10, 12, 9)), (2, AFFINE_C, (9, 9, 4))):
+        rows = slices.stack_slices(sid)
+        file_grid = Image(torch.zeros(shape), affine)
+        expected = stack_slice_poses(file_grid)[slices.slice_indices[rows]]
+        torch.testing.assert_close(plane_poses(slices)[rows], expected)
+    torch.testing.assert_close(
+        plane_poses(slices, torch.eye(4, dtype=F64).repeat(4, 1, 1))[:, :2, 3],
+        -slices.plane_offsets_mm,
+    )
+
+
+def test_extract_slices_errors(stacks):
+    with pytest.raises(ValueError, match="'stacks' is empty"):
+        extract_slices([])
+    with pytest.raises(ValueError, match="every slice of every stack has an empty mask"):
+        extract_slices([stacks[1]])
+
+
+def test_slice_set_checks_and_copies(stacks):
+    slices = extract_slices(stacks)
+    part = slices.subset(slices.stack_ids == 2)
+    assert part.slice_indices.tolist() == [1, 2] and part.stack_names == slices.stack_names
+    moved = slices.with_poses(torch.eye(4).repeat(4, 1, 1), "canonical")
+    assert moved.frame == "canonical" and moved.poses.dtype == F64
+    torch.testing.assert_close(moved.scanner_poses, slices.scanner_poses)
+    assert slices.to("cpu").device.type == "cpu"
+    with pytest.raises(ValueError, match="'frame' must be one of"):
+        slices.with_poses(slices.poses, "atlas")
+    with pytest.raises(ValueError, match=r"'poses' must have shape \(4, 4, 4\)"):
+        slices.with_poses(slices.poses[:, :3])
+    with pytest.raises(ValueError, match=r"'images' must be \(N, H, W\)"):
+        SliceSet(**{**slices.__dict__, "images": torch.tensor(0.0)})
