@@ -29,7 +29,7 @@ class ReconstructionConfig:
         sr_iterations: Conjugate-gradient iterations of super-resolution per round (one per round,
             or a single number for all).
         svr_levels: Resolution levels of slice-to-volume registration (coarse to fine).
-        svr_iterations: Optimiser steps per SVR level.
+        svr_iterations: Levenberg-Marquardt steps per SVR level.
         regularization: Weight of the edge-preserving regulariser.
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
@@ -44,7 +44,7 @@ class ReconstructionConfig:
     outer_iterations: int = 3
     sr_iterations: tuple[int, ...] = (7, 7, 21)
     svr_levels: int = 3
-    svr_iterations: int = 20
+    svr_iterations: int = 6
     regularization: float = 0.02
     edge_delta: float = 0.15
     robust: bool = True

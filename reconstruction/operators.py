@@ -167,27 +167,33 @@ class SliceProjector:
         out = values.new_zeros((self.num_slices, *values.shape[1:]))
         return out.index_add(0, self.slice_of, values)
 
-    def grid_points(self, poses: Tensor, pixels: Tensor | None = None) -> Tensor:
-        """``grid_sample`` coordinates of every PSF node of every modelled pixel.
+    def world_points(self, poses: Tensor, pixels: Tensor | None = None) -> Tensor:
+        """Frame coordinates (mm) of every PSF node of every modelled pixel.
 
         Args:
             poses: (N, 4, 4) slice poses (may require grad: the result is differentiable).
             pixels: Indices into the ``P`` pixels to use (coarse levels), or ``None`` for all.
 
         Returns:
-            (K, P', 3) float32 coordinates.
+            (K, P', 3) float64 points.
         """
         T = poses.to(torch.float64)
-        M = self.to_grid.to(T.device)
-        axes = M[:, :3] @ T[:, :3, :3]  # (N, 3, 3): grid steps per mm along u, v, normal
-        origin = T[:, :3, 3] @ M[:, :3].T + M[:, 3]  # (N, 3)
         sid, uv = self.slice_of, self.uv_mm
         if pixels is not None:
             sid, uv = sid[pixels], uv[pixels]
-        a = axes[sid]
-        centre = origin[sid] + uv[:, :1] * a[:, :, 0] + uv[:, 1:] * a[:, :, 1]  # (P, 3)
-        normal = self.normal_offsets_mm[sid].T[..., None] * a[None, :, :, 2]  # (K, P, 3)
-        return (centre[None] + normal).to(torch.float32)
+        R = T[sid, :3, :3]
+        centre = T[sid, :3, 3] + uv[:, :1] * R[:, :, 0] + uv[:, 1:] * R[:, :, 1]  # (P, 3)
+        normal = self.normal_offsets_mm[sid].T[..., None] * R[None, :, :, 2]  # (K, P, 3)
+        return centre[None] + normal
+
+    def to_grid_coordinates(self, points: Tensor) -> Tensor:
+        """(..., 3) frame mm -> float32 ``grid_sample`` coordinates of the grid."""
+        M = self.to_grid.to(points.device)
+        return (points @ M[:, :3].T + M[:, 3]).to(torch.float32)
+
+    def grid_points(self, poses: Tensor, pixels: Tensor | None = None) -> Tensor:
+        """``grid_sample`` coordinates of :meth:`world_points`, (K, P', 3) float32."""
+        return self.to_grid_coordinates(self.world_points(poses, pixels))
 
     def sample(self, blurred: Tensor, points: Tensor) -> Tensor:
         """PSF-weighted samples of a blurred (I, J, K) volume at (K, P', 3) points -> (P',)."""

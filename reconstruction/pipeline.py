@@ -23,7 +23,9 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from reconstruction.config import ReconstructionConfig, ReconstructionResult
+from models.network import ModelConfig, SlicePoseNet
+from reconstruction.cnn_init import cnn_slice_poses
+from reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from reconstruction.operators import SliceProjector, VolumeGrid
 from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
 from reconstruction.robust import robust_weights
@@ -40,7 +42,7 @@ __all__ = ["reconstruct", "stack_registration"]
 
 log = logging.getLogger(__name__)
 
-STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=30, step_mm=2.0)
+STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
 SVR_PSF_SAMPLES = 3
 
 
@@ -105,6 +107,61 @@ def stack_registration(
     return poses, template
 
 
+def _stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
+    """(S,) mean NCC of each stack's slices with their simulation from the slices' SDA volume."""
+    grid = output_grid(slices, 2 * resolution_mm)
+    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+    observed = projector.gather(slices.images)
+    points = projector.grid_points(slices.poses)
+    volume = scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
+    ncc = slice_ncc(projector, projector.forward(volume, points), observed)
+    num_stacks = len(slices.stack_names)
+    total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
+    count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
+    return total.index_add(0, slices.stack_ids, ncc) / count
+
+
+def _learned_initialisation(
+    stacks: list[Stack],
+    slices: SliceSet,
+    config: ReconstructionConfig,
+    model: tuple[SlicePoseNet, ModelConfig],
+) -> tuple[SliceSet, tuple[str, ...]]:
+    """CNN consensus poses or stack registration, per stack, whichever fits better (by NCC)."""
+    network, model_config = model
+    learned = cnn_slice_poses(network, model_config, stacks, slices)
+    outliers = (learned.rotation_deviation_deg > 30) | (learned.translation_deviation_mm > 20)
+    log.info(
+        "cnn: %d of %d slice predictions disagree with their stack's consensus (> 30 deg or 20 mm)",
+        int(outliers.sum()),
+        len(slices),
+    )
+    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    candidates = {
+        "cnn": learned.consensus_poses,
+        "stack": learned.global_transform.to(registered) @ registered,
+    }
+    scores = {
+        name: _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
+        for name, poses in candidates.items()
+    }
+    choice = []
+    poses = candidates["cnn"].clone()
+    for sid, name in enumerate(slices.stack_names):
+        best = "cnn" if scores["cnn"][sid] >= scores["stack"][sid] else "stack"
+        members = slices.stack_ids == sid
+        poses[members] = candidates[best][members]
+        choice.append(best)
+        log.info(
+            "%s: initialisation %s (NCC cnn %.3f, stack %.3f)",
+            name,
+            best,
+            float(scores["cnn"][sid]),
+            float(scores["stack"][sid]),
+        )
+    return slices.with_poses(poses, "canonical"), tuple(choice)
+
+
 def _iterations(config: ReconstructionConfig, round_index: int) -> int:
     its = config.sr_iterations
     return its[min(round_index, len(its) - 1)]
@@ -113,6 +170,7 @@ def _iterations(config: ReconstructionConfig, round_index: int) -> int:
 def reconstruct(
     stacks: list[Stack],
     config: ReconstructionConfig | None = None,
+    model: tuple[SlicePoseNet, ModelConfig] | None = None,
     initial_poses: Tensor | None = None,
     frame: str = "scanner",
     initialisation: tuple[str, ...] | None = None,
@@ -124,16 +182,22 @@ def reconstruct(
     Args:
         stacks: The stacks (:func:`reconstruction.stacks.load_stacks`).
         config: Settings.
-        initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``
-            (e.g. from the learned initialisation); ``None`` runs ``config.registration``
-            (``"stack"`` or ``"none"``) in the scanner frame.
+        model: The slice-pose network and its configuration
+            (:func:`models.predict.load_pose_model`), needed by ``registration="cnn"``.
+        initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``;
+            when given, ``config.registration`` is not run.
         frame: The frame of ``initial_poses``.
         initialisation: Per stack, how ``initial_poses`` were obtained (for the report).
         device: Where to compute.
         progress: Show a progress bar.
 
     Returns:
-        The result (volume in ``frame``).
+        The result: volume in the canonical frame for ``"cnn"``, in ``frame`` for given poses,
+        in the scanner frame otherwise.
+
+    Raises:
+        ValueError: If ``registration="cnn"`` comes without a model, or the registration is
+            unknown.
     """
     config = config or ReconstructionConfig()
     timer = _Timer()
@@ -156,9 +220,14 @@ def reconstruct(
                 init = ("stack",) * len(stacks)
             elif config.registration == "none":
                 init = ("none",) * len(stacks)
+            elif config.registration == "cnn":
+                if model is None:
+                    raise ValueError("reconstruct(): registration 'cnn' needs a model")
+                slices, init = _learned_initialisation(stacks, slices, config, model)
             else:
                 raise ValueError(
-                    f"reconstruct(): registration {config.registration!r} needs initial_poses"
+                    f"reconstruct(): 'registration' must be one of {REGISTRATIONS}, "
+                    f"got {config.registration!r}"
                 )
         return _rounds(slices, config, init, timer, progress)
     finally:
@@ -190,9 +259,7 @@ def _rounds(
             config.output_resolution_mm,
             slices.frame,
         )
-    svr_config = RegistrationConfig(
-        levels=config.svr_levels, iterations=config.svr_iterations, step_mm=0.5
-    )
+    svr_config = RegistrationConfig(levels=config.svr_levels, iterations=config.svr_iterations)
     bar = tqdm(range(config.outer_iterations), desc="reconstruction", disable=not progress)
     for round_index in bar:
         if round_index > 0:

@@ -2,16 +2,20 @@
 
 Every group ``g`` (a single slice for slice-to-volume registration, a whole stack for stack
 registration) gets a rigid correction applied on the frame side about the group's centre
-``c_g``:
+``c_g`` (the mean of its slices' centres):
 
-    T_i <- Trans(c_g + t_g) o R(r_g) o Trans(-c_g) o T_i,
+    X <- R(r_g) (X - c_g) + c_g + t_g   for every point X of the group's slices,
 
-so a stack moves as one rigid body and a single slice rotates about its own centre. The six
-parameters per group are optimised by Adam on the mean of ``1 - NCC`` between each observed
-slice and its simulation from the volume, coarse to fine: at level ``l`` of ``L`` the volume and
-the slices are blurred by ``2^(L-1-l)`` times the volume's voxel size and every
-``2^(L-1-l)``-th pixel is used. The rotation is parametrised as ``r_g = p / radius`` so that one
-optimiser step moves points ``radius`` mm from the centre as far as a translation step does.
+so a stack moves as one rigid body and a single slice rotates about its own centre.
+
+The six parameters per group are found by Levenberg-Marquardt on the intensity-fitted
+sum of squared differences between each observed slice ``y`` and its simulation ``s`` from the
+volume (``min_{a,b} |y - a s - b|^2 = |y - mean(y)|^2 (1 - NCC^2)``, so it maximises NCC). The
+Jacobian is analytic: ``ds/dt = grad V(X)`` and ``ds/dr = (X - c) x grad V(X)``, summed over the
+PSF nodes, with the volume's gradient sampled together with the volume (one 4-channel
+``grid_sample``). Steps that do not raise a group's weighted NCC are rejected and the damping is
+increased (per group). Coarse to fine: at level ``l`` of ``L`` the volume and slices are blurred
+by ``2^(L-1-l) - 1`` voxels and every ``2^(L-1-l)``-th pixel is used.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from torch import Tensor
 
 from reconstruction.operators import SliceProjector, gaussian_blur
 from svr.geometry import so3_exp
+from svr.image import sample_channels
 
 __all__ = ["RegistrationConfig", "register_rigid", "slice_ncc"]
 
@@ -33,15 +38,20 @@ class RegistrationConfig:
 
     Attributes:
         levels: Resolution levels, coarse to fine (>= 1).
-        iterations: Adam steps per level (>= 0).
-        step_mm: Adam learning rate at the coarsest level in mm (halved at each finer level).
-        radius_mm: Lever arm that converts rotation to displacement (mm).
+        iterations: Levenberg-Marquardt steps per level (>= 0).
+        damping: Initial Marquardt damping (relative to the diagonal of the normal matrix).
     """
 
     levels: int = 3
-    iterations: int = 20
-    step_mm: float = 1.0
-    radius_mm: float = 40.0
+    iterations: int = 6
+    damping: float = 1e-2
+
+    def __post_init__(self) -> None:
+        if self.levels < 1 or self.iterations < 0 or not self.damping > 0:
+            raise ValueError(
+                "RegistrationConfig: need levels >= 1, iterations >= 0 and damping > 0, got "
+                f"{self.levels}, {self.iterations}, {self.damping}"
+            )
 
 
 def slice_ncc(
@@ -85,13 +95,50 @@ def _blur_slices(images: Tensor, sigma_px: float) -> Tensor:
     return gaussian_blur(images.permute(1, 2, 0), (sigma_px, sigma_px, 0.0)).permute(2, 0, 1)
 
 
+def _level_pixels(projector: SliceProjector, stride: int) -> Tensor:
+    if stride == 1:
+        return torch.arange(projector.num_pixels, device=projector.slice_of.device)
+    w = projector.size[1]
+    a, b = projector.pixel_of // w, projector.pixel_of % w
+    return torch.nonzero((a % stride == 0) & (b % stride == 0)).flatten()
+
+
+def _blur_slices(images: Tensor, sigma_px: float) -> Tensor:
+    if sigma_px <= 0:
+        return images
+    return gaussian_blur(images.permute(1, 2, 0), (sigma_px, sigma_px, 0.0)).permute(2, 0, 1)
+
+
+def _with_gradient(projector: SliceProjector, blurred: Tensor) -> Tensor:
+    """(4, I, J, K): the volume and its gradient in frame coordinates (per mm)."""
+    voxel_gradient = torch.stack(torch.gradient(blurred))  # d/di, d/dj, d/dk
+    inverse = torch.linalg.inv(projector.grid.affine[:3, :3].to(torch.float64))
+    frame_gradient = torch.einsum("ax,aijk->xijk", inverse.to(blurred), voxel_gradient)
+    return torch.cat([blurred[None], frame_gradient])
+
+
+def _move(poses: Tensor, rotvec: Tensor, shift: Tensor, centres: Tensor, groups: Tensor) -> Tensor:
+    """Apply ``X -> R (X - c) + c + t`` per group to (N, 4, 4) poses; (G, 3) rotvec and shift."""
+    R = so3_exp(rotvec)
+    t = centres + shift - (R @ centres[..., None])[..., 0]
+    Rg, tg = R[groups], t[groups]
+    out = poses.clone()
+    out[:, :3, :3] = Rg @ poses[:, :3, :3]
+    out[:, :3, 3] = (Rg @ poses[:, :3, 3, None])[..., 0] + tg
+    return out
+
+
+def _group_sums(values: Tensor, groups: Tensor, num_groups: int) -> Tensor:
+    return values.new_zeros((num_groups, *values.shape[1:])).index_add(0, groups, values)
+
+
 def register_rigid(
     projector: SliceProjector,
     volume: Tensor,
     observed: Tensor,
     poses: Tensor,
     groups: Tensor,
-    config: RegistrationConfig = RegistrationConfig(),
+    config: RegistrationConfig | None = None,
     fixed: Tensor | None = None,
     slice_weights: Tensor | None = None,
 ) -> Tensor:
@@ -103,69 +150,103 @@ def register_rigid(
         observed: (N, H, W) observed slice images.
         poses: (N, 4, 4) starting poses in the volume's frame.
         groups: (N,) int64 group of each slice (0 .. G-1).
-        config: Levels, iterations and step sizes.
+        config: Levels, iterations and damping.
         fixed: (G,) bool, groups that do not move (e.g. the template stack), or ``None``.
-        slice_weights: (N,) weights of each slice in the objective (e.g. robust weights).
+        slice_weights: (N,) weights of each slice in its group's objective (0 leaves it out).
 
     Returns:
         (N, 4, 4) float64 registered poses.
     """
-    poses = poses.to(torch.float64)
+    config = config or RegistrationConfig()
+    device = volume.device
+    poses = poses.to(device=device, dtype=torch.float64)
+    groups = groups.to(device)
     num_groups = int(groups.max()) + 1
-    ones = torch.ones(len(poses), dtype=torch.float64, device=poses.device)
-    centres = torch.zeros(num_groups, 3, dtype=torch.float64, device=poses.device)
+    ones = torch.ones(len(poses), dtype=torch.float64, device=device)
     centres = (
-        centres.index_add(0, groups, poses[:, :3, 3])
-        / torch.zeros(num_groups, dtype=torch.float64, device=poses.device)
-        .index_add(0, groups, ones)
-        .clamp_min(1)[:, None]
+        _group_sums(poses[:, :3, 3], groups, num_groups)
+        / _group_sums(ones, groups, num_groups).clamp_min(1)[:, None]
     )
-    movable = torch.ones(num_groups, 1, dtype=torch.float64, device=poses.device)
+    movable = torch.ones(num_groups, dtype=torch.bool, device=device)
     if fixed is not None:
-        movable[fixed.to(poses.device)] = 0.0
-    weights = (
-        torch.ones(len(poses), device=poses.device)
-        if slice_weights is None
-        else slice_weights.to(device=poses.device, dtype=torch.float32)
-    )
-    voxel_mm = float(projector.grid.spacing.min())
+        movable &= ~fixed.to(device)
+    weights = ones if slice_weights is None else slice_weights.to(device, torch.float64)
+    voxel = projector.grid.spacing.to(device)
+    weights_k = projector.weights.to(device=device, dtype=torch.float64)
     for level in range(config.levels):
         stride = 2 ** (config.levels - 1 - level)
-        sigma_mm = voxel_mm * (stride if stride > 1 else 0)
         pixels = _level_pixels(projector, stride)
+        sid = projector.slice_of[pixels]
+        gid = groups[sid]
+        blur_vox = float(stride - 1)
         blurred = projector.blur(
-            gaussian_blur(volume, tuple(sigma_mm / float(s) for s in projector.grid.spacing))
-            if sigma_mm > 0
-            else volume
+            gaussian_blur(volume, (blur_vox,) * 3) if blur_vox > 0 else volume
         ).detach()
-        target = projector.gather(_blur_slices(observed, sigma_mm / projector.pixel_mm))[pixels]
-        params = torch.zeros(num_groups, 6, dtype=torch.float64, device=poses.device)
-        params.requires_grad_(True)
-        step = config.step_mm / 2**level
-        optimizer = torch.optim.Adam([params], lr=step)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(
-            optimizer, max(config.iterations, 1), eta_min=step / 10
-        )
+        channels = _with_gradient(projector, blurred)
+        pixel_mm = float(voxel.min()) / projector.pixel_mm
+        target = projector.gather(_blur_slices(observed, blur_vox * pixel_mm))[pixels]
+        target = target.to(torch.float64)
+
+        damping = torch.full((num_groups,), config.damping, dtype=torch.float64, device=device)
+        current = _group_cost(projector, blurred, target, pixels, poses, weights, groups)
         for _ in range(config.iterations):
-            optimizer.zero_grad()
-            moved = _apply(poses, params * movable, centres, groups, config.radius_mm)
-            simulated = projector.sample(blurred, projector.grid_points(moved, pixels))
-            ncc = slice_ncc(projector, simulated, target, pixels)
-            loss = (weights * (1 - ncc)).sum() / weights.sum().clamp_min(1e-12)
-            loss.backward()
-            optimizer.step()
-            schedule.step()
-        with torch.no_grad():
-            poses = _apply(poses, params * movable, centres, groups, config.radius_mm)
-    return poses.detach()
+            points = projector.world_points(poses, pixels)  # (K, P, 3)
+            samples = sample_channels(channels, projector.to_grid_coordinates(points))
+            samples = samples.to(torch.float64)  # (4, K, P)
+            sim = weights_k @ samples[0]
+            gradient = samples[1:].permute(1, 2, 0)  # (K, P, 3)
+            lever = points - centres[gid][None]
+            jac_r = torch.einsum("k,kpx->px", weights_k, torch.linalg.cross(lever, gradient))
+            jac_t = torch.einsum("k,kpx->px", weights_k, gradient)
+            jac = torch.cat([jac_r, jac_t], dim=1)  # (P, 6)
+            # Per-slice intensity fit y ~ a s + b.
+            stats = _slice_stats(projector, sid, sim, target)
+            n = stats[:, 0].clamp_min(1)
+            mean_s, mean_y = stats[:, 1] / n, stats[:, 2] / n
+            var_s = stats[:, 3] / n - mean_s**2
+            cov = stats[:, 4] / n - mean_s * mean_y
+            a = torch.where(var_s > 1e-12, cov / var_s.clamp_min(1e-12), torch.zeros_like(cov))
+            b = mean_y - a * mean_s
+            residual = target - a[sid] * sim - b[sid]
+            scale = (weights * a)[sid]
+            jw = jac * scale[:, None]
+            hessian = _group_sums(
+                (jw[:, :, None] * jac[:, None, :] * a[sid][:, None, None]).reshape(-1, 36),
+                gid,
+                num_groups,
+            ).reshape(num_groups, 6, 6)
+            rhs = _group_sums(jw * residual[:, None], gid, num_groups)
+            diagonal = torch.diagonal(hessian, dim1=1, dim2=2)
+            lhs = hessian + torch.diag_embed(damping[:, None] * diagonal + 1e-9)
+            step = torch.linalg.solve(lhs, rhs[..., None])[..., 0]
+            step = torch.where(movable[:, None], step, torch.zeros_like(step))
+            candidate = _move(poses, step[:, :3], step[:, 3:], centres, groups)
+            trial = _group_cost(projector, blurred, target, pixels, candidate, weights, groups)
+            better = (trial < current) & movable
+            accept = better[groups]
+            poses = torch.where(accept[:, None, None], candidate, poses)
+            current = torch.where(better, trial, current)
+            damping = torch.where(better, damping / 3, damping * 4).clamp(1e-6, 1e6)
+    return poses
 
 
-def _apply(poses: Tensor, params: Tensor, centres: Tensor, groups: Tensor, radius: float) -> Tensor:
-    """``Trans(c + t) R Trans(-c) T`` per slice from (G, 6) parameters ``(p, t)``, r = p / radius."""
-    R = so3_exp(params[:, :3] / radius)  # (G, 3, 3)
-    t = centres + params[:, 3:] - (R @ centres[..., None])[..., 0]
-    Rg, tg = R[groups], t[groups]
-    out = poses.clone()
-    out[:, :3, :3] = Rg @ poses[:, :3, :3]
-    out[:, :3, 3] = (Rg @ poses[:, :3, 3, None])[..., 0] + tg
-    return out
+def _group_cost(
+    projector: SliceProjector,
+    blurred: Tensor,
+    target: Tensor,
+    pixels: Tensor,
+    poses: Tensor,
+    weights: Tensor,
+    groups: Tensor,
+) -> Tensor:
+    """(G,) weighted sum of ``1 - NCC`` of each group's slices at ``poses``."""
+    points = projector.grid_points(poses, pixels)
+    sim = projector.sample(blurred, points).to(torch.float64)
+    ncc = slice_ncc(projector, sim, target, pixels)
+    return _group_sums(weights * (1 - ncc), groups, int(groups.max()) + 1)
+
+
+def _slice_stats(projector: SliceProjector, sid: Tensor, sim: Tensor, target: Tensor) -> Tensor:
+    """(N, 5) per-slice sums of 1, s, y, s^2 and s y."""
+    values = torch.stack([torch.ones_like(sim), sim, target, sim * sim, sim * target], dim=1)
+    return values.new_zeros(projector.num_slices, 5).index_add(0, sid, values)

@@ -184,9 +184,6 @@ def world_to_grid(image: Image) -> Tensor:
 def sample_grid(image: Image, grid: Tensor, mode: str = "bilinear") -> Tensor:
     """Sample an image at ``grid_sample`` coordinates (from :func:`world_to_grid`); zero outside.
 
-    On the CPU, ``grid_sample`` parallelises only over its batch dimension, so the points are
-    split into one batch per thread over a zero-copy expansion of the volume.
-
     Args:
         image: The image.
         grid: (..., 3) normalised coordinates ``(x, y, z)``, on ``image``'s device.
@@ -195,22 +192,42 @@ def sample_grid(image: Image, grid: Tensor, mode: str = "bilinear") -> Tensor:
     Returns:
         (...) sampled values in the dtype of ``image.data``.
     """
-    flat = grid.reshape(-1, 3).to(image.data.dtype)
+    return sample_channels(image.data[None], grid, mode)[0]
+
+
+def sample_channels(data: Tensor, grid: Tensor, mode: str = "bilinear") -> Tensor:
+    """Sample a multi-channel volume at ``grid_sample`` coordinates; zero outside.
+
+    The one place that calls ``grid_sample``. On the CPU, ``grid_sample`` parallelises only over
+    its batch dimension, so the points are split into one batch per thread over a zero-copy
+    expansion of the volume.
+
+    Args:
+        data: (C, I, J, K) channels on one grid (NIfTI array order).
+        grid: (..., 3) normalised coordinates ``(x, y, z)`` of that grid, on ``data``'s device.
+        mode: ``"bilinear"`` (trilinear in 3D) or ``"nearest"``.
+
+    Returns:
+        (C, ...) sampled values in the dtype of ``data``.
+    """
+    flat = grid.reshape(-1, 3).to(data.dtype)
     count = flat.shape[0]
-    parts = torch.get_num_threads() if image.data.device.type == "cpu" else 1
+    channels = data.shape[0]
+    parts = torch.get_num_threads() if data.device.type == "cpu" else 1
     parts = max(1, min(parts, count // _MIN_POINTS_PER_PART))
     per_part = -(-count // parts)
     if per_part * parts != count:
         flat = torch.cat([flat, flat.new_full((per_part * parts - count, 3), 2.0)])
-    volume = image.data[None, None].expand(parts, 1, *image.shape)
+    volume = data[None].expand(parts, *data.shape)
     out = torch.nn.functional.grid_sample(
         volume,
         flat.reshape(parts, 1, 1, per_part, 3),
         mode=mode,
         padding_mode="zeros",
         align_corners=True,
-    )
-    return out.reshape(-1)[:count].reshape(grid.shape[:-1])
+    )  # (parts, C, 1, 1, per_part)
+    out = out.reshape(parts, channels, per_part).transpose(0, 1).reshape(channels, -1)
+    return out[:, :count].reshape(channels, *grid.shape[:-1])
 
 
 def sample_world(image: Image, points: Tensor, mode: str = "bilinear") -> Tensor:

@@ -2,7 +2,8 @@
 
 Each row holds the stack (or slice-set) file, the slice index in it, the pose vector
 ``(r_x, r_y, r_z, t_x, t_y, t_z)`` (rad, mm), the 3x4 matrix ``[R | t]`` row by row, and the frame
-the pose maps into (``canonical``, ``scanner`` or ``atlas``). The pose maps slice-plane
+the pose maps into (``canonical``, ``scanner`` or ``atlas``), optionally followed by extra
+per-slice columns (e.g. a registration quality) that readers ignore. The pose maps slice-plane
 coordinates ``(u, v, 0)`` in mm (origin at the slice centre, ``u`` along array axis 0) to that
 frame.
 """
@@ -13,6 +14,7 @@ import csv
 import io
 import json
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,7 +58,9 @@ class PoseTable:
             raise ValueError(f"PoseTable: 'frame' must be one of {FRAMES}, got {self.frame!r}")
 
 
-def _rows(table: PoseTable) -> list[dict[str, object]]:
+def _rows(
+    table: PoseTable, extra_columns: Mapping[str, Sequence[object]]
+) -> list[dict[str, object]]:
     matrices = se3_from_vector(table.poses.to(torch.float64))[:, :3].reshape(-1, 12)
     rows = []
     for i, (name, vec, mat) in enumerate(
@@ -66,26 +70,48 @@ def _rows(table: PoseTable) -> list[dict[str, object]]:
         row.update(zip(VECTOR_COLUMNS, vec, strict=True))
         row.update(zip(MATRIX_COLUMNS, mat, strict=True))
         row["frame"] = table.frame
+        row.update((name, values[i]) for name, values in extra_columns.items())
         rows.append(row)
     return rows
 
 
 def write_pose_table(
-    table: PoseTable, path: str | os.PathLike[str], overwrite: bool = False
+    table: PoseTable,
+    path: str | os.PathLike[str],
+    overwrite: bool = False,
+    extra_columns: Mapping[str, Sequence[object]] | None = None,
 ) -> Path:
     """Write a pose table as CSV (``.csv``) or JSON (``.json``), atomically.
 
+    Args:
+        table: The poses.
+        path: The file to write; its suffix chooses the format.
+        overwrite: Whether an existing file may be replaced.
+        extra_columns: More per-slice columns after ``frame``, in order: name -> one value per
+            slice (numbers, bools or strings), e.g. a quality score. :func:`read_pose_table`
+            ignores them.
+
     Raises:
-        ValueError: For another file suffix.
+        ValueError: For another file suffix, or an extra column that reuses a standard column's
+            name or does not hold one value per slice.
         OutputExistsError: If the file exists and ``overwrite`` is false.
     """
     p = Path(path)
-    rows = _rows(table)
+    extra = dict(extra_columns or {})
+    for name, values in extra.items():
+        if name in COLUMNS:
+            raise ValueError(f"{p}: extra column {name!r} is a standard pose-table column")
+        if len(values) != len(table.files):
+            raise ValueError(
+                f"{p}: extra column {name!r} has {len(values)} values for {len(table.files)} slices"
+            )
+    columns = [*COLUMNS, *extra]
+    rows = _rows(table, extra)
     if p.suffix == ".json":
-        text = json.dumps({"columns": list(COLUMNS), "slices": rows}, indent=1) + "\n"
+        text = json.dumps({"columns": columns, "slices": rows}, indent=1) + "\n"
     elif p.suffix == ".csv":
         buffer = io.StringIO()
-        writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+        writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n")
         writer.writeheader()
         writer.writerows(rows)
         text = buffer.getvalue()

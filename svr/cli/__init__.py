@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from svr import __version__
-from svr.cli import demo, evaluate, predict, sample, simulate, train
+from svr.cli import demo, evaluate, predict, reconstruct, register, sample, simulate, train
 from svr.cli.common import CliError
 
 SUBCOMMANDS = {
@@ -23,6 +23,8 @@ SUBCOMMANDS = {
     "train": train,
     "predict": predict,
     "evaluate": evaluate,
+    "register": register,
+    "reconstruct": reconstruct,
     "demo": demo,
 }
 

@@ -1,0 +1,157 @@
+"""A one-page quality report of a reconstruction (matplotlib, Agg, no display needed).
+
+The page shows, top to bottom:
+
+* orthogonal views of the initial volume (scattered-data approximation at the initial poses),
+  the final volume and, when given, a reference volume resampled onto the result's grid by world
+  position: the planes normal to the grid's axes (the frame's x, y and z) through the centroid
+  of the result's mask, each volume on its own grey scale (0 to its in-mask 99.5th percentile);
+* every slice's NCC with its simulation from the final volume against its number (the row of
+  the transforms table), coloured by stack, excluded slices marked with a red cross;
+* the wall time of each phase and the initialisation kept for each stack.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from reconstruction.config import ReconstructionResult
+from svr.files import atomic_write_bytes, check_output_path
+from svr.image import Image, sample_world
+
+__all__ = ["FIGURE_SUFFIXES", "qa_figure", "resample_to_grid"]
+
+FIGURE_SUFFIXES = (".png", ".pdf")
+_AXES = ("x", "y", "z")
+
+
+def resample_to_grid(image: Image, like: Image) -> Image:
+    """Resample ``image`` (trilinear, by world position) onto the grid of ``like``; 0 outside.
+
+    Args:
+        image: The image to resample; its world frame must be ``like``'s.
+        like: The image whose grid (shape and affine) the result has.
+
+    Returns:
+        A float32 image on ``like``'s grid and device.
+    """
+    device = like.data.device
+    axes = [torch.arange(n, dtype=torch.float64, device=device) for n in like.shape]
+    voxels = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+    affine = like.affine.to(device, torch.float64)
+    points = voxels @ affine[:3, :3].T + affine[:3, 3]
+    data = sample_world(image.to(device, torch.float32), points.float())
+    return Image(data, affine.clone())
+
+
+def _planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
+    """The three planes through ``centre`` normal to axes i, j, k, as (rows, columns) arrays.
+
+    Displayed with ``origin="lower"``: rows go up along the later axis, columns along the earlier.
+    """
+    i, j, k = centre
+    return [volume[i, :, :].T, volume[:, j, :].T, volume[:, :, k].T]
+
+
+def _text(result: ReconstructionResult) -> str:
+    timings = result.timings_s
+    lines = ["time per phase (s)"]
+    lines += [f"  {name}: {seconds:.1f}" for name, seconds in timings.items()]
+    lines.append(f"  total: {sum(timings.values()):.1f}")
+    lines.append("initialisation per stack")
+    lines += [
+        f"  {Path(name).name}: {init}"
+        for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
+    ]
+    spacing = float(result.volume.spacing[0])
+    excluded = int(result.excluded.sum())
+    lines.append(f"slices: {len(result.slices)}, excluded {excluded}")
+    lines.append(f"volume: {'x'.join(map(str, result.volume.shape))} at {spacing:.2f} mm")
+    lines.append(f"frame: {result.slices.frame}")
+    return "\n".join(lines)
+
+
+def qa_figure(
+    result: ReconstructionResult,
+    path: str | os.PathLike[str],
+    reference: Image | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Draw the quality page of a reconstruction (see the module docstring), atomically.
+
+    Args:
+        result: The reconstruction.
+        path: A ``.png`` or ``.pdf`` file name; the suffix chooses the format.
+        reference: A volume in the result's frame (e.g. the ground truth of a simulation), shown
+            resampled onto the result's grid; ``None`` for none.
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ValueError: If the suffix is not ``.png`` or ``.pdf``.
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    p = Path(path)
+    if p.suffix not in FIGURE_SUFFIXES:
+        raise ValueError(f"{p}: QA figures are written as .png or .pdf")
+    check_output_path(p, overwrite)
+    mask = result.mask.data.detach().cpu() > 0.5
+    if bool(mask.any()):
+        where = torch.nonzero(mask).double().mean(dim=0)
+    else:
+        where = (torch.tensor(mask.shape, dtype=torch.float64) - 1) / 2
+    centre = tuple(round(float(c)) for c in where)
+    volumes = {"initial": result.initial_volume, "final": result.volume}
+    if reference is not None:
+        volumes["reference"] = resample_to_grid(reference, result.volume)
+    affine = result.volume.affine.detach().cpu().double()
+    world = affine[:3, :3] @ torch.tensor(centre, dtype=torch.float64) + affine[:3, 3]
+
+    figure = Figure(figsize=(8.27, 2.6 * len(volumes) + 3.0), layout="constrained")
+    FigureCanvasAgg(figure)
+    grid = figure.add_gridspec(len(volumes) + 1, 3, height_ratios=[1.0] * len(volumes) + [1.1])
+    for row, (name, image) in enumerate(volumes.items()):
+        data = image.data.detach().cpu().float().numpy()
+        inside = data[mask.numpy()] if bool(mask.any()) else data.ravel()
+        vmax = float(np.percentile(inside, 99.5)) if inside.size else 1.0
+        for col, plane in enumerate(_planes(data, centre)):
+            ax = figure.add_subplot(grid[row, col])
+            ax.imshow(plane, cmap="gray", origin="lower", vmin=0.0, vmax=vmax or 1.0)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if col == 0:
+                ax.set_ylabel(name)
+            if row == 0:
+                ax.set_title(f"{_AXES[col]} = {float(world[col]):.1f} mm", fontsize=9)
+
+    ax = figure.add_subplot(grid[len(volumes), :2])
+    ncc = result.slice_ncc.detach().cpu().double().numpy()
+    stack_ids = result.slices.stack_ids.detach().cpu().numpy()
+    excluded = result.excluded.detach().cpu().numpy().astype(bool)
+    number = np.arange(len(ncc))
+    for sid, name in enumerate(result.slices.stack_names):
+        members = stack_ids == sid
+        ax.plot(number[members], ncc[members], "o", markersize=3, label=Path(name).name)
+    if excluded.any():
+        ax.plot(number[excluded], ncc[excluded], "x", color="red", label="excluded")
+    ax.set_xlabel("slice (row of the transforms table)")
+    ax.set_ylabel("NCC with simulation")
+    ax.set_ylim(float(ncc.min(initial=0.0)) - 0.05, 1.02)
+    ax.legend(fontsize=7, loc="best", ncol=2)
+
+    ax = figure.add_subplot(grid[len(volumes), 2])
+    ax.axis("off")
+    ax.text(0.0, 1.0, _text(result), va="top", ha="left", family="monospace", fontsize=7)
+
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format=p.suffix[1:], dpi=100)
+    return atomic_write_bytes(p, buffer.getvalue(), overwrite)

@@ -1,0 +1,380 @@
+"""``svr reconstruct``: a volume from motion-corrupted thick-slice stacks (SVR + super-resolution).
+
+The options, their checks and the run are shared with ``svr register`` (:mod:`svr.cli.register`),
+which is the same pipeline with fewer rounds and the volume optional.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import logging
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from svr.cli.common import (
+    CliError,
+    HelpFormatter,
+    add_common_options,
+    positive_float,
+    positive_int,
+    resolve_device,
+)
+from svr.files import atomic_write_text, check_output_path
+
+if TYPE_CHECKING:
+    from reconstruction.config import ReconstructionConfig, ReconstructionResult
+    from reconstruction.stacks import StackConfig
+
+DESCRIPTION = """\
+Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
+its own rigid body: its pose is initialised (--registration: `cnn` predicts every slice's pose in
+canonical atlas space with a slice-pose model and keeps, per stack, whichever of the model's
+consensus and the stack registration fits better; `stack` registers every stack rigidly to the
+template stack; `none` keeps the scanner's poses), then outer rounds alternate slice-to-volume
+registration (skipped in the first round), EM outlier weighting, exclusion of slices whose NCC
+with their simulation is below --ncc-threshold, and edge-preserving super-resolution.
+
+Stacks are cropped to their brain masks and normalised; without --stack-masks an automatic mask
+is used (stacks cropped around the brain only; give masks for whole-uterus scans). The output
+volume is in canonical atlas space with --registration cnn and in the scanner's world frame
+otherwise. --output-transforms writes one row per slice (stack file, k index, pose of the file's
+k-plane as 6-vector and matrix, frame, NCC, EM weight, excluded); --output-slices a NeSVoR-style
+folder (n.nii.gz, mask_n.nii.gz; n = row of the transforms table) of the slices kept, each posed
+by its affine; --output-qa a one-page figure (orthogonal views, per-slice NCC, timings).
+All output paths are checked before the computation starts.
+
+examples:
+  svr reconstruct --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
+      --stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --thicknesses 3 \\
+      --output-volume srr.nii.gz --output-qa srr_qa.png
+  svr reconstruct --input-stacks case1/stacks/stack*.nii.gz --stack-masks case1/masks/*.nii.gz \\
+      --registration cnn --model default --output-volume srr_atlas.nii.gz \\
+      --output-transforms slices.csv --output-slices slices/ --output-log srr.log --device cuda
+"""
+
+VOLUME_SUFFIXES = (".nii", ".nii.gz")
+TABLE_SUFFIXES = (".csv", ".json")
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svr reconstruct``."""
+    p = subparsers.add_parser(
+        "reconstruct",
+        help="reconstruct a volume from motion-corrupted stacks (SVR + super-resolution)",
+        description=DESCRIPTION,
+        formatter_class=HelpFormatter,
+    )
+    add_options(p, volume_required=True, iterations=None)
+
+
+def add_options(
+    parser: argparse.ArgumentParser, volume_required: bool, iterations: int | None
+) -> None:
+    """Add the inputs, outputs and settings of ``svr reconstruct`` and ``svr register``.
+
+    Args:
+        parser: The subcommand's parser.
+        volume_required: Whether ``--output-volume`` is required.
+        iterations: Default of ``--iterations``; ``None`` for the library's default.
+    """
+    from reconstruction.config import REGISTRATIONS, ReconstructionConfig
+
+    d = ReconstructionConfig()
+    inputs = parser.add_argument_group("inputs")
+    inputs.add_argument(
+        "--input-stacks", nargs="+", required=True, metavar="STACK", help="stacks (NIfTI)"
+    )
+    inputs.add_argument(
+        "--stack-masks",
+        nargs="+",
+        metavar="MASK",
+        help="brain masks (NIfTI, any grid that overlaps the stack), one per stack in order "
+        "(default: automatic masks)",
+    )
+    inputs.add_argument(
+        "--thicknesses",
+        nargs="+",
+        type=positive_float,
+        metavar="MM",
+        help="slice thickness in mm: one for all stacks or one per stack (default: each stack's "
+        "slice spacing, with a warning)",
+    )
+    inputs.add_argument(
+        "--bias-correction",
+        action="store_true",
+        help="correct each stack's bias field with N4 before reconstruction",
+    )
+    outputs = parser.add_argument_group("outputs")
+    outputs.add_argument(
+        "--output-volume",
+        required=volume_required,
+        metavar="FILE",
+        help="reconstructed volume (.nii or .nii.gz, float32)",
+    )
+    outputs.add_argument(
+        "--output-slices", metavar="FOLDER", help="folder of posed slices (NeSVoR format)"
+    )
+    outputs.add_argument(
+        "--output-transforms", metavar="FILE", help="slice poses and quality (.csv or .json)"
+    )
+    outputs.add_argument("--output-qa", metavar="FILE", help="quality figure (.png or .pdf)")
+    outputs.add_argument(
+        "--output-log", metavar="FILE", help="text log: messages, settings, timings per phase"
+    )
+    outputs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    settings = parser.add_argument_group("reconstruction")
+    settings.add_argument(
+        "--output-resolution",
+        type=positive_float,
+        default=d.output_resolution_mm,
+        metavar="MM",
+        help="isotropic voxel size of the volume",
+    )
+    settings.add_argument(
+        "--registration",
+        choices=REGISTRATIONS,
+        default=d.registration,
+        help="pose initialisation: slice-pose model (canonical space), stack registration or "
+        "the scanner's poses",
+    )
+    settings.add_argument(
+        "--model",
+        default="default",
+        metavar="CHECKPOINT_DIR",
+        help="slice-pose model for --registration cnn: 'default' (shipped with the package) or a "
+        "checkpoint folder (write ./default for a folder of that name)",
+    )
+    settings.add_argument(
+        "--template",
+        type=int,
+        metavar="INDEX",
+        help="template stack (0-based index) of the stack registration (default: the stack with "
+        "the most brain voxels)",
+    )
+    settings.add_argument(
+        "--iterations",
+        type=positive_int,
+        default=d.outer_iterations if iterations is None else iterations,
+        metavar="N",
+        help="outer rounds of (slice-to-volume registration, super-resolution); no slice-to-volume "
+        "registration in the first",
+    )
+    settings.add_argument(
+        "--sr-iterations",
+        nargs="+",
+        type=positive_int,
+        default=list(d.sr_iterations),
+        metavar="N",
+        help="super-resolution (conjugate-gradient) iterations per round; the last value repeats",
+    )
+    settings.add_argument(
+        "--svr-iterations",
+        type=positive_int,
+        default=d.svr_iterations,
+        metavar="N",
+        help="optimiser steps per resolution level of slice-to-volume registration",
+    )
+    settings.add_argument(
+        "--no-robust", action="store_true", help="no EM outlier weights (voxel and slice level)"
+    )
+    settings.add_argument(
+        "--ncc-threshold",
+        type=float,
+        default=d.ncc_threshold,
+        metavar="NCC",
+        help="slices whose NCC with their simulation is below this are excluded",
+    )
+    add_common_options(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``svr reconstruct`` (and ``svr register``): check, reconstruct, write the outputs.
+
+    Raises:
+        CliError: For inconsistent options or output paths.
+        ValueError, OSError: From the library (bad or missing files, checkpoints), naming the file.
+    """
+    from models.predict import load_pose_model
+    from reconstruction.pipeline import reconstruct
+    from reconstruction.stacks import load_stacks
+
+    stack_config, config = _configs(args)
+    _check_outputs(args)
+    device = resolve_device(args.device)
+    if config.registration != "cnn" and args.model != "default":
+        log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
+    with _captured_log() as captured:
+        stacks = load_stacks(args.input_stacks, args.stack_masks, args.thicknesses, stack_config)
+        model = load_pose_model(args.model, device) if config.registration == "cnn" else None
+        result = reconstruct(stacks, config, model=model, device=device, progress=not args.quiet)
+        _log_result(result)
+        written = _write_outputs(args, result)
+    if args.output_log is not None:
+        text = captured.getvalue() + _summary(args, stack_config, config, result, device)
+        atomic_write_text(args.output_log, text, args.overwrite)
+        written.append(args.output_log)
+    excluded = int(result.excluded.sum())
+    print(
+        f"wrote {', '.join(written)}: {len(result.slices)} slices from {len(stacks)} stacks, "
+        f"{excluded} excluded, {result.slices.frame} frame"
+    )
+    return 0
+
+
+def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
+    """The dataclass configs the options describe, after the checks argparse cannot do."""
+    from reconstruction.config import ReconstructionConfig
+    from reconstruction.stacks import StackConfig
+
+    count = len(args.input_stacks)
+    if args.stack_masks is not None and len(args.stack_masks) != count:
+        raise CliError(
+            f"--stack-masks: got {len(args.stack_masks)} masks for {count} stacks; give none or "
+            "one per stack"
+        )
+    if args.thicknesses is not None and len(args.thicknesses) not in (1, count):
+        raise CliError(
+            f"--thicknesses: got {len(args.thicknesses)} values for {count} stacks; give one for "
+            "all stacks or one per stack"
+        )
+    if args.template is not None and not 0 <= args.template < count:
+        raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
+    if not (math.isfinite(args.ncc_threshold) and -1 <= args.ncc_threshold <= 1):
+        raise CliError(f"--ncc-threshold must be in [-1, 1], got {args.ncc_threshold}")
+    stack_config = StackConfig(bias_correction=args.bias_correction)
+    config = ReconstructionConfig(
+        output_resolution_mm=args.output_resolution,
+        registration=args.registration,
+        template=args.template,
+        outer_iterations=args.iterations,
+        sr_iterations=tuple(args.sr_iterations),
+        svr_iterations=args.svr_iterations,
+        robust=not args.no_robust,
+        ncc_threshold=args.ncc_threshold,
+        bias_correction=args.bias_correction,
+        seed=args.seed,
+    )
+    return stack_config, config
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Check every output path before the computation: suffix, existence, folder, no repeats."""
+    from reconstruction.qa import FIGURE_SUFFIXES
+
+    outputs = {
+        "--output-volume": (args.output_volume, VOLUME_SUFFIXES),
+        "--output-slices": (args.output_slices, None),
+        "--output-transforms": (args.output_transforms, TABLE_SUFFIXES),
+        "--output-qa": (args.output_qa, FIGURE_SUFFIXES),
+        "--output-log": (args.output_log, None),
+    }
+    seen: dict[Path, str] = {}
+    for option, (path, suffixes) in outputs.items():
+        if path is None:
+            continue
+        if suffixes is not None and not path.endswith(suffixes):
+            raise CliError(f"{option} {path}: must end in {' or '.join(suffixes)}")
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise CliError(f"{option} {path}: the same path as {seen[resolved]}")
+        seen[resolved] = option
+        check_output_path(path, args.overwrite)
+
+
+@contextmanager
+def _captured_log() -> Iterator[io.StringIO]:
+    """Collect the log messages emitted meanwhile (at the chosen verbosity) for --output-log."""
+    buffer = io.StringIO()
+    handler = logging.StreamHandler(buffer)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    try:
+        yield buffer
+    finally:
+        root.removeHandler(handler)
+
+
+def _excluded_by_stack(result: ReconstructionResult) -> dict[str, list[int]]:
+    """Stack name -> k indices (in its file) of the excluded slices, for stacks that have some."""
+    slices = result.slices
+    out: dict[str, list[int]] = {}
+    for row in result.excluded.nonzero().flatten().tolist():
+        name = slices.stack_names[int(slices.stack_ids[row])]
+        out.setdefault(name, []).append(int(slices.slice_indices[row]))
+    return out
+
+
+def _log_result(result: ReconstructionResult) -> None:
+    frame = result.slices.frame
+    where = (
+        "the slice-pose model's atlas space"
+        if frame == "canonical"
+        else "the stacks' world coordinates"
+    )
+    log.info("the output volume and poses are in the %s frame (%s)", frame, where)
+    for name, ks in _excluded_by_stack(result).items():
+        log.info("%s: excluded slices k = %s", name, ", ".join(map(str, ks)))
+
+
+def _write_outputs(args: argparse.Namespace, result: ReconstructionResult) -> list[str]:
+    """Write the requested outputs (the log aside); returns their paths."""
+    from reconstruction.outputs import write_slices_folder, write_transforms, write_volume
+    from reconstruction.qa import qa_figure
+
+    written = []
+    if args.output_volume is not None:
+        written.append(str(write_volume(result.volume, args.output_volume, args.overwrite)))
+    if args.output_transforms is not None:
+        written.append(str(write_transforms(result, args.output_transforms, args.overwrite)))
+    if args.output_slices is not None:
+        keep = ~result.excluded
+        written.append(
+            str(write_slices_folder(result.slices, args.output_slices, args.overwrite, keep))
+        )
+    if args.output_qa is not None:
+        written.append(str(qa_figure(result, args.output_qa, overwrite=args.overwrite)))
+    return written
+
+
+def _summary(
+    args: argparse.Namespace,
+    stack_config: StackConfig,
+    config: ReconstructionConfig,
+    result: ReconstructionResult,
+    device: str,
+) -> str:
+    """The settings, timings, initialisation and exclusions, as text for --output-log."""
+    lines = [f"# svr {args.command} summary", "inputs:"]
+    masks = args.stack_masks or ["(automatic)"] * len(args.input_stacks)
+    lines += [
+        f"  {stack} (mask {mask})" for stack, mask in zip(args.input_stacks, masks, strict=True)
+    ]
+    if config.registration == "cnn":
+        lines.append(f"model: {args.model}")
+    lines.append("stack preparation:")
+    lines += [f"  {key}: {value}" for key, value in asdict(stack_config).items()]
+    lines.append("reconstruction:")
+    lines += [f"  {key}: {value}" for key, value in asdict(config).items()]
+    lines.append(f"  device: {device}")
+    lines.append("time per phase (s):")
+    lines += [f"  {name}: {seconds:.2f}" for name, seconds in result.timings_s.items()]
+    lines.append(f"  total: {sum(result.timings_s.values()):.2f}")
+    lines.append("initialisation per stack:")
+    lines += [
+        f"  {name}: {init}"
+        for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
+    ]
+    lines.append(f"frame: {result.slices.frame}")
+    excluded = _excluded_by_stack(result)
+    lines.append(f"excluded slices: {int(result.excluded.sum())} of {len(result.slices)}")
+    lines += [f"  {name}: k = {', '.join(map(str, ks))}" for name, ks in excluded.items()]
+    return "\n".join(lines) + "\n"
