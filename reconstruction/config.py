@@ -30,6 +30,13 @@ class ReconstructionConfig:
             or a single number for all).
         svr_levels: Resolution levels of slice-to-volume registration (coarse to fine).
         svr_iterations: Levenberg-Marquardt steps per SVR level.
+        packets: Interleaved packets per stack (acquisition order ``k = 0, 2, 4, ..., 1, 3, ...``
+            for 2; 1 for sequential), used to group slices acquired one after another.
+        group_sizes: Hierarchical SVR: in round ``r`` (from 1) slices are first registered in
+            groups of ``group_sizes[r - 1]`` temporal neighbours (:func:`slice_groups`), then
+            one by one from the round after the last size on.
+        min_slice_pixels: Slices with fewer brain pixels keep their group's pose instead of
+            being registered one by one.
         regularization: Weight of the edge-preserving regulariser.
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
@@ -41,10 +48,13 @@ class ReconstructionConfig:
     output_resolution_mm: float = 0.8
     registration: str = "stack"
     template: int | None = None
-    outer_iterations: int = 3
-    sr_iterations: tuple[int, ...] = (7, 7, 21)
+    outer_iterations: int = 5
+    sr_iterations: tuple[int, ...] = (7, 7, 7, 7, 21)
     svr_levels: int = 3
     svr_iterations: int = 6
+    packets: int = 2
+    group_sizes: tuple[int, ...] = (4, 2)
+    min_slice_pixels: int = 200
     regularization: float = 0.02
     edge_delta: float = 0.15
     robust: bool = True

@@ -162,6 +162,34 @@ def _learned_initialisation(
     return slices.with_poses(poses, "canonical"), tuple(choice)
 
 
+def slice_groups(slices: SliceSet, packets: int, size: int) -> Tensor:
+    """Groups of up to ``size`` slices acquired one after another, for hierarchical SVR.
+
+    With ``packets`` interleaved packets per stack (slices ``k = p, p + packets, p + 2 packets,
+    ...`` acquired in turn), slices of one packet that are neighbours in that order are
+    neighbours in time, so under smooth fetal motion they moved alike. ``size = 1`` gives one
+    group per slice.
+
+    Args:
+        slices: The slices.
+        packets: Interleaved packets per stack (>= 1; 1 for sequential acquisition).
+        size: Slices per group (>= 1).
+
+    Returns:
+        (N,) int64 group ids, consecutive from 0.
+    """
+    if size <= 1:
+        return torch.arange(len(slices), device=slices.device)
+    k = slices.slice_indices
+    key = (slices.stack_ids * packets + k % packets) * (int(k.max()) + 1) + (k // packets) // size
+    return torch.unique(key, return_inverse=True)[1]
+
+
+def _group_size(config: ReconstructionConfig, round_index: int) -> int:
+    sizes = config.group_sizes
+    return sizes[round_index - 1] if round_index - 1 < len(sizes) else 1
+
+
 def _iterations(config: ReconstructionConfig, round_index: int) -> int:
     its = config.sr_iterations
     return its[min(round_index, len(its) - 1)]
@@ -264,13 +292,19 @@ def _rounds(
     for round_index in bar:
         if round_index > 0:
             with timer.phase("slice-to-volume registration"):
+                size = _group_size(config, round_index)
+                groups = slice_groups(slices, config.packets, size)
+                # Slices with little brain carry too little signal to be registered alone.
+                pixels = slices.masks.flatten(1).sum(1)
+                small = (pixels < config.min_slice_pixels) if size == 1 else None
                 poses = register_rigid(
                     svr_projector,
                     volume,
                     slices.images,
                     poses,
-                    torch.arange(len(slices), device=observed.device),
+                    groups,
                     svr_config,
+                    fixed=small,
                     slice_weights=slice_w * (~excluded),
                 )
                 points = projector.grid_points(poses)

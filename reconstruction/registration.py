@@ -172,7 +172,7 @@ def register_rigid(
         movable &= ~fixed.to(device)
     weights = ones if slice_weights is None else slice_weights.to(device, torch.float64)
     voxel = projector.grid.spacing.to(device)
-    weights_k = projector.weights.to(device=device, dtype=torch.float64)
+    weights_k = projector.weights.to(device)
     for level in range(config.levels):
         stride = 2 ** (config.levels - 1 - level)
         pixels = _level_pixels(projector, stride)
@@ -185,17 +185,15 @@ def register_rigid(
         channels = _with_gradient(projector, blurred)
         pixel_mm = float(voxel.min()) / projector.pixel_mm
         target = projector.gather(_blur_slices(observed, blur_vox * pixel_mm))[pixels]
-        target = target.to(torch.float64)
 
         damping = torch.full((num_groups,), config.damping, dtype=torch.float64, device=device)
         current = _group_cost(projector, blurred, target, pixels, poses, weights, groups)
         for _ in range(config.iterations):
             points = projector.world_points(poses, pixels)  # (K, P, 3)
-            samples = sample_channels(channels, projector.to_grid_coordinates(points))
-            samples = samples.to(torch.float64)  # (4, K, P)
+            samples = sample_channels(channels, projector.to_grid_coordinates(points))  # (4, K, P)
             sim = weights_k @ samples[0]
             gradient = samples[1:].permute(1, 2, 0)  # (K, P, 3)
-            lever = points - centres[gid][None]
+            lever = points - centres.float()[gid][None]
             jac_r = torch.einsum("k,kpx->px", weights_k, torch.linalg.cross(lever, gradient))
             jac_t = torch.einsum("k,kpx->px", weights_k, gradient)
             jac = torch.cat([jac_r, jac_t], dim=1)  # (P, 6)
@@ -208,14 +206,18 @@ def register_rigid(
             a = torch.where(var_s > 1e-12, cov / var_s.clamp_min(1e-12), torch.zeros_like(cov))
             b = mean_y - a * mean_s
             residual = target - a[sid] * sim - b[sid]
-            scale = (weights * a)[sid]
+            scale = (weights.float() * a)[sid]
             jw = jac * scale[:, None]
-            hessian = _group_sums(
-                (jw[:, :, None] * jac[:, None, :] * a[sid][:, None, None]).reshape(-1, 36),
-                gid,
-                num_groups,
-            ).reshape(num_groups, 6, 6)
-            rhs = _group_sums(jw * residual[:, None], gid, num_groups)
+            hessian = (
+                _group_sums(
+                    (jw[:, :, None] * jac[:, None, :] * a[sid][:, None, None]).reshape(-1, 36),
+                    gid,
+                    num_groups,
+                )
+                .reshape(num_groups, 6, 6)
+                .double()
+            )
+            rhs = _group_sums(jw * residual[:, None], gid, num_groups).double()
             diagonal = torch.diagonal(hessian, dim1=1, dim2=2)
             lhs = hessian + torch.diag_embed(damping[:, None] * diagonal + 1e-9)
             step = torch.linalg.solve(lhs, rhs[..., None])[..., 0]
@@ -241,9 +243,8 @@ def _group_cost(
 ) -> Tensor:
     """(G,) weighted sum of ``1 - NCC`` of each group's slices at ``poses``."""
     points = projector.grid_points(poses, pixels)
-    sim = projector.sample(blurred, points).to(torch.float64)
-    ncc = slice_ncc(projector, sim, target, pixels)
-    return _group_sums(weights * (1 - ncc), groups, int(groups.max()) + 1)
+    ncc = slice_ncc(projector, projector.sample(blurred, points), target, pixels)
+    return _group_sums(weights * (1 - ncc.double()), groups, int(groups.max()) + 1)
 
 
 def _slice_stats(projector: SliceProjector, sid: Tensor, sim: Tensor, target: Tensor) -> Tensor:

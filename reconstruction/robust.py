@@ -3,8 +3,10 @@
 Pixel level: each residual ``r = y - c A x`` is an inlier ``N(0, sigma^2)`` with probability
 ``c_in`` or an outlier of uniform density ``m`` (one over the range of the residuals); the pixel
 weight is the posterior inlier probability. Slice level: each slice's inlier-weighted RMS
-residual is an inlier or an outlier of a two-Gaussian mixture; the slice weight is the posterior
-inlier probability. A few EM steps are run each time the weights are updated.
+residual is an inlier (a Gaussian started at the median and 1.4826 MAD, at least a quarter of
+the median) or an outlier (uniform
+over the range of the slices' errors); the slice weight is the posterior inlier probability,
+1 for slices whose error is below the inlier mean. A few EM steps are run at each level.
 """
 
 from __future__ import annotations
@@ -16,6 +18,10 @@ import torch
 from torch import Tensor
 
 __all__ = ["RobustWeights", "robust_weights"]
+
+# The inlier slices' errors spread by at least this fraction of their median: slices differ in
+# content, and a narrower inlier class would reject sound slices.
+SLICE_SPREAD_FLOOR = 0.25
 
 
 @dataclass(frozen=True)
@@ -72,24 +78,19 @@ def robust_weights(
     slice_w = torch.ones(num_slices, dtype=torch.float64, device=r.device)
     e = error[has_data]
     if e.numel() >= 4:
-        median = float(e.median())
-        mad = float((e - median).abs().median()) * 1.4826 + 1e-6
-        # Inliers: around the median; outliers: one broad class above it.
-        m1, v1 = median, mad**2
-        m2, v2 = median + 4 * mad, (4 * mad) ** 2
-        c = 0.9
+        # Inliers: a Gaussian around the median error; outliers: uniform over the range.
+        mean = float(e.median())
+        floor = (SLICE_SPREAD_FLOOR * mean) ** 2 + 1e-12
+        var = max((1.4826 * float((e - mean).abs().median())) ** 2, floor)
+        density = 1.0 / max(float(e.max() - e.min()), 1e-12)
+        mix = 0.95
         for _ in range(steps):
-            g1 = c * _gauss(e, m1, v1)
-            g2 = (1 - c) * _gauss(e, m2, v2) * (e > m1).to(e.dtype)
-            q = g1 / (g1 + g2).clamp_min(1e-300)
-            m1 = float((q * e).sum() / q.sum().clamp_min(1e-12))
-            v1 = max(float((q * (e - m1) ** 2).sum() / q.sum().clamp_min(1e-12)), mad**2 / 4)
-            o = 1 - q
-            if float(o.sum()) > 1e-6:
-                m2 = max(float((o * e).sum() / o.sum()), m1 + mad)
-                v2 = max(float((o * (e - m2) ** 2).sum() / o.sum()), v1)
-            c = float(q.mean().clamp(0.5, 0.999))
-        g1 = c * _gauss(e, m1, v1)
-        g2 = (1 - c) * _gauss(e, m2, v2) * (e > m1).to(e.dtype)
-        slice_w[has_data] = g1 / (g1 + g2).clamp_min(1e-300)
+            g = mix * _gauss(e, mean, var)
+            q = g / (g + (1 - mix) * density)
+            mean = float((q * e).sum() / q.sum().clamp_min(1e-12))
+            var = max(float((q * (e - mean) ** 2).sum() / q.sum().clamp_min(1e-12)), floor)
+            mix = float(q.mean().clamp(0.5, 0.999))
+        g = mix * _gauss(e, mean, var)
+        # Slices better than the inlier mean are never outliers.
+        slice_w[has_data] = torch.where(e <= mean, 1.0, g / (g + (1 - mix) * density))
     return RobustWeights(pixel.to(residuals.dtype), slice_w.to(residuals.dtype), math.sqrt(var))
