@@ -37,7 +37,9 @@ class ReconstructionConfig:
             one by one from the round after the last size on.
         min_slice_pixels: Slices with fewer brain pixels keep their group's pose instead of
             being registered one by one.
-        regularization: Weight of the edge-preserving regulariser.
+        regularization: Weight of the edge-preserving regulariser per round (one per round, or
+            a single number for all): strong while poses are still rough, so that registration
+            sees a clean volume, weaker at the end for detail.
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
         ncc_threshold: Slices whose NCC with their simulation is below this are excluded.
@@ -55,7 +57,7 @@ class ReconstructionConfig:
     packets: int = 2
     group_sizes: tuple[int, ...] = (4, 2)
     min_slice_pixels: int = 200
-    regularization: float = 0.02
+    regularization: tuple[float, ...] = (0.15, 0.15, 0.15, 0.1, 0.05)
     edge_delta: float = 0.15
     robust: bool = True
     ncc_threshold: float = 0.5

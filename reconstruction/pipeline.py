@@ -21,10 +21,10 @@ from contextlib import contextmanager
 
 import torch
 from torch import Tensor
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from models.network import ModelConfig, SlicePoseNet
-from reconstruction.cnn_init import cnn_slice_poses
+from reconstruction.cnn_init import cnn_slice_poses, robust_mean_pose
 from reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from reconstruction.operators import SliceProjector, VolumeGrid
 from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
@@ -190,9 +190,9 @@ def _group_size(config: ReconstructionConfig, round_index: int) -> int:
     return sizes[round_index - 1] if round_index - 1 < len(sizes) else 1
 
 
-def _iterations(config: ReconstructionConfig, round_index: int) -> int:
-    its = config.sr_iterations
-    return its[min(round_index, len(its) - 1)]
+def _per_round(values: tuple, round_index: int) -> float:
+    """The value for round ``round_index``; the last one repeats."""
+    return values[min(round_index, len(values) - 1)]
 
 
 def reconstruct(
@@ -277,6 +277,7 @@ def _rounds(
         poses = slices.poses
         points = projector.grid_points(poses)
         pixel_w = torch.ones_like(observed)
+        pixels = slices.masks.flatten(1).sum(1)
         slice_w = torch.ones(len(slices), device=observed.device)
         excluded = torch.zeros(len(slices), dtype=torch.bool, device=observed.device)
         volume = scattered_data_approximation(projector, points, observed, pixel_w)
@@ -292,10 +293,10 @@ def _rounds(
     for round_index in bar:
         if round_index > 0:
             with timer.phase("slice-to-volume registration"):
+                previous = poses
                 size = _group_size(config, round_index)
                 groups = slice_groups(slices, config.packets, size)
                 # Slices with little brain carry too little signal to be registered alone.
-                pixels = slices.masks.flatten(1).sum(1)
                 small = (pixels < config.min_slice_pixels) if size == 1 else None
                 poses = register_rigid(
                     svr_projector,
@@ -307,12 +308,14 @@ def _rounds(
                     fixed=small,
                     slice_weights=slice_w * (~excluded),
                 )
+                poses = _anchored(poses, previous)
                 points = projector.grid_points(poses)
         with timer.phase("outlier rejection"):
             simulated = projector.forward(volume, points)
             scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
             ncc = slice_ncc(projector, simulated, observed)
-            excluded = ncc < config.ncc_threshold
+            # NCC of slices with little brain is noise: those rely on the EM weights alone.
+            excluded = (ncc < config.ncc_threshold) & (pixels >= config.min_slice_pixels)
             if config.robust:
                 weights = robust_weights(
                     observed - scales[projector.slice_of] * simulated,
@@ -329,8 +332,8 @@ def _rounds(
                 weights_now,
                 scales,
                 volume,
-                _iterations(config, round_index),
-                config.regularization,
+                _per_round(config.sr_iterations, round_index),
+                _per_round(config.regularization, round_index),
                 config.edge_delta,
             )
         bar.set_postfix(ncc=f"{float(ncc.mean()):.3f}", excluded=int(excluded.sum()))
@@ -353,6 +356,17 @@ def _rounds(
         initialisation=init,
         timings_s=timer.timings,
     )
+
+
+def _anchored(poses: Tensor, previous: Tensor) -> Tensor:
+    """Remove the common rigid motion of all slices from a registration's corrections.
+
+    Slice-to-volume registration can move every slice (and with them the volume) together; the
+    robust mean of the per-slice corrections ``poses_i o previous_i^-1`` is taken back out so the
+    volume stays in the frame of the initialisation (the template stack, or canonical space).
+    """
+    drift = robust_mean_pose(poses @ torch.linalg.inv(previous))
+    return torch.linalg.inv(drift).to(poses) @ poses
 
 
 def _report_exclusions(slices: SliceSet, excluded: Tensor) -> None:

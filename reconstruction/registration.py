@@ -95,20 +95,6 @@ def _blur_slices(images: Tensor, sigma_px: float) -> Tensor:
     return gaussian_blur(images.permute(1, 2, 0), (sigma_px, sigma_px, 0.0)).permute(2, 0, 1)
 
 
-def _level_pixels(projector: SliceProjector, stride: int) -> Tensor:
-    if stride == 1:
-        return torch.arange(projector.num_pixels, device=projector.slice_of.device)
-    w = projector.size[1]
-    a, b = projector.pixel_of // w, projector.pixel_of % w
-    return torch.nonzero((a % stride == 0) & (b % stride == 0)).flatten()
-
-
-def _blur_slices(images: Tensor, sigma_px: float) -> Tensor:
-    if sigma_px <= 0:
-        return images
-    return gaussian_blur(images.permute(1, 2, 0), (sigma_px, sigma_px, 0.0)).permute(2, 0, 1)
-
-
 def _with_gradient(projector: SliceProjector, blurred: Tensor) -> Tensor:
     """(4, I, J, K): the volume and its gradient in frame coordinates (per mm)."""
     voxel_gradient = torch.stack(torch.gradient(blurred))  # d/di, d/dj, d/dk

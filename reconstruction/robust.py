@@ -81,16 +81,17 @@ def robust_weights(
         # Inliers: a Gaussian around the median error; outliers: uniform over the range.
         mean = float(e.median())
         floor = (SLICE_SPREAD_FLOOR * mean) ** 2 + 1e-12
-        var = max((1.4826 * float((e - mean).abs().median())) ** 2, floor)
-        density = 1.0 / max(float(e.max() - e.min()), 1e-12)
-        mix = 0.95
+        spread = max((1.4826 * float((e - mean).abs().median())) ** 2, floor)
+        # The outlier class spans at least six inlier standard deviations.
+        outlier_density = 1.0 / max(float(e.max() - e.min()), 6 * math.sqrt(spread))
+        slice_mix = 0.95
         for _ in range(steps):
-            g = mix * _gauss(e, mean, var)
-            q = g / (g + (1 - mix) * density)
+            g = slice_mix * _gauss(e, mean, spread)
+            q = g / (g + (1 - slice_mix) * outlier_density)
             mean = float((q * e).sum() / q.sum().clamp_min(1e-12))
-            var = max(float((q * (e - mean) ** 2).sum() / q.sum().clamp_min(1e-12)), floor)
-            mix = float(q.mean().clamp(0.5, 0.999))
-        g = mix * _gauss(e, mean, var)
+            spread = max(float((q * (e - mean) ** 2).sum() / q.sum().clamp_min(1e-12)), floor)
+            slice_mix = float(q.mean().clamp(0.5, 0.999))
+        g = slice_mix * _gauss(e, mean, spread)
         # Slices better than the inlier mean are never outliers.
-        slice_w[has_data] = torch.where(e <= mean, 1.0, g / (g + (1 - mix) * density))
+        slice_w[has_data] = torch.where(e <= mean, 1.0, g / (g + (1 - slice_mix) * outlier_density))
     return RobustWeights(pixel.to(residuals.dtype), slice_w.to(residuals.dtype), math.sqrt(var))

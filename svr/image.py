@@ -11,7 +11,11 @@ Conventions (``DESIGN.md``):
 
 from __future__ import annotations
 
+import logging
 import os
+import zlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +28,9 @@ from svr.files import check_output_path
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 _MIN_POINTS_PER_PART = 16384  # below this, splitting grid_sample over threads does not pay
+
+
+log = logging.getLogger(__name__)
 
 
 class ImageError(ValueError):
@@ -74,6 +81,30 @@ def _fail(path: Path, problem: str) -> ImageError:
     return ImageError(f"{path}: {problem}")
 
 
+@contextmanager
+def _nibabel_messages(path: Path) -> Iterator[None]:
+    """Hold back nibabel's header messages, which it prints to stderr by its own handler.
+
+    A file that loads after all gets them as warnings of this module, naming the file; one that
+    does not is reported by the error alone (which says the same).
+    """
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage())
+
+    logger = nib.imageglobals.logger
+    saved = logger.handlers, logger.propagate
+    logger.handlers, logger.propagate = [Collect()], False
+    try:
+        yield
+    finally:
+        logger.handlers, logger.propagate = saved
+    for message in messages:
+        log.warning("%s: %s", path, message)
+
+
 def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32) -> Image:
     """Load a 3D NIfTI image with its world affine (sform, else qform, as nibabel chooses).
 
@@ -87,8 +118,9 @@ def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32)
         The image, on the CPU.
 
     Raises:
-        ImageError: Naming the file, if it is missing, unreadable, not NIfTI, truncated, not 3D,
-            empty, has non-finite voxels, or a singular or non-finite affine.
+        ImageError: Naming the file, if it is missing, unreadable, not NIfTI, truncated or
+            corrupted, not real-valued (complex, RGB), not 3D, empty, has non-finite voxels, or a
+            singular or non-finite affine.
     """
     p = Path(path)
     if not p.exists():
@@ -97,15 +129,31 @@ def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32)
         raise _fail(p, "not a file")
     if not str(p).endswith(NIFTI_SUFFIXES):
         raise _fail(p, "not a NIfTI file name (expected .nii or .nii.gz)")
+    if not os.access(p, os.R_OK):
+        raise _fail(p, "permission denied")
     try:
-        with np.errstate(invalid="ignore", divide="ignore"):  # singular affines are reported below
+        # singular affines are reported below
+        with np.errstate(invalid="ignore", divide="ignore"), _nibabel_messages(p):
             img = nib.load(str(p))
+            stored = img.get_data_dtype()
+            if stored.kind not in "biuf":  # complex would lose its imaginary part, RGB fail
+                raise _fail(p, f"unsupported data type {stored} (expected real-valued voxels)")
             array = np.asarray(img.dataobj, dtype=np.float64)
             affine = np.asarray(img.affine, dtype=np.float64)
     except PermissionError as err:
         raise _fail(p, "permission denied") from err
-    except (OSError, EOFError, ValueError, nib.filebasedimages.ImageFileError) as err:
-        raise _fail(p, f"cannot read as NIfTI ({err.__class__.__name__}: {err})") from err
+    except ImageError:
+        raise
+    except (
+        OSError,
+        EOFError,
+        ValueError,
+        zlib.error,  # a corrupted deflate stream in a .nii.gz
+        nib.filebasedimages.ImageFileError,
+        nib.spatialimages.HeaderDataError,  # e.g. an unknown data type code
+    ) as err:
+        detail = " ".join(str(err).split())
+        raise _fail(p, f"cannot read as NIfTI ({err.__class__.__name__}: {detail})") from err
     if array.size == 0:
         raise _fail(p, f"image is empty (shape {array.shape})")
     if array.ndim == 4 and array.shape[3] == 1:

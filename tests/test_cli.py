@@ -14,7 +14,7 @@ import torch
 from svr import __version__
 from svr.cli import main
 
-SMALL = ["--num-poses", "32", "--steps", "150", "--device", "cpu", "--quiet"]
+SMALL = ["--loss-only", "--num-poses", "32", "--steps", "150", "--device", "cpu", "--quiet"]
 
 
 def test_help_lists_subcommands(capsys):

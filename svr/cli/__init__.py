@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import traceback
 from collections.abc import Sequence
 
 from svr import __version__
@@ -28,8 +29,6 @@ SUBCOMMANDS = {
     "demo": demo,
 }
 
-log = logging.getLogger("svr")
-
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``svr`` argument parser with all subcommands."""
@@ -42,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     for module in SUBCOMMANDS.values():
         module.add_parser(subparsers)
     return parser
+
+
+def _one_line(err: BaseException) -> str:
+    """An error's message on one line (library messages may span several), never empty."""
+    return " ".join(str(err).split()) or type(err).__name__
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -62,9 +66,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return SUBCOMMANDS[args.command].run(args)
     except (CliError, OSError, ValueError) as err:
-        if args.verbose:
-            log.exception("svr %s failed", args.command)
-        print(f"svr {args.command}: error: {err}", file=sys.stderr)
+        if args.verbose:  # straight to stderr: logging may be configured elsewhere (in-process use)
+            traceback.print_exc(file=sys.stderr)
+        print(f"svr {args.command}: error: {_one_line(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"svr {args.command}: interrupted", file=sys.stderr)

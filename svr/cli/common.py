@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import math
+import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
@@ -76,6 +79,51 @@ def positive_float(text: str) -> float:
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
+
+
+def check_finite(args: argparse.Namespace, *options: str) -> None:
+    """Refuse NaN and infinite values of float options that the library checks only for sign.
+
+    Args:
+        args: The parsed options.
+        options: Long option names (``"--noise"``); a ``None`` value (not given) or a list of
+            numbers is accepted.
+
+    Raises:
+        CliError: Naming the first option with a non-finite value.
+    """
+    for option in options:
+        value = getattr(args, option[2:].replace("-", "_"))
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for number in values:
+            if number is not None and not math.isfinite(number):
+                raise CliError(f"{option} must be a finite number, got {number}")
+
+
+def check_run_folder(path: str) -> Path:
+    """Check that a run folder can be created or added to: a folder, or creatable and writable.
+
+    Args:
+        path: The folder (it may exist, e.g. to resume a run).
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        CliError: If the path exists and is not a folder.
+        PermissionError: If the folder, or the nearest existing folder above it, is not writable.
+    """
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"--output-dir {out}: exists and is not a folder")
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise CliError(f"--output-dir {out}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK):
+        raise PermissionError(f"{out}: output folder {existing} is not writable")
+    return out
 
 
 def add_volume_options(parser: argparse.ArgumentParser) -> None:

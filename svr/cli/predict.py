@@ -75,7 +75,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr predict``."""
     from models.predict import load_pose_model, predict_slice_folder, predict_stack_poses
-    from svr.image import load_nifti
+    from svr.image import ImageError, load_nifti
     from svr.pose_io import PoseTable, write_pose_table
 
     if not args.input_stacks and not args.input_slices:
@@ -102,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             stack = load_nifti(path)
             mask_image = None if mask is None else load_nifti(mask)
+            if mask_image is not None and not bool((mask_image.data > 0.5).any()):
+                raise ImageError(f"{mask}: the mask is empty")
             table = predict_stack_poses(
                 model, config, stack, mask_image, args.batch_size, name=str(path)
             )

@@ -8,6 +8,7 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     add_volume_options,
+    check_finite,
     load_input_volume,
     positive_float,
     positive_int,
@@ -137,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
     from sampling.simulate import SimulationConfig, simulate_case, write_case
 
     check_output_path(args.output_dir, args.overwrite)
+    check_finite(
+        args, "--motion-scale", "--rotation-deg", "--translation-mm", "--noise", "--bias-field"
+    )
     config = SimulationConfig(
         num_stacks=args.num_stacks,
         orientations=args.orientations,

@@ -10,6 +10,8 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_finite,
+    check_run_folder,
     positive_float,
     positive_int,
     resolve_device,
@@ -148,7 +150,12 @@ def _atlas_pairs(folder: str, hold_out: list[float]) -> list[tuple[Path, Path]]:
         raise CliError(f"--atlas-dir: {root} is not a folder")
     pairs = []
     for sub in sorted(root.glob("GA*")):
-        weeks = float(sub.name[2:4])
+        try:
+            weeks = float(sub.name[2:4])
+        except ValueError:
+            raise CliError(
+                f"--atlas-dir: {sub} is not named GA<weeks> (e.g. GA28); move it out of {root}"
+            ) from None
         if weeks not in hold_out and (sub / "srr.nii.gz").exists():
             pairs.append((sub / "srr.nii.gz", sub / "mask.nii.gz"))
     if not pairs:
@@ -180,12 +187,14 @@ def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train``."""
     from models.backbones import BackboneConfig
-    from models.network import ModelConfig
+    from models.network import ModelConfig, loss_function
     from models.train import OptimConfig, TrainConfig, train
     from sampling.augment import SliceAugmentConfig
     from sampling.dataset import SliceDatasetConfig
     from sampling.slicer import SliceConfig
 
+    check_run_folder(args.output_dir)
+    check_finite(args, "--weight-decay", "--metric-weights")
     representation = LOSSES[args.loss]
     size = (args.size, args.size)
     config = TrainConfig(
@@ -225,6 +234,11 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         pose_sampling=args.pose_sampling,
     )
+    if config.metric_weights is not None:
+        try:
+            loss_function(representation, config.weights_tensor())
+        except ValueError as err:
+            raise CliError(f"--metric-weights: {err}") from err
     volumes, sources = _volumes(args)
     config = TrainConfig(**{**config.__dict__, "data_sources": tuple(sources)})
     result = train(
