@@ -40,6 +40,17 @@ def check_output_path(path: str | os.PathLike[str], overwrite: bool) -> Path:
     return p
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _default_mode(mode: int, path: Path) -> None:
+    """Give a temporary file or folder the permissions a plain ``open``/``mkdir`` would."""
+    os.chmod(path, mode & ~_umask())
+
+
 def atomic_write_text(path: str | os.PathLike[str], text: str, overwrite: bool = False) -> Path:
     """Write a UTF-8 text file atomically (see :func:`atomic_write_bytes`)."""
     return atomic_write_bytes(path, text.encode("utf-8"), overwrite)
@@ -65,6 +76,7 @@ def atomic_directory(path: str | os.PathLike[str], overwrite: bool = False) -> I
     out = check_output_path(path, overwrite)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
+        _default_mode(0o777, tmp)
         yield tmp
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()
@@ -92,6 +104,7 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, overwrite: boo
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        _default_mode(0o666, Path(tmp))
         os.replace(tmp, p)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

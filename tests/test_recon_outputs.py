@@ -228,3 +228,19 @@ def test_resample_to_grid_by_world_position():
     out = resample_to_grid(volume, like)
     assert out.shape == like.shape and torch.equal(out.affine, affine)
     torch.testing.assert_close(out.data, volume.data.permute(1, 0, 2)[:, 1:], atol=1e-5, rtol=0)
+
+
+def test_atomic_outputs_follow_the_umask(tmp_path):
+    import os
+
+    from svr.files import atomic_directory, atomic_write_text
+
+    old = os.umask(0o022)
+    try:
+        file = atomic_write_text(tmp_path / "a.txt", "x")
+        with atomic_directory(tmp_path / "folder") as tmp:
+            (tmp / "b.txt").write_text("y")
+    finally:
+        os.umask(old)
+    assert oct(os.stat(file).st_mode & 0o777) == oct(0o644)
+    assert oct(os.stat(tmp_path / "folder").st_mode & 0o777) == oct(0o755)
