@@ -25,7 +25,8 @@ folders (0.nii.gz, 1.nii.gz, ... and optional mask_0.nii.gz, ...).
 examples:
   svr predict --model default --input-stacks ax.nii.gz --stack-masks ax_mask.nii.gz \\
       --output-poses poses.csv
-  svr predict --model runs/se3/checkpoints/step_000020000 --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
+  svr predict --model runs/se3/checkpoints/step_000020000 \\
+      --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
       --stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --output-poses poses.csv
   svr predict --model runs/se3/checkpoints/step_000020000 --input-stacks slices.nii.gz \\
       --output-poses poses.json --device cpu
