@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from svr import __version__
-from svr.cli import main
+from svr.cli import SUBCOMMANDS, build_parser, main
 
 SMALL = ["--loss-only", "--num-poses", "32", "--steps", "150", "--device", "cpu", "--quiet"]
 
@@ -116,3 +116,46 @@ def test_console_script_and_module_entry_points(tmp_path):
         [sys.executable, "-m", "svr", "--version"], capture_output=True, text=True, timeout=60
     )
     assert result.returncode == 0 and __version__ in result.stdout
+
+
+def _help_examples(text: str, command: str) -> list[list[str]]:
+    """The ``svr COMMAND ...`` example lines of a help text, continuation lines joined."""
+    import shlex
+
+    examples, current = [], None
+    for line in text.splitlines():
+        stripped = line.strip()
+        if current is not None:
+            current += " " + stripped.rstrip("\\")
+            if not stripped.endswith("\\"):
+                examples.append(current)
+                current = None
+        elif stripped.startswith(f"svr {command} "):
+            current = stripped.rstrip("\\")
+            if not stripped.endswith("\\"):
+                examples.append(current)
+                current = None
+    return [shlex.split(e)[1:] for e in examples]
+
+
+@pytest.mark.parametrize("command", sorted(SUBCOMMANDS))
+def test_every_subcommand_help_is_accurate(command, capsys):
+    """--help works, lists every option, and every example in it parses with the parser."""
+    import argparse
+
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"usage: svr {command}")
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[
+        command
+    ]
+    for action in sub._actions:
+        for option in action.option_strings:
+            assert option in text, f"svr {command} --help does not mention {option}"
+    examples = _help_examples(text, command)
+    assert examples, f"svr {command} --help has no example"
+    for argv in examples:
+        parser.parse_args(argv)  # exits with status 2 if an example is out of date
