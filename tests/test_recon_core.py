@@ -709,3 +709,22 @@ def test_reconstruct_round_trip_improves_on_the_initial_volume():
     assert result.slice_ncc.shape == (n,) and float(result.slice_ncc.mean()) > 0.7
     assert ((result.slice_weights >= 0) & (result.slice_weights <= 1)).all()
     assert set(result.mask.data.unique().tolist()) <= {0.0, 1.0}
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_reconstruct_on_cuda_matches_cpu():
+    volume, mask = make_phantom(
+        PhantomConfig(shape=(39, 47, 43), spacing_mm=1.25, brain_length_mm=40.0, folding=0.3)
+    )
+    config = SimulationConfig(num_stacks=3, thickness_mm=3.0, in_plane_mm=1.5, seed=2)
+    case = simulate_case(canonicalize(volume, mask), config)
+    stacks = prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
+    settings = ReconstructionConfig(
+        output_resolution_mm=1.5, outer_iterations=2, sr_iterations=(3, 5), svr_iterations=3
+    )
+    cpu = reconstruct(stacks, settings, progress=False)
+    cuda = reconstruct(stacks, settings, device="cuda", progress=False)
+    assert cuda.volume.shape == cpu.volume.shape
+    a, b = cpu.volume.data.numpy().ravel(), cuda.volume.data.cpu().numpy().ravel()
+    assert ncc_np(a, b) > 0.99
