@@ -249,11 +249,15 @@ def _prepare(stack: Image, mask: Tensor | None, config: ModelConfig, scale: floa
     return _Prepared(slices[:, None], indices.cpu(), crop_poses, plane_poses)
 
 
-def _prepare_stack(stack: Image, mask: Image | None, config: ModelConfig, name: str) -> _Prepared:
+def _prepare_stack(
+    stack: Image, mask: Image | None, config: ModelConfig, name: str, mask_name: str | None = None
+) -> _Prepared:
     """:func:`_prepare` with the mask brought onto the stack's grid and the stack's own scale."""
     on_grid = None if mask is None else _mask_on_grid(stack, mask, name)
     if on_grid is not None and not bool(on_grid.any()):
-        raise ValueError(f"{name}: the mask is empty")
+        if mask_name is None:
+            raise ValueError(f"{name}: the mask is empty")
+        raise ValueError(f"{mask_name}: the mask does not overlap its stack {name}")
     scale = _intensity_scale(_foreground(stack, on_grid), name)
     return _prepare(stack, on_grid, config, scale)
 
@@ -301,6 +305,7 @@ def predict_stack_poses(
     mask: Image | None = None,
     batch_size: int = 64,
     name: str = "stack",
+    mask_name: str | None = None,
 ) -> PoseTable:
     """Predict the canonical pose of every kept slice of a stack.
 
@@ -311,6 +316,8 @@ def predict_stack_poses(
         mask: Its brain mask, or ``None`` (see :func:`prepare_stack_slices`).
         batch_size: Slices per forward pass.
         name: The stack's file name, written in the table's ``files`` and error messages.
+        mask_name: The mask's file name, for the error when the mask has no voxel on the
+            stack's grid.
 
     Returns:
         A table with one row per kept slice: ``files`` all ``name``, ``slice_indices`` the k-plane
@@ -321,7 +328,7 @@ def predict_stack_poses(
         ValueError: Naming the stack, for an empty mask or unusable intensities; or a
             ``batch_size`` below 1.
     """
-    prepared = _prepare_stack(stack, mask, config, name)
+    prepared = _prepare_stack(stack, mask, config, name, mask_name)
     poses = _predict(model, prepared, batch_size)
     return PoseTable([name] * len(poses), prepared.indices, poses, "canonical")
 

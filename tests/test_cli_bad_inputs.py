@@ -466,12 +466,6 @@ def _cases() -> list[Case]:
                     command,
                     [mask_option, "{far_stack_mask}"],
                     ["{far_stack_mask}", "does not overlap"],
-                    xfail=(
-                        "models/predict.py reports a mask that does not overlap its stack as "
-                        "'<stack>: the mask is empty', without naming the mask file"
-                        if command == "predict"
-                        else None
-                    ),
                 )
             )
             add(

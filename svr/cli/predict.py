@@ -106,7 +106,13 @@ def run(args: argparse.Namespace) -> int:
             if mask_image is not None and not bool((mask_image.data > 0.5).any()):
                 raise ImageError(f"{mask}: the mask is empty")
             table = predict_stack_poses(
-                model, config, stack, mask_image, args.batch_size, name=str(path)
+                model,
+                config,
+                stack,
+                mask_image,
+                args.batch_size,
+                name=str(path),
+                mask_name=None if mask is None else str(mask),
             )
         log.debug("%s: %d slices posed", path, len(table.poses))
         tables.append(table)
