@@ -342,7 +342,10 @@ def _rounds(
         scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
         ncc = slice_ncc(projector, scales[projector.slice_of] * simulated, observed)
         cover = coverage(projector, points, torch.ones_like(observed))
-        mask = (cover > 0.05 * float(torch.quantile(cover[cover > 0].float(), 0.99))).float()
+        # kthvalue, not torch.quantile: no limit on the number of voxels (NeSVoR #21).
+        covered = cover[cover > 0].float()
+        high = covered.kthvalue(max(1, int(0.99 * covered.numel()))).values
+        mask = (cover > 0.05 * float(high)).float()
         volume = volume * mask
     _report_exclusions(slices, excluded)
     return ReconstructionResult(
