@@ -20,8 +20,8 @@ Steps, all through the ``svr`` command line (so the run is what a user would do)
        and translation errors) with paired tests, written under ``OUT/report``.
 
 Budgets (per model): ``smoke`` a few steps of a tiny network (about 30 s in all); ``cpu`` 4,000
-steps of 32 slices on random poses, two trainings at a time with one thread each (~4 steps/s
-each: ~17 min a wave, about 40 min in all with the evaluation; the budget is 2 h on 2 cores);
+steps of 32 slices on random poses, two trainings at a time with one thread each (measured: 25
+min in all on 2 cores, 8 min a wave on quiet cores; the budget is 2 h on 2 cores);
 ``gpu`` the paper-scale run: the Euler grid of every training volume (``--pose-sampling grid``),
 60,000 steps of 64 slices at 128 x 128.
 """
