@@ -156,12 +156,6 @@ class SliceProjector:
         """(N, H, W) images -> (P,) values at the modelled pixels."""
         return images.reshape(self.num_slices, -1)[self.slice_of, self.pixel_of]
 
-    def scatter(self, values: Tensor) -> Tensor:
-        """(P,) values -> (N, H, W) images, zero outside the masks."""
-        out = values.new_zeros(self.num_slices, self.size[0] * self.size[1])
-        out[self.slice_of, self.pixel_of] = values
-        return out.reshape(self.num_slices, *self.size)
-
     def slice_sums(self, values: Tensor) -> Tensor:
         """(P,) or (P, C) values -> (N,) or (N, C) sums per slice (differentiable)."""
         out = values.new_zeros((self.num_slices, *values.shape[1:]))

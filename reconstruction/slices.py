@@ -21,6 +21,18 @@ from svr.image import Image
 __all__ = ["SliceSet", "Stack", "extract_slices", "plane_poses"]
 
 FRAMES = ("scanner", "canonical")
+# SliceSet fields that hold one entry per slice (moved and indexed together).
+_PER_SLICE_FIELDS = (
+    "images",
+    "masks",
+    "spacing_mm",
+    "thickness_mm",
+    "poses",
+    "stack_ids",
+    "slice_indices",
+    "plane_offsets_mm",
+    "scanner_poses",
+)
 
 
 @dataclass(frozen=True)
@@ -120,20 +132,7 @@ class SliceSet:
         """A copy on ``device``."""
         return replace(
             self,
-            **{
-                name: getattr(self, name).to(device)
-                for name in (
-                    "images",
-                    "masks",
-                    "spacing_mm",
-                    "thickness_mm",
-                    "poses",
-                    "stack_ids",
-                    "slice_indices",
-                    "plane_offsets_mm",
-                    "scanner_poses",
-                )
-            },
+            **{name: getattr(self, name).to(device) for name in _PER_SLICE_FIELDS},
         )
 
     def with_poses(self, poses: Tensor, frame: str | None = None) -> SliceSet:
@@ -144,20 +143,7 @@ class SliceSet:
         """The slices selected by a (N,) bool mask or an index tensor."""
         return replace(
             self,
-            **{
-                name: getattr(self, name)[keep]
-                for name in (
-                    "images",
-                    "masks",
-                    "spacing_mm",
-                    "thickness_mm",
-                    "poses",
-                    "stack_ids",
-                    "slice_indices",
-                    "plane_offsets_mm",
-                    "scanner_poses",
-                )
-            },
+            **{name: getattr(self, name)[keep] for name in _PER_SLICE_FIELDS},
         )
 
     def stack_slices(self, stack_id: int) -> Tensor:
