@@ -79,9 +79,11 @@ from torch import Tensor
 from reconstruction.operators import SliceProjector, VolumeGrid
 from reconstruction.outputs import slice_affines
 from reconstruction.pipeline import SVR_PSF_SAMPLES
+from reconstruction.qa import orthogonal_planes
 from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
-from reconstruction.slices import SliceSet, extract_slices, plane_poses
+from reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from reconstruction.stacks import load_stacks
+from svr import image_metrics
 from svr.files import atomic_write_bytes, atomic_write_text, check_output_path
 from svr.geometry import se3_from_vector
 from svr.image import Image, load_nifti
@@ -117,24 +119,6 @@ def stack_files(stacks_dir: Path) -> tuple[list[Path], list[Path]]:
         if not mask.exists():
             raise FileNotFoundError(f"{mask}: brain mask missing")
     return stacks, masks
-
-
-def slice_poses_from_planes(planes: Tensor, offsets_mm: Tensor) -> Tensor:
-    """Inverse of :func:`plane_poses`: ``T_slice = T_plane o Trans(+offset)``.
-
-    Args:
-        planes: (N, 4, 4) poses of the files' k-planes (origin at the file's plane centre).
-        offsets_mm: (N, 2) ``SliceSet.plane_offsets_mm``.
-
-    Returns:
-        (N, 4, 4) float64 poses of the padded slice arrays (origin at the array centre).
-    """
-    T = planes.to(torch.float64)
-    shift = torch.zeros_like(T[:, :3, 3])
-    shift[:, :2] = offsets_mm.to(T)
-    out = T.clone()
-    out[:, :3, 3] = T[:, :3, 3] + (T[:, :3, :3] @ shift[..., None])[..., 0]
-    return out
 
 
 def read_transforms(path: Path) -> tuple[dict[tuple[str, int], int], Tensor, str, list[dict]]:
@@ -181,11 +165,11 @@ def posed_slices(
     order = np.array([keys[key] for key in ours])
     # Round trip on the scanner poses: plane_poses then its inverse gives them back.
     scanner = slices.scanner_poses.to(torch.float64)
-    back = slice_poses_from_planes(plane_poses(slices, scanner), slices.plane_offsets_mm)
+    back = array_poses(slices, plane_poses(slices, scanner))
     round_trip = float((back - scanner).abs().max())
     if round_trip > 1e-9:
         raise ValueError(f"plane pose round trip is off by {round_trip:.3g} mm")
-    poses = slice_poses_from_planes(planes[torch.from_numpy(order)], slices.plane_offsets_mm)
+    poses = array_poses(slices, planes[torch.from_numpy(order)])
     posed = slices.with_poses(poses, "scanner" if frame == "scanner" else "canonical")
     checks = {
         "frame": frame,
@@ -248,9 +232,9 @@ def _axis_rotations() -> list[np.ndarray]:
 
 
 def _masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    x, y = a[mask].astype(np.float64), b[mask].astype(np.float64)
-    x, y = x - x.mean(), y - y.mean()
-    return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum() + 1e-30))
+    """NCC of two volumes inside a mask (:func:`svr.image_metrics.ncc` on one flattened slice)."""
+    a_, b_, m_ = (torch.from_numpy(np.ascontiguousarray(x)).reshape(1, 1, -1) for x in (a, b, mask))
+    return float(image_metrics.ncc(a_.double(), b_.double(), m_.bool())[0])
 
 
 def _register(
@@ -397,11 +381,6 @@ def summary(ours: np.ndarray, ref: np.ndarray) -> dict[str, float]:
 # Figure
 
 
-def _planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
-    i, j, k = centre
-    return [volume[i, :, :].T, volume[:, j, :].T, volume[:, :, k].T]
-
-
 def figure(
     path: Path,
     ours: Image,
@@ -435,7 +414,11 @@ def figure(
         )
     ):
         for col, (plane, outline) in enumerate(
-            zip(_planes(data, centre), _planes(mask.astype(float), centre), strict=True)
+            zip(
+                orthogonal_planes(data, centre),
+                orthogonal_planes(mask.astype(float), centre),
+                strict=True,
+            )
         ):
             ax = fig.add_subplot(grid[row, col])
             ax.imshow(plane, cmap="gray", origin="lower", vmin=0.0, vmax=vmax)

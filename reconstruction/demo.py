@@ -79,7 +79,7 @@ from reconstruction.cnn_init import robust_mean_pose
 from reconstruction.config import ReconstructionConfig, ReconstructionResult
 from reconstruction.outputs import write_transforms, write_volume
 from reconstruction.pipeline import reconstruct
-from reconstruction.qa import _planes, resample_to_grid
+from reconstruction.qa import orthogonal_planes, resample_to_grid
 from reconstruction.slices import SliceSet, plane_poses
 from reconstruction.stacks import prepare_stacks
 from sampling.augment import SliceAugmentConfig
@@ -399,7 +399,7 @@ def _figure(
         label = name
         if score is not None:
             label += f"\nCC {score.cc:.3f}  PSNR {score.psnr_db:.1f} dB\nSSIM {score.ssim:.3f}"
-        for c, plane in enumerate(_planes(image.data.cpu().float().numpy(), centre)):
+        for c, plane in enumerate(orthogonal_planes(image.data.cpu().float().numpy(), centre)):
             ax = figure.add_subplot(grid[r, c])
             ax.imshow(plane, cmap="gray", origin="lower", vmin=0.0, vmax=vmax)
             ax.set_xticks([])

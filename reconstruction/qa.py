@@ -51,7 +51,7 @@ def resample_to_grid(image: Image, like: Image) -> Image:
     return Image(data, affine.clone())
 
 
-def _planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
+def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
     """The three planes through ``centre`` normal to axes i, j, k, as (rows, columns) arrays.
 
     Displayed with ``origin="lower"``: rows go up along the later axis, columns along the earlier.
@@ -123,7 +123,7 @@ def qa_figure(
         data = image.data.detach().cpu().float().numpy()
         inside = data[mask.numpy()] if bool(mask.any()) else data.ravel()
         vmax = float(np.percentile(inside, 99.5)) if inside.size else 1.0
-        for col, plane in enumerate(_planes(data, centre)):
+        for col, plane in enumerate(orthogonal_planes(data, centre)):
             ax = figure.add_subplot(grid[row, col])
             ax.imshow(plane, cmap="gray", origin="lower", vmin=0.0, vmax=vmax or 1.0)
             ax.set_xticks([])

@@ -18,7 +18,7 @@ from torch import Tensor
 from models.predict import stack_slice_poses
 from svr.image import Image
 
-__all__ = ["SliceSet", "Stack", "extract_slices", "plane_poses"]
+__all__ = ["SliceSet", "Stack", "array_poses", "extract_slices", "plane_poses"]
 
 FRAMES = ("scanner", "canonical")
 # SliceSet fields that hold one entry per slice (moved and indexed together).
@@ -151,6 +151,16 @@ class SliceSet:
         return torch.nonzero(self.stack_ids == stack_id).flatten()
 
 
+def _shifted_in_plane(poses: Tensor, shift_mm: Tensor) -> Tensor:
+    """``T o Trans(u, v, 0)`` for (N, 4, 4) poses and (N, 2) in-plane shifts, float64."""
+    T = poses.to(torch.float64)
+    shift = torch.zeros_like(T[:, :3, 3])
+    shift[:, :2] = shift_mm.to(T)
+    out = T.clone()
+    out[:, :3, 3] = T[:, :3, 3] + (T[:, :3, :3] @ shift[..., None])[..., 0]
+    return out
+
+
 def plane_poses(slices: SliceSet, poses: Tensor | None = None) -> Tensor:
     """Poses of the slices' original k-planes (origin at the file's plane centre).
 
@@ -161,12 +171,20 @@ def plane_poses(slices: SliceSet, poses: Tensor | None = None) -> Tensor:
     Returns:
         (N, 4, 4) float64 ``T o Trans(-offset)``: the pose a pose table reports for ``(file, k)``.
     """
-    T = (slices.poses if poses is None else poses).to(torch.float64)
-    shift = torch.zeros_like(T[:, :3, 3])
-    shift[:, :2] = -slices.plane_offsets_mm.to(T)
-    out = T.clone()
-    out[:, :3, 3] = T[:, :3, 3] + (T[:, :3, :3] @ shift[..., None])[..., 0]
-    return out
+    return _shifted_in_plane(slices.poses if poses is None else poses, -slices.plane_offsets_mm)
+
+
+def array_poses(slices: SliceSet, planes: Tensor) -> Tensor:
+    """Inverse of :func:`plane_poses`: poses of the slices' arrays from those of their k-planes.
+
+    Args:
+        slices: The slices.
+        planes: (N, 4, 4) poses of the files' k-planes (e.g. read from a pose table).
+
+    Returns:
+        (N, 4, 4) float64 ``T_plane o Trans(+offset)`` (origin at the array centre).
+    """
+    return _shifted_in_plane(planes, slices.plane_offsets_mm)
 
 
 def extract_slices(stacks: list[Stack]) -> SliceSet:

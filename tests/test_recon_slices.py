@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from models.predict import stack_slice_poses
-from reconstruction.slices import SliceSet, Stack, extract_slices, plane_poses
+from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.image import Image
 
 F64 = torch.float64
@@ -83,6 +83,8 @@ def test_plane_poses_are_the_files_k_plane_poses(stacks):
         plane_poses(slices, torch.eye(4, dtype=F64).repeat(4, 1, 1))[:, :2, 3],
         -slices.plane_offsets_mm,
     )
+    # array_poses inverts plane_poses (a pose table read back gives the slices' own poses).
+    torch.testing.assert_close(array_poses(slices, plane_poses(slices)), slices.poses)
 
 
 def test_extract_slices_errors(stacks):
