@@ -43,7 +43,6 @@ class ReconstructionConfig:
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
         ncc_threshold: Slices whose NCC with their simulation is below this are excluded.
-        bias_correction: N4 bias-field correction of each stack before slicing (SimpleITK).
         seed: Random seed.
     """
 
@@ -61,7 +60,6 @@ class ReconstructionConfig:
     edge_delta: float = 0.15
     robust: bool = True
     ncc_threshold: float = 0.5
-    bias_correction: bool = False
     seed: int = 0
 
 

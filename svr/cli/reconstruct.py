@@ -259,7 +259,6 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
         svr_iterations=args.svr_iterations,
         robust=not args.no_robust,
         ncc_threshold=args.ncc_threshold,
-        bias_correction=args.bias_correction,
         seed=args.seed,
     )
     return stack_config, config
