@@ -29,3 +29,26 @@ def resolve_devices(parser: argparse.ArgumentParser, args: argparse.Namespace) -
     if args.device is None:
         return ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
     return ["cpu", "cuda"] if args.device == "all" else [args.device]
+
+
+def true_slice_poses(
+    slices: list[dict], frame: str, centre_mm: torch.Tensor | None = None
+) -> torch.Tensor:
+    """(K, 4, 4) float64 true poses of a stack's k-planes from a ``truth_slices.json`` entry.
+
+    Args:
+        slices: The entry's ``slices`` list (one per k-plane of the stack's file).
+        frame: ``"scanner"`` (the ground-truth volume's world frame) or ``"atlas"`` (the
+            source atlas's world frame).
+        centre_mm: (3,) atlas brain-mask centre in mm; subtracted from the translations to give
+            canonical poses (``DESIGN.md``). Only for ``frame="atlas"``.
+
+    Returns:
+        Poses mapping slice-plane mm (origin at the file's plane centre) to the frame, in mm.
+    """
+    poses = torch.eye(4, dtype=torch.float64).repeat(len(slices), 1, 1)
+    poses[:, :3, :3] = torch.tensor([s[frame]["R"] for s in slices], dtype=torch.float64)
+    poses[:, :3, 3] = torch.tensor([s[frame]["t"] for s in slices], dtype=torch.float64)
+    if centre_mm is not None:
+        poses[:, :3, 3] -= centre_mm.cpu().to(torch.float64)
+    return poses

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_common import true_slice_poses
 
 from models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
 from models.evaluation import (
@@ -184,15 +185,6 @@ def rotation_label(rotation: str) -> str:
     return EULER_BOX if rotation == "euler" else UNIFORM
 
 
-def canonical_truth(slices: list[dict], centre_mm: torch.Tensor) -> torch.Tensor:
-    """(K, 4, 4) float64 true canonical poses of a stack's slices from ``truth_slices.json``."""
-    poses = torch.eye(4, dtype=torch.float64).repeat(len(slices), 1, 1)
-    poses[:, :3, :3] = torch.tensor([s["atlas"]["R"] for s in slices], dtype=torch.float64)
-    poses[:, :3, 3] = torch.tensor([s["atlas"]["t"] for s in slices], dtype=torch.float64)
-    poses[:, :3, 3] -= centre_mm.cpu()
-    return poses
-
-
 def bench_result(
     model: SlicePoseNet, config: ModelConfig, case: Path, atlas_dir: Path, device: str
 ) -> Result:
@@ -214,7 +206,7 @@ def bench_result(
         path = case / stack_info["file"]
         stack = load_nifti(path)
         mask = load_nifti(case / "masks" / path.name.replace(".nii", "_mask.nii"))
-        truth = canonical_truth(stack_info["slices"], volume.centre_mm)
+        truth = true_slice_poses(stack_info["slices"], "atlas", volume.centre_mm)
         if len(truth) != stack.shape[2]:
             raise SystemExit(f"{path}: {stack.shape[2]} slices but {len(truth)} true poses")
         spacing = torch.linalg.norm(stack.affine[:3, :2].double(), dim=0)

@@ -9,7 +9,10 @@ motion) one rigid body, so each prediction also proposes a scanner -> canonical 
 with ``S_i`` the slice's acquisition (scanner-frame) pose. The robust mean ``A_s`` of a stack's
 ``A_i`` (:func:`robust_mean_pose`) gives its consensus poses ``A_s o S_i``, which a minority of
 gross outliers cannot move; the robust mean ``A`` over all slices is the one map that brings
-scanner-frame poses (e.g. from stack registration) into canonical space.
+scanner-frame poses (e.g. from stack registration) into canonical space. Refined per slice
+(:meth:`CnnInitialisation.refined_poses`), each slice keeps its own prediction where it agrees
+with its stack's consensus and takes the consensus pose where it does not, so the learned
+initialisation follows the motion of single slices that a rigid stack pose cannot.
 
 Frames and origins (``DESIGN.md``): :func:`models.predict.predict_stack_poses` returns poses of
 the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
@@ -34,7 +37,7 @@ from models.predict import predict_stack_poses, stack_slice_poses
 from reconstruction.slices import SliceSet, Stack
 from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp, so3_log
 
-__all__ = ["CnnInitialisation", "cnn_slice_poses", "robust_mean_pose"]
+__all__ = ["CnnInitialisation", "cnn_slice_poses", "learned_consensus", "robust_mean_pose"]
 
 _DISTANCE_FLOOR = 1e-12  # rad or mm: Weiszfeld weights are 1 / max(distance, this)
 _PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plane
@@ -67,6 +70,34 @@ class CnnInitialisation:
     global_transform: Tensor
     rotation_deviation_deg: Tensor
     translation_deviation_mm: Tensor
+
+    def outliers(self, max_rotation_deg: float, max_translation_mm: float) -> Tensor:
+        """(N,) bool: predictions farther from their consensus pose than either bound."""
+        return (self.rotation_deviation_deg > max_rotation_deg) | (
+            self.translation_deviation_mm > max_translation_mm
+        )
+
+    def refined_poses(self, max_rotation_deg: float, max_translation_mm: float) -> Tensor:
+        """(N, 4, 4) each slice's own prediction, or its consensus pose where that is an outlier.
+
+        Args:
+            max_rotation_deg: Largest rotation (degrees) between a kept prediction and its
+                consensus pose, >= 0.
+            max_translation_mm: Largest distance (mm) between their slice centres, >= 0.
+
+        Raises:
+            ValueError: If a bound is negative or not finite.
+        """
+        for name, value in (
+            ("max_rotation_deg", max_rotation_deg),
+            ("max_translation_mm", max_translation_mm),
+        ):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"refined_poses(): {name!r} must be finite and >= 0, got {value!r}"
+                )
+        outlier = self.outliers(max_rotation_deg, max_translation_mm)
+        return torch.where(outlier[:, None, None], self.consensus_poses, self.predicted_poses)
 
 
 def _weiszfeld_step(offsets: Tensor, weights: Tensor) -> Tensor:
@@ -264,16 +295,49 @@ def cnn_slice_poses(
     stack_ids = slices.stack_ids.cpu()
     file_k = slices.slice_indices.cpu()
     to_canonical = torch.empty_like(scanner)
-    stack_transforms = torch.full((len(stacks), 4, 4), math.nan, dtype=torch.float64)
     for sid, stack in enumerate(stacks):
         members = torch.nonzero(stack_ids == sid).flatten()
-        if len(members) == 0:
-            continue
-        to_canonical[members] = _stack_scanner_to_canonical(
-            model, model_config, stack, scanner[members], file_k[members], batch_size
+        if len(members) > 0:
+            to_canonical[members] = _stack_scanner_to_canonical(
+                model, model_config, stack, scanner[members], file_k[members], batch_size
+            )
+    return learned_consensus(slices, se3_compose(to_canonical, scanner))
+
+
+def learned_consensus(slices: SliceSet, predicted: Tensor) -> CnnInitialisation:
+    """The per-stack and global robust consensus of canonical slice-pose predictions.
+
+    Args:
+        slices: The slices; their ``scanner_poses`` are used, whatever frame ``poses`` is in.
+        predicted: (N, 4, 4) each slice's predicted canonical pose ``P_i`` (origin at the centre
+            of the slice set's padded array, like ``slices.poses``).
+
+    Returns:
+        The predictions with their consensus poses, transforms and deviations
+        (:class:`CnnInitialisation`), float64 on ``slices.device``.
+
+    Raises:
+        ValueError: If ``predicted`` is not (N, 4, 4) for the N slices, is not finite, or
+            ``slices`` is empty.
+    """
+    if len(slices) == 0:
+        raise ValueError("learned_consensus(): 'slices' is empty")
+    if not isinstance(predicted, Tensor) or tuple(predicted.shape) != (len(slices), 4, 4):
+        raise ValueError(
+            f"learned_consensus(): 'predicted' must be a ({len(slices)}, 4, 4) tensor, got "
+            f"{tuple(getattr(predicted, 'shape', ())) or type(predicted).__name__}"
         )
-        stack_transforms[sid] = robust_mean_pose(to_canonical[members])
-    predicted = se3_compose(to_canonical, scanner)
+    if not bool(predicted.isfinite().all()):
+        raise ValueError("learned_consensus(): 'predicted' holds non-finite values")
+    scanner = slices.scanner_poses.to(torch.float64).cpu()
+    predicted = predicted.to(torch.float64).cpu()
+    stack_ids = slices.stack_ids.cpu()
+    to_canonical = se3_compose(predicted, se3_inverse(scanner))
+    stack_transforms = torch.full((len(slices.stack_names), 4, 4), math.nan, dtype=torch.float64)
+    for sid in range(len(slices.stack_names)):
+        members = stack_ids == sid
+        if bool(members.any()):
+            stack_transforms[sid] = robust_mean_pose(to_canonical[members])
     consensus = se3_compose(stack_transforms[stack_ids], scanner)
     relative = consensus[:, :3, :3].transpose(-1, -2) @ predicted[:, :3, :3]
     device = slices.device

@@ -43,6 +43,9 @@ class ReconstructionConfig:
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
         ncc_threshold: Slices whose NCC with their simulation is below this are excluded.
+        cnn_max_deviation_deg: ``"cnn"``: a slice whose predicted rotation is farther than this
+            (degrees) from its stack's consensus takes the consensus pose.
+        cnn_max_deviation_mm: ``"cnn"``: likewise for the distance of its slice centre (mm).
         seed: Random seed.
     """
 
@@ -60,6 +63,8 @@ class ReconstructionConfig:
     edge_delta: float = 0.15
     robust: bool = True
     ncc_threshold: float = 0.5
+    cnn_max_deviation_deg: float = 30.0
+    cnn_max_deviation_mm: float = 20.0
     seed: int = 0
 
 

@@ -4,9 +4,10 @@ Phases (each timed and logged):
     1. slices: every stack cut into slices, each its own rigid body (:func:`extract_slices`);
     2. initialisation: ``"none"`` keeps the scanner poses; ``"stack"`` registers every stack
        rigidly to a volume estimated from the template stack; ``"cnn"`` predicts every slice's
-       canonical pose, takes a robust per-stack consensus, and keeps per stack whichever of the
-       consensus and the stack registration (mapped to canonical space) makes the simulated
-       slices match the observed ones better by NCC, as NeSVoR does;
+       canonical pose, replaces predictions that disagree with their stack's robust consensus
+       by the consensus pose, and keeps per stack whichever of these poses and the stack
+       registration (mapped to canonical space) makes the simulated slices match the observed
+       ones better by NCC, as NeSVoR does (:func:`learned_initialisation`);
     3. rounds: slice-to-volume registration of every slice (skipped in the first round),
        per-slice intensity scales, EM outlier weights, exclusion of slices whose NCC with their
        simulation is below the threshold, then conjugate-gradient super-resolution.
@@ -24,7 +25,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from models.network import ModelConfig, SlicePoseNet
-from reconstruction.cnn_init import cnn_slice_poses, robust_mean_pose
+from reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses, robust_mean_pose
 from reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from reconstruction.operators import SliceProjector, VolumeGrid
 from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
@@ -38,7 +39,7 @@ from reconstruction.superres import (
     super_resolution,
 )
 
-__all__ = ["reconstruct", "stack_registration"]
+__all__ = ["learned_initialisation", "reconstruct", "stack_registration"]
 
 log = logging.getLogger(__name__)
 
@@ -121,24 +122,40 @@ def _stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
     return total.index_add(0, slices.stack_ids, ncc) / count
 
 
-def _learned_initialisation(
-    stacks: list[Stack],
-    slices: SliceSet,
-    config: ReconstructionConfig,
-    model: tuple[SlicePoseNet, ModelConfig],
+def learned_initialisation(
+    slices: SliceSet, learned: CnnInitialisation, config: ReconstructionConfig
 ) -> tuple[SliceSet, tuple[str, ...]]:
-    """CNN consensus poses or stack registration, per stack, whichever fits better (by NCC)."""
-    network, model_config = model
-    learned = cnn_slice_poses(network, model_config, stacks, slices)
-    outliers = (learned.rotation_deviation_deg > 30) | (learned.translation_deviation_mm > 20)
+    """Learned slice poses or stack registration, per stack, whichever fits better (by NCC).
+
+    The learned candidate is each slice's own prediction, or its stack's consensus pose where
+    the prediction is an outlier (:meth:`CnnInitialisation.refined_poses` with the config's
+    ``cnn_max_deviation_deg`` and ``cnn_max_deviation_mm``). The classical candidate is the
+    stack registration moved into canonical space by the predictions' global transform. For
+    each stack the candidate whose slices match their simulation from the candidate's own
+    scattered-data volume better (mean NCC) is kept, as NeSVoR chooses between SVoRT and stack
+    registration.
+
+    Args:
+        slices: All slices, at their scanner poses.
+        learned: The slices' predicted canonical poses and their consensus
+            (:func:`reconstruction.cnn_init.cnn_slice_poses`).
+        config: Settings.
+
+    Returns:
+        The slices at their initial canonical poses and, per stack, ``"cnn"`` or ``"stack"``.
+    """
+    outliers = learned.outliers(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm)
     log.info(
-        "cnn: %d of %d slice predictions disagree with their stack's consensus (> 30 deg or 20 mm)",
+        "cnn: %d of %d slice predictions disagree with their stack's consensus (> %g deg or "
+        "%g mm) and take the consensus pose",
         int(outliers.sum()),
         len(slices),
+        config.cnn_max_deviation_deg,
+        config.cnn_max_deviation_mm,
     )
     registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
     candidates = {
-        "cnn": learned.consensus_poses,
+        "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
         "stack": learned.global_transform.to(registered) @ registered,
     }
     scores = {
@@ -251,7 +268,8 @@ def reconstruct(
             elif config.registration == "cnn":
                 if model is None:
                     raise ValueError("reconstruct(): registration 'cnn' needs a model")
-                slices, init = _learned_initialisation(stacks, slices, config, model)
+                learned = cnn_slice_poses(*model, stacks, slices)
+                slices, init = learned_initialisation(slices, learned, config)
             else:
                 raise ValueError(
                     f"reconstruct(): 'registration' must be one of {REGISTRATIONS}, "

@@ -12,8 +12,10 @@ from synthetic import ellipsoid_brain
 import reconstruction.cnn_init as cnn_init
 from models.backbones import BackboneConfig
 from models.network import ModelConfig, build_model
-from reconstruction.cnn_init import cnn_slice_poses, robust_mean_pose
-from reconstruction.slices import SliceSet, Stack, extract_slices, plane_poses
+from reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from reconstruction.config import ReconstructionConfig
+from reconstruction.pipeline import learned_initialisation, stack_registration
+from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from sampling.slicer import SliceConfig, sample_slices
 from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
 from svr.image import Image
@@ -157,12 +159,14 @@ def oblique_stack(
     planes: int,
     thickness: float,
     first_k: int,
+    motion: torch.Tensor | None = None,
 ) -> tuple[Stack, torch.Tensor]:
     """A stack cut from a canonical volume as the scanner would see it through ``G``.
 
     The stack's affine is oblique in the scanner frame; its k-plane ``k`` has scanner pose
-    ``S_k`` (built here from the affine, not by the library) and canonical pose ``G^-1 o S_k``,
-    where the (thin) slice is sampled. The stack stands for planes ``first_k ...`` of its file.
+    ``S_k`` (built here from the affine, not by the library) and canonical pose ``G^-1 o S_k``
+    (``G^-1 o S_k o M_k`` with a (K, 4, 4) ``motion``), where the (thin) slice is sampled. The
+    stack stands for planes ``first_k ...`` of its file.
 
     Returns:
         The stack and the (K, 4, 4) true canonical poses of its k-planes (origin at the plane
@@ -180,6 +184,8 @@ def oblique_stack(
     )
     scanner = rigid(R.expand(planes, 3, 3), plane_centres @ affine[:3, :3].T + affine[:3, 3])
     canonical = se3_compose(se3_inverse(G), scanner)
+    if motion is not None:
+        canonical = se3_compose(canonical, motion)
     config = SliceConfig(size=size, spacing_mm=SPACING)
     inside = sample_slices(mask, canonical, replace(config, mode="nearest")).permute(1, 2, 0) > 0.5
     data = sample_slices(volume, canonical, config).permute(1, 2, 0) * inside
@@ -194,9 +200,13 @@ def oblique_stack(
     return stack, canonical
 
 
-@pytest.fixture(scope="module")
-def scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSet]:
-    """A textured ellipsoid brain in canonical space, three oblique stacks of different sizes."""
+def make_scene(
+    motion_deg: float = 0.0, motion_mm: float = 0.0
+) -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSet]:
+    """A textured ellipsoid brain in canonical space, three oblique stacks of different sizes.
+
+    Each slice moved by its own random rotation of ``motion_deg`` and shift of ``motion_mm``.
+    """
     n, sp = 40, 2.5
     volume, mask = ellipsoid_brain(
         n, sp, (30.0, 24.0, 20.0), seed=3, origin_mm=(-(n - 1) / 2 * sp,) * 3
@@ -206,14 +216,30 @@ def scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSet]:
         ("coronal.nii.gz", (1.4, 0.2, -0.2), (33, 38), 12, 4.5, 3),
         ("sagittal.nii.gz", (0.3, 1.5, 0.4), (36, 31), 13, 4.0, 1),
     ]
+    generator = torch.Generator().manual_seed(5)
     stacks, truth = [], {}
     for name, rotvec, size, planes, thickness, first_k in specs:
+        axes = torch.nn.functional.normalize(torch.randn(planes, 3, generator=generator), dim=1)
+        shifts = torch.nn.functional.normalize(torch.randn(planes, 3, generator=generator), dim=1)
+        motion = rigid(so3_exp(math.radians(motion_deg) * axes.to(F64)), motion_mm * shifts.to(F64))
         stack, canonical = oblique_stack(
-            volume, mask, name, rotvec, size, planes, thickness, first_k
+            volume, mask, name, rotvec, size, planes, thickness, first_k, motion
         )
         stacks.append(stack)
         truth[name] = canonical
     return volume, stacks, truth, extract_slices(stacks)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSet]:
+    """Three oblique stacks of a motionless brain."""
+    return make_scene()
+
+
+@pytest.fixture(scope="module")
+def moving_scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSet]:
+    """The same stacks with every slice moved by 8 degrees and 3 mm (random directions)."""
+    return make_scene(motion_deg=8.0, motion_mm=3.0)
 
 
 def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool = False):
@@ -331,3 +357,103 @@ def test_cnn_slice_poses_end_to_end_with_a_tiny_network(scene):
     )
     assert bool(init.rotation_deviation_deg.isfinite().all())
     assert float(init.rotation_deviation_deg.max()) > 0.0  # an untrained net is not rigid
+
+
+# --- learned_consensus, refined poses and the learned initialisation ----------------------------
+
+
+def true_slice_poses(slices: SliceSet, truth: dict[str, torch.Tensor], stacks) -> torch.Tensor:
+    """(N, 4, 4) true canonical poses of the slice set's padded arrays."""
+    planes = torch.stack(
+        [
+            truth[slices.stack_names[int(sid)]][int(k) - int(stacks[int(sid)].k_indices[0])]
+            for sid, k in zip(slices.stack_ids, slices.slice_indices, strict=True)
+        ]
+    )
+    return array_poses(slices, planes)
+
+
+def test_learned_consensus_equals_cnn_slice_poses(scene, monkeypatch):
+    _, stacks, truth, slices = scene
+    monkeypatch.setattr(cnn_init, "predict_stack_poses", oracle(truth, corrupt=0.25))
+    init = cnn_slice_poses(build_model(TINY).eval(), TINY, stacks, slices)
+    again = learned_consensus(slices, init.predicted_poses)
+    for name in (
+        "predicted_poses",
+        "consensus_poses",
+        "stack_transforms",
+        "global_transform",
+        "rotation_deviation_deg",
+        "translation_deviation_mm",
+    ):
+        torch.testing.assert_close(getattr(again, name), getattr(init, name), atol=1e-9, rtol=0)
+
+
+def test_refined_poses_keep_agreeing_predictions_and_replace_outliers(moving_scene):
+    _, stacks, truth, slices = moving_scene
+    predicted = true_slice_poses(slices, truth, stacks)
+    generator = torch.Generator().manual_seed(2)
+    bad = torch.rand(len(slices), generator=generator) < 0.2
+    predicted[bad] = rigid(
+        random_rotations(int(bad.sum()), generator),
+        60 * torch.randn(int(bad.sum()), 3, generator=generator, dtype=F64),
+    )
+    init = learned_consensus(slices, predicted)
+    outlier = init.outliers(30.0, 20.0)
+    # 8 degrees of motion against 30: only the random predictions are outliers (here all of
+    # them land farther than 30 degrees or 20 mm from the consensus).
+    assert torch.equal(outlier, bad)
+    refined = init.refined_poses(30.0, 20.0)
+    torch.testing.assert_close(refined[~bad], predicted[~bad])
+    torch.testing.assert_close(refined[bad], init.consensus_poses[bad])
+    # The consensus is rigid per stack: it cannot follow the motion the predictions show.
+    exact = true_slice_poses(slices, truth, stacks)
+    assert float(angle_deg(init.consensus_poses[~bad], exact[~bad]).median()) > 4.0
+    assert float(angle_deg(refined[~bad], exact[~bad]).max()) < 1e-6
+    # Bounds of 0 keep no prediction that deviates at all.
+    torch.testing.assert_close(init.refined_poses(0.0, 0.0), init.consensus_poses)
+
+
+def test_learned_consensus_and_refined_poses_errors(scene):
+    _, _, _, slices = scene
+    good = slices.scanner_poses.clone()
+    with pytest.raises(ValueError, match=r"'predicted' must be a \(\d+, 4, 4\) tensor"):
+        learned_consensus(slices, good[:-1])
+    with pytest.raises(ValueError, match=r"'predicted' must be a \(\d+, 4, 4\) tensor"):
+        learned_consensus(slices, good.numpy())
+    nan = good.clone()
+    nan[0, 0, 3] = math.nan
+    with pytest.raises(ValueError, match="'predicted' holds non-finite values"):
+        learned_consensus(slices, nan)
+    with pytest.raises(ValueError, match="'slices' is empty"):
+        learned_consensus(slices.subset(slices.stack_ids < 0), good[:0])
+    init = learned_consensus(slices, good)
+    with pytest.raises(ValueError, match="'max_rotation_deg' must be finite and >= 0"):
+        init.refined_poses(-1.0, 20.0)
+    with pytest.raises(ValueError, match="'max_translation_mm' must be finite and >= 0"):
+        init.refined_poses(30.0, math.inf)
+
+
+def test_learned_initialisation_keeps_good_predictions_per_slice(moving_scene):
+    _, stacks, truth, slices = moving_scene
+    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    exact = true_slice_poses(slices, truth, stacks)
+    start, kept = learned_initialisation(slices, learned_consensus(slices, exact), config)
+    assert kept == ("cnn", "cnn", "cnn") and start.frame == "canonical"
+    torch.testing.assert_close(start.poses, exact)
+
+
+def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
+    _, stacks, truth, slices = moving_scene
+    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    exact = true_slice_poses(slices, truth, stacks)
+    generator = torch.Generator().manual_seed(4)
+    # A model that knows the brain's orientation but not the slices: 40 degrees of noise each.
+    axes = torch.nn.functional.normalize(torch.randn(len(slices), 3, generator=generator), dim=1)
+    noisy = exact.clone()
+    noisy[:, :3, :3] = exact[:, :3, :3] @ so3_exp(math.radians(40) * axes.to(F64))
+    learned = learned_consensus(slices, noisy)
+    start, kept = learned_initialisation(slices, learned, config)
+    assert kept == ("stack", "stack", "stack")
+    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    torch.testing.assert_close(start.poses, learned.global_transform @ registered)

@@ -33,8 +33,9 @@ if TYPE_CHECKING:
 DESCRIPTION = """\
 Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
 its own rigid body: its pose is initialised (--registration: `cnn` predicts every slice's pose in
-canonical atlas space with a slice-pose model and keeps, per stack, whichever of the model's
-consensus and the stack registration fits better; `stack` registers every stack rigidly to the
+canonical atlas space with a slice-pose model, replaces predictions that disagree with their
+stack's consensus by the consensus pose, and keeps, per stack, whichever of these and the stack
+registration fits better; `stack` registers every stack rigidly to the
 template stack; `none` keeps the scanner's poses), then outer rounds alternate slice-to-volume
 registration (skipped in the first round), EM outlier weighting, exclusion of slices whose NCC
 with their simulation is below --ncc-threshold, and edge-preserving super-resolution.
