@@ -44,6 +44,16 @@ def add_common_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_rotation_option(group: argparse._ActionsContainer) -> None:
+    """Add ``--rotation euler|uniform``: the rotations that slice poses are drawn from."""
+    group.add_argument(
+        "--rotation",
+        choices=["euler", "uniform"],
+        default="euler",
+        help="euler: angles in ±90° (the paper); uniform: all of SO(3)",
+    )
+
+
 def resolve_device(name: str) -> str:
     """Turn ``--device`` into a usable torch device string.
 

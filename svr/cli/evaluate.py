@@ -18,6 +18,7 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    add_rotation_option,
     positive_float,
     positive_int,
     resolve_device,
@@ -120,12 +121,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     slices = p.add_argument_group("validation slices")
     slices.add_argument("--num-slices", type=positive_int, default=200, help="slices per volume")
-    slices.add_argument(
-        "--rotation",
-        choices=["euler", "uniform"],
-        default="euler",
-        help="euler: angles in ±90° (the paper); uniform: all of SO(3)",
-    )
+    add_rotation_option(slices)
     slices.add_argument(
         "--thickness",
         type=positive_float,

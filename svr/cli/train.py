@@ -10,6 +10,7 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    add_rotation_option,
     check_finite,
     check_run_folder,
     positive_float,
@@ -101,12 +102,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar=("LOW", "HIGH"),
         help="jitter of the in-plane spacing in mm",
     )
-    slices.add_argument(
-        "--rotation",
-        choices=["euler", "uniform"],
-        default="euler",
-        help="euler: angles in ±90° (the paper); uniform: all of SO(3)",
-    )
+    add_rotation_option(slices)
     slices.add_argument(
         "--pose-sampling",
         choices=["random", "grid"],
