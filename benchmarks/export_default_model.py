@@ -137,7 +137,7 @@ def parse_args() -> tuple[argparse.Namespace, str]:
     return args, resolve_device(args.device)
 
 
-def provenance(checkpoint: Path, command: str) -> dict:
+def provenance(checkpoint: Path, command: str, atlas_dir: Path) -> dict:
     """What the model card and config record about how the model was made."""
     training = load_checkpoint(checkpoint).config.get("training") or {}
     sources = [Path(s).parent.name for s in training.get("data_sources", [])]
@@ -149,8 +149,16 @@ def provenance(checkpoint: Path, command: str) -> dict:
         "planned_steps": training.get("steps"),
         "batch_size": run.get("data", {}).get("batch_size"),
         "seed": run.get("seed"),
-        "held_out": "none: every atlas volume was used for training",
+        "held_out": held_out_note(sources, atlas_dir),
     }
+
+
+def held_out_note(sources: list[str], atlas_dir: Path) -> str:
+    """Which volumes of the atlas folder training left out, in words."""
+    missing = [f.name for f in sorted(atlas_dir.glob("GA*")) if f.name not in sources]
+    if not missing:
+        return "none: every atlas volume was used for training"
+    return f"{', '.join(missing)} (not used for training)"
 
 
 def random_pose_results(
@@ -257,8 +265,9 @@ def table(results: list[Result], by: str) -> str:
         rows.setdefault(key, []).append(r)
     lines = [
         "| set | volume | slices | rotation error (°) median / mean "
-        "| translation error (mm) median / mean | CC median / mean |",
-        "|---|---|---:|---:|---:|---:|",
+        "| translation error (mm) median / mean | rotation up to the mirror twin (°) median / "
+        "mean | translation up to the twin (mm) median / mean | CC median / mean |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for (group, source), members in rows.items():
         merged = {k: np.concatenate([m.metrics[k] for m in members]) for k in members[0].metrics}
@@ -268,7 +277,9 @@ def table(results: list[Result], by: str) -> str:
             label = f"{len(names)} volumes"
         lines.append(
             f"| {group} | {label} | {len(merged['cc'])} | {stat(merged, 'rotation_deg', '.1f')} "
-            f"| {stat(merged, 'translation_mm', '.1f')} | {stat(merged, 'cc', '.3f')} |"
+            f"| {stat(merged, 'translation_mm', '.1f')} "
+            f"| {stat(merged, 'rotation_twin_deg', '.1f')} "
+            f"| {stat(merged, 'translation_twin_mm', '.1f')} | {stat(merged, 'cc', '.3f')} |"
         )
     return "\n".join(lines)
 
@@ -314,7 +325,12 @@ def model_card(
         "## Model",
         f"- {backbone['name']} backbone, width {backbone['width']}, depth {backbone['depth']}, "
         f"{params:,} weights; output `{model['representation']}` (rotation vector, rad, and "
-        f"translation, mm, of the slice centre in the canonical frame).\n"
+        f"translation, mm, of the slice centre in the canonical frame"
+        f"{'; regressed as 6D rotation columns' if model.get('se3_rotation') == '6d' else ''})."
+        f"\n- Trained up to the mirror twin about "
+        f"{symmetry_words(model.get('symmetry_planes', []))}: a prediction stands for the pose or "
+        "its mirror twin, and a stack's slice order decides which "
+        "(`reconstruction.cnn_init.disambiguate_stack`).\n"
         f"- Input: {model['input_size'][0]}×{model['input_size'][1]} slices at "
         f"{model['spacing_mm']:g} mm, masked, divided by the in-mask 99th percentile "
         f"(`models.predict` prepares stacks this way).\n"
@@ -327,9 +343,9 @@ def model_card(
         "## Training data and licence",
         f"{data['num_volumes']} volumes of the {data['name']} atlas ({', '.join(data['volumes'])})"
         f": {data['description']}. {data['citation']}. {data['source']}. Licence: "
-        f"{data['licence']}. No volume was held out, so the evaluation below uses other anatomy "
-        "(procedural phantoms) for generalisation; the training atlas and the bench cases "
-        "(simulated from GA24 and GA28 of the same atlas) show seen anatomy.",
+        f"{data['licence']}. Held out: {prov['held_out']}. The held-out ages and the procedural "
+        "phantoms are anatomy the model did not see; the bench cases are simulated from GA24 "
+        "and GA28 of the atlas.",
         "## Evaluation",
         f"Random-pose slices: {args.num_slices} per phantom volume and {args.atlas_slices} per "
         f"atlas volume and pose set, {args.thickness:g} mm thick (Gaussian PSF), "
@@ -343,7 +359,7 @@ def model_card(
         "hard out-of-distribution test.",
         table(results, "group"),
         "By volume:",
-        table([r for r in results if not r.group.startswith("atlas")], "source"),
+        table([r for r in results if not r.group.startswith("atlas (seen")], "source"),
         "Checks: " + "; ".join([*notes, fp16_gap(results)]) + ".",
         f"Evaluated on {device} with fetal-svr {config['export']['versions']['fetal_svr']}, "
         f"torch {torch.__version__}, Python {platform.python_version()}, by "
@@ -352,9 +368,19 @@ def model_card(
     return "\n\n".join(sections) + "\n"
 
 
+def symmetry_words(planes: list[dict]) -> str:
+    if not planes:
+        return "no plane (plain loss)"
+    return "; ".join(
+        f"the plane with normal ({', '.join(f'{v:.3f}' for v in p['normal'])}) at "
+        f"{p['offset_mm']:.2f} mm"
+        for p in planes
+    )
+
+
 def main() -> int:
     args, device = parse_args()
-    prov = provenance(args.checkpoint, args.training_command)
+    prov = provenance(args.checkpoint, args.training_command, args.atlas_dir)
     if prov["steps"] != prov["planned_steps"]:
         print(
             f"warning: {args.checkpoint} is step {prov['steps']} of {prov['planned_steps']}",
@@ -391,17 +417,23 @@ def main() -> int:
             for folder in sorted(args.atlas_dir.glob("GA*"))
         ]
         atlas = [(name, volume.to(device)) for name, volume in atlas]
+        seen = set(prov["data"]["volumes"])
         for rotation in ("euler", "uniform"):
-            results += random_pose_results(
-                model,
-                reference,
-                slice_config,
-                atlas,
-                "atlas (seen in training)",
-                rotation,
-                args.atlas_slices,
-                args.seed,
-            )
+            for label, members in (
+                ("atlas held out", [a for a in atlas if a[0] not in seen]),
+                ("atlas (seen in training)", [a for a in atlas if a[0] in seen]),
+            ):
+                if members:
+                    results += random_pose_results(
+                        model,
+                        reference,
+                        slice_config,
+                        members,
+                        label,
+                        rotation,
+                        args.num_slices if label == "atlas held out" else args.atlas_slices,
+                        args.seed,
+                    )
     for name in BENCH_CASES:
         case = args.bench_dir / name
         if case.is_dir() and args.atlas_dir.is_dir():
@@ -415,7 +447,7 @@ def main() -> int:
     atomic_write_text(out / "README.md", card)
     print(table(results, "group"))
     print()
-    print(table([r for r in results if not r.group.startswith("atlas")], "source"))
+    print(table([r for r in results if not r.group.startswith("atlas (seen")], "source"))
     print(f"\n{fp16_gap(results)}\nwrote {out / 'README.md'}")
     return 0
 

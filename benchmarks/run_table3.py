@@ -46,8 +46,10 @@ from sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from sampling.volume import load_canonical_volume
 from svr.cli import main as svr
 from svr.geometry import se3_error
+from svr.geometry.symmetry import orbit_poses
 from svr.image import Image
 from svr.losses import estimate_metric_weights
+from svr.metrics import geodesic_distance
 
 ROOT = Path(__file__).resolve().parents[1]
 LOSSES = ("se3", "posenet", "anchor")
@@ -173,7 +175,11 @@ def latest(run: Path) -> Path:
 def adaptive_weights(
     checkpoint: Path, atlas: Path, hold_out: list[str], budget: Budget, device: str, seed: int
 ) -> list[float]:
-    """diag(cov^-1) of the se3 model's errors on validation slices of the training volumes."""
+    """diag(cov^-1) of the se3 model's errors on validation slices of the training volumes.
+
+    For a model trained up to the mirror twin (``symmetry_planes``), the errors are taken to the
+    nearer member of each true pose's orbit, as its loss measures them.
+    """
     ckpt = load_checkpoint(checkpoint, map_location=device)
     config = ModelConfig.from_dict(ckpt.config["model"])
     model = build_model(config).to(device).eval()
@@ -191,7 +197,11 @@ def adaptive_weights(
         poses = poses[brain_fraction(mask, poses, slice_config) >= 0.1][:per_volume]
         with torch.no_grad():
             slices = sample_slices(volume.image, poses, slice_config)[:, None]
-            errors.append(se3_error(model.predict_poses(slices).double(), poses).cpu())
+            predicted = model.predict_poses(slices).double()
+        orbit = orbit_poses(poses.double(), config.symmetry_planes)
+        candidates = se3_error(predicted.expand_as(orbit), orbit)  # (K, N, 6)
+        nearest = geodesic_distance(predicted.expand_as(orbit), orbit).argmin(0)
+        errors.append(candidates[nearest, torch.arange(len(poses))].cpu())
     return estimate_metric_weights(torch.cat(errors)).tolist()
 
 

@@ -12,6 +12,10 @@ compared with the slice cut from the same volume at the predicted pose, as SVRne
 * ``geodesic``, ``rotation_deg``, ``euler_x_deg``, ``euler_y_deg``, ``euler_z_deg``,
   ``translation_mm``: :func:`svr.metrics.pose_errors`. ``geodesic`` is the left-invariant SE(3)
   distance in radian-equivalents (1 = 1 rad or 30 mm), not the paper's GD scale.
+* ``geodesic_twin``, ``rotation_twin_deg``, ``translation_twin_mm``: the same errors up to the
+  mirror twin (:mod:`svr.geometry.symmetry`): to whichever of the true pose and its twin is
+  nearer the prediction. A single slice of a symmetric brain cannot tell the two apart, so these
+  are what a network can achieve on slices alone; the raw errors stay beside them.
 
 Higher is better for ``cc``, ``psnr`` and ``ssim``; lower is better for every other metric.
 """
@@ -40,18 +44,19 @@ from sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from sampling.volume import CanonicalVolume
 from svr.files import atomic_directory
 from svr.geometry._validation import check_tensor
+from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, orbit_poses
 from svr.image import Image
 from svr.image_metrics import mse, ncc, psnr, ssim
-from svr.metrics import pose_errors
+from svr.metrics import geodesic_distance, pose_errors
 
 log = logging.getLogger(__name__)
 
 DEFAULT_RANGE_PERCENTILE = 99.9
 HIGHER_IS_BETTER = frozenset({"cc", "psnr", "ssim"})
-DEFAULT_TEST_METRICS = ("geodesic", "cc")
+DEFAULT_TEST_METRICS = ("geodesic", "geodesic_twin", "cc")
 VALIDATION_BRAIN_FRACTION = 0.1
 """Default empty-slice rule of validation slices: at least 10 % of the pixels in the brain."""
-_HISTOGRAM_METRICS = ("geodesic", "rotation_deg", "translation_mm", "cc")
+_HISTOGRAM_METRICS = ("geodesic", "rotation_deg", "rotation_twin_deg", "translation_mm", "cc")
 _CONSTANT_RTOL = 1e-12  # differences that vary less than this (relative) count as constant
 _EXAMPLE_GAP = 2  # pixels between the example slices in a montage
 
@@ -74,6 +79,9 @@ _METRICS: dict[str, _MetricFormat] = {
     "euler_y_deg": _MetricFormat("Euler y (°) ↓", ".2f"),
     "euler_z_deg": _MetricFormat("Euler z (°) ↓", ".2f"),
     "translation_mm": _MetricFormat("Translation (mm) ↓", ".2f"),
+    "geodesic_twin": _MetricFormat("GD up to twin ↓", ".3f"),
+    "rotation_twin_deg": _MetricFormat("Rotation up to twin (°) ↓", ".2f"),
+    "translation_twin_mm": _MetricFormat("Translation up to twin (mm) ↓", ".2f"),
 }
 
 
@@ -113,6 +121,7 @@ def evaluate_poses(
     pred_poses: Tensor,
     config: EvalConfig,
     slices: Tensor | None = None,
+    planes: Sequence[ReflectionPlane] = (SAGITTAL,),
 ) -> dict[str, np.ndarray]:
     """Per-slice image similarity and pose errors of predicted slice poses.
 
@@ -123,11 +132,15 @@ def evaluate_poses(
         config: Slice geometry and intensity span.
         slices: (N, H, W) ground-truth slices with ``(H, W) = config.slice.size`` (e.g. the
             acquired slices), or ``None`` to cut them from ``volume`` at ``true_poses``.
+        planes: Mirror planes for the errors up to the twin (default: the sagittal plane, as a
+            brain is nearly symmetric whatever the model was trained with); empty for none.
 
     Returns:
         (N,) float64 arrays keyed ``cc``, ``mse``, ``psnr``, ``ssim``, ``geodesic``,
         ``rotation_deg``, ``euler_x_deg``, ``euler_y_deg``, ``euler_z_deg``, ``translation_mm``
-        (the module docstring defines them).
+        (the module docstring defines them) and, with ``planes``, ``geodesic_twin``,
+        ``rotation_twin_deg`` and ``translation_twin_mm``: the errors to the member of the true
+        pose's mirror orbit nearest to the prediction by the geodesic distance.
 
     Raises:
         TypeError: If a pose or slice argument is not a floating-point tensor.
@@ -174,6 +187,14 @@ def evaluate_poses(
     }
     errors = pose_errors(pred_poses, true_poses)
     out.update({key: errors[key] for key in _METRICS if key in errors})
+    if planes:
+        orbit = orbit_poses(true_poses, planes)
+        nearest = geodesic_distance(pred_poses.expand_as(orbit), orbit).argmin(0)
+        twin_truth = orbit.gather(0, nearest[None, :, None].expand(1, n, 6))[0]
+        twin_errors = pose_errors(pred_poses, twin_truth)
+        out["geodesic_twin"] = twin_errors["geodesic"]
+        out["rotation_twin_deg"] = twin_errors["rotation_deg"]
+        out["translation_twin_mm"] = twin_errors["translation_mm"]
     return {key: value.detach().cpu().numpy().astype(np.float64) for key, value in out.items()}
 
 

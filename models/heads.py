@@ -11,6 +11,14 @@ untrained network predicts the identity pose at the origin for every input: ``0`
 ``(1, 0, 0, 0, 0, 0, 0)`` for ``"quat_translation"``, ``(-1, -1, 0, 0, 0, 0, 1, -1, 0)`` for
 ``"anchor_points"`` and ``(1, 0, 0, 0, 1, 0, 0, 0, 0)`` for ``"rotation6d_translation"``.
 
+``"se3"`` heads have two rotation parameterisations (``rotation=``): ``"rotvec"``, the rotation
+vector itself, and ``"6d"``, two 3-vectors turned into a rotation by Gram-Schmidt (Zhou et al.
+2019) and then into its rotation vector, so that the output is still the pose vector the SE(3)
+geodesic loss takes. No continuous map from rotations to rotation vectors exists (the vector
+jumps at angle pi), so a network regressing rotation vectors over all of SO(3) must learn a
+discontinuous function; the 6D columns are a continuous function of the rotation, and the loss,
+a function of the rotation only, stays smooth through the conversion.
+
 The ``"se3"`` rotation-vector output is not bounded: the zero initialisation keeps it small, as
 ``reference/se3_loss.md`` advises (the map ``r -> R`` loses gain only as ``|r| -> 2 pi``), and a
 bound such as ``pi tanh(r / pi)`` would slow learning of the rotations by nearly ``pi`` that random
@@ -28,9 +36,12 @@ from sampling.poses import REPRESENTATIONS, Representation, pose_labels
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
+    quat_from_matrix,
     quat_translation_to_pose,
     regularize_rotvec,
     rotation6d_translation_to_pose,
+    rotation_6d_to_matrix,
+    rotvec_from_quat,
 )
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
 
@@ -41,6 +52,9 @@ OUTPUT_SIZES: dict[str, int] = {
     "rotation6d_translation": 9,
 }
 """Number of outputs of each representation (the last dimension of its labels)."""
+
+SE3_ROTATIONS = ("rotvec", "6d")
+"""Rotation parameterisations of the ``"se3"`` head's linear layer."""
 
 
 def check_representation(representation: object, owner: str) -> None:
@@ -76,6 +90,8 @@ class PoseHead(nn.Module):
         translation_scale_mm: Millimetres per unit of the raw translation outputs, > 0.
         anchor_half_size_mm: Half-size ``a`` (mm) of the anchor-point triangle and millimetres per
             unit of the raw anchor-point outputs, > 0 (``"anchor_points"`` only).
+        rotation: ``"se3"`` only: ``"rotvec"`` (the linear layer gives the rotation vector) or
+            ``"6d"`` (it gives two 3-vectors, turned into the rotation vector; module docstring).
 
     Attributes:
         linear: The ``(in_features -> OUTPUT_SIZES[representation])`` layer of raw outputs.
@@ -91,6 +107,7 @@ class PoseHead(nn.Module):
         representation: Representation,
         translation_scale_mm: float = DEFAULT_LENGTH_SCALE_MM,
         anchor_half_size_mm: float = ANCHOR_HALF_SIZE_MM,
+        rotation: str = "rotvec",
     ) -> None:
         super().__init__()
         if isinstance(in_features, bool) or not isinstance(in_features, int) or in_features < 1:
@@ -100,10 +117,16 @@ class PoseHead(nn.Module):
         check_representation(representation, "PoseHead")
         check_length(translation_scale_mm, "PoseHead", "translation_scale_mm")
         check_length(anchor_half_size_mm, "PoseHead", "anchor_half_size_mm")
+        if rotation not in SE3_ROTATIONS or (rotation != "rotvec" and representation != "se3"):
+            raise ValueError(
+                f"PoseHead: 'rotation' must be one of {', '.join(SE3_ROTATIONS)} ('6d' for the "
+                f"'se3' representation only), got {rotation!r} for {representation!r}"
+            )
+        self.rotation = rotation
         self.representation = representation
         self.translation_scale_mm = float(translation_scale_mm)
         self.anchor_half_size_mm = float(anchor_half_size_mm)
-        size = OUTPUT_SIZES[representation]
+        size = OUTPUT_SIZES[representation] + (3 if rotation == "6d" else 0)
         self.linear = nn.Linear(in_features, size)
         if representation == "anchor_points":
             scale = torch.full((size,), self.anchor_half_size_mm)
@@ -112,7 +135,9 @@ class PoseHead(nn.Module):
             scale[-3:] = self.translation_scale_mm
         self.register_buffer("scale", scale, persistent=False)
         identity = pose_labels(
-            torch.zeros(6, dtype=torch.float64), representation, anchor_half_size_mm
+            torch.zeros(6, dtype=torch.float64),
+            "rotation6d_translation" if rotation == "6d" else representation,
+            anchor_half_size_mm,
         )
         with torch.no_grad():
             nn.init.zeros_(self.linear.weight)
@@ -128,7 +153,11 @@ class PoseHead(nn.Module):
             (B, OUTPUT_SIZES[representation]) outputs in the label units of
             :func:`sampling.poses.pose_labels` (rad, mm).
         """
-        return self.linear(features) * self.scale
+        raw = self.linear(features) * self.scale
+        if self.rotation == "rotvec":
+            return raw
+        rotvec = rotvec_from_quat(quat_from_matrix(rotation_6d_to_matrix(raw[..., :6])))
+        return torch.cat([rotvec, raw[..., 6:]], dim=-1)
 
     def to_pose(self, output: Tensor) -> Tensor:
         """Pose vectors of outputs (or labels) of this head's representation.

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,9 +18,15 @@ import torch
 from torch import Tensor, nn
 
 from models.backbones import BackboneConfig, build_backbone
-from models.heads import PoseHead, check_length, check_representation
-from sampling.poses import Representation
-from svr.geometry import ANCHOR_HALF_SIZE_MM
+from models.heads import SE3_ROTATIONS, PoseHead, check_length, check_representation
+from sampling.poses import Representation, pose_labels
+from svr.geometry import (
+    ANCHOR_HALF_SIZE_MM,
+    anchor_points_to_pose,
+    quat_translation_to_pose,
+    rotation6d_translation_to_pose,
+)
+from svr.geometry.symmetry import ReflectionPlane, check_planes
 from svr.losses import (
     DEFAULT_LENGTH_SCALE_MM,
     anchor_point_loss,
@@ -29,6 +35,7 @@ from svr.losses import (
     se3_geodesic_loss,
     validate_metric_weights,
 )
+from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
 
 MIN_INPUT_SIZE = 32
 """Smallest height and width (pixels) of ``ModelConfig.input_size``."""
@@ -46,6 +53,13 @@ class ModelConfig:
         spacing_mm: In-plane pixel spacing (mm) of the slices the model expects, > 0.
         translation_scale_mm: Millimetres per unit of the head's raw translation outputs, > 0.
         anchor_half_size_mm: Half-size (mm) of the anchor-point triangle, > 0.
+        se3_rotation: Rotation parameterisation of the ``"se3"`` head's linear layer:
+            ``"rotvec"`` or ``"6d"`` (:class:`models.heads.PoseHead`); the head's output is the
+            pose vector either way.
+        symmetry_planes: Canonical-frame mirror planes of the training anatomy. Non-empty: the
+            network was trained up to the mirror twin (:mod:`svr.losses.symmetry`), so each
+            prediction stands for its whole orbit; the stack consensus picks the member
+            (:mod:`reconstruction.cnn_init`) and evaluation reports errors up to the twin.
 
     Raises:
         ValueError: Naming the field, for a value of the wrong type or out of range.
@@ -57,6 +71,8 @@ class ModelConfig:
     spacing_mm: float = 1.0
     translation_scale_mm: float = DEFAULT_LENGTH_SCALE_MM
     anchor_half_size_mm: float = ANCHOR_HALF_SIZE_MM
+    se3_rotation: str = "rotvec"
+    symmetry_planes: tuple[ReflectionPlane, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.backbone, BackboneConfig):
@@ -76,15 +92,35 @@ class ModelConfig:
         for name in ("spacing_mm", "translation_scale_mm", "anchor_half_size_mm"):
             check_length(getattr(self, name), "ModelConfig", name)
             object.__setattr__(self, name, float(getattr(self, name)))
+        if self.se3_rotation not in SE3_ROTATIONS or (
+            self.se3_rotation != "rotvec" and self.representation != "se3"
+        ):
+            raise ValueError(
+                f"ModelConfig: 'se3_rotation' must be one of {', '.join(SE3_ROTATIONS)} ('6d' "
+                f"with the 'se3' representation only), got {self.se3_rotation!r}"
+            )
+        planes = self.symmetry_planes
+        if not isinstance(planes, tuple | list):
+            raise ValueError(
+                f"ModelConfig: 'symmetry_planes' must be a tuple of planes, got {planes!r}"
+            )
+        object.__setattr__(
+            self,
+            "symmetry_planes",
+            tuple(ReflectionPlane.from_dict(p) if isinstance(p, dict) else p for p in planes),
+        )
+        check_planes(self.symmetry_planes, "ModelConfig")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form of the fields.
 
         Returns:
-            The fields by name, ``backbone`` as a nested dict and ``input_size`` as a list.
+            The fields by name, ``backbone`` as a nested dict, ``input_size`` as a list and
+            ``symmetry_planes`` as a list of :meth:`ReflectionPlane.to_dict` dicts.
         """
         d = dataclasses.asdict(self)
         d["input_size"] = list(self.input_size)
+        d["symmetry_planes"] = [p.to_dict() for p in self.symmetry_planes]
         return d
 
     @classmethod
@@ -149,6 +185,7 @@ class SlicePoseNet(nn.Module):
             config.representation,
             config.translation_scale_mm,
             config.anchor_half_size_mm,
+            config.se3_rotation,
         )
 
     def forward(self, slices: Tensor) -> Tensor:
@@ -206,7 +243,10 @@ def build_model(config: ModelConfig) -> SlicePoseNet:
 
 
 def loss_function(
-    representation: Representation, weights: Tensor | None = None
+    representation: Representation,
+    weights: Tensor | None = None,
+    planes: Sequence[ReflectionPlane] = (),
+    anchor_half_size_mm: float = ANCHOR_HALF_SIZE_MM,
 ) -> Callable[[Tensor, Tensor], Tensor]:
     """The loss that trains a representation, reduced by the mean over the batch.
 
@@ -215,12 +255,17 @@ def loss_function(
     * ``"anchor_points"``: :func:`svr.losses.anchor_point_loss`;
     * ``"rotation6d_translation"``: :func:`svr.losses.rotation6d_loss`;
 
-    the baselines with their default parameters.
+    the baselines with their default parameters. With reflection ``planes`` every loss is taken to
+    the nearest member of the label's mirror orbit (:mod:`svr.losses.symmetry`): the labels are
+    decoded to poses, their twins encoded back, and the smallest per-slice loss kept, so that the
+    SE(3) loss and the baselines meet the symmetry on the same terms.
 
     Args:
         representation: One of :data:`sampling.poses.REPRESENTATIONS`.
         weights: Z as a (6,) diagonal or (6, 6) SPD matrix (rad, mm), or ``None`` for the
             default; ``"se3"`` only.
+        planes: Canonical-frame mirror planes of the training anatomy (empty: plain losses).
+        anchor_half_size_mm: Half-size of the anchor-point triangle (``"anchor_points"``).
 
     Returns:
         A function ``loss(outputs, labels)`` of (B, D) network outputs and (B, D) labels of the
@@ -230,19 +275,38 @@ def loss_function(
         ValueError: For an unknown representation, or weights given for a baseline or invalid.
     """
     check_representation(representation, "loss_function()")
+    planes = check_planes(planes, "loss_function")
     if representation == "se3":
         if weights is not None:
             validate_metric_weights(weights, "loss_function")
+        if planes:
+            return functools.partial(symmetric_se3_geodesic_loss, planes=planes, weights=weights)
         return functools.partial(se3_geodesic_loss, weights=weights)
     if weights is not None:
         raise ValueError(
             f"loss_function(): 'weights' apply to the 'se3' loss only, not {representation!r}"
         )
     if representation == "quat_translation":
-        return posenet_loss
-    if representation == "anchor_points":
-        return anchor_point_loss
-    return rotation6d_loss
+        base, decode = posenet_loss, quat_translation_to_pose
+    elif representation == "anchor_points":
+        base = functools.partial(anchor_point_loss, half_size_mm=anchor_half_size_mm)
+        decode = functools.partial(anchor_points_to_pose, half_size_mm=anchor_half_size_mm)
+    else:
+        base, decode = rotation6d_loss, rotation6d_translation_to_pose
+    if not planes:
+        return base
+    per_slice = functools.partial(base, reduction="none")
+    encode = functools.partial(
+        pose_labels, representation=representation, anchor_half_size_mm=anchor_half_size_mm
+    )
+
+    def orbit_loss(outputs: Tensor, labels: Tensor) -> Tensor:
+        poses = decode(labels.detach().double())
+        return orbit_min_loss(
+            per_slice, outputs, poses, planes, encode=lambda p: encode(p).to(outputs.dtype)
+        )
+
+    return orbit_loss
 
 
 def checkpoint_model_config(config: ModelConfig) -> dict:

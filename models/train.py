@@ -108,6 +108,8 @@ class TrainConfig:
             (:class:`~sampling.dataset.EulerGridStream`; needs ``data.rotation == "euler"``, and
             ``data.angle_range_deg`` and ``data.tz_range_mm`` are replaced by ``grid``'s).
         grid: The Euler grid of ``pose_sampling="grid"`` (default: the paper's).
+        symmetry_report: How ``model.symmetry_planes`` were chosen
+            (:func:`sampling.symmetry.resolve_symmetry`), recorded in checkpoints.
     """
 
     output_dir: str
@@ -126,6 +128,7 @@ class TrainConfig:
     data_sources: tuple[str, ...] = ()
     pose_sampling: Literal["random", "grid"] = "random"
     grid: EulerGridConfig = DEFAULT_EULER_GRID
+    symmetry_report: dict | None = None
 
     def __post_init__(self) -> None:
         if self.pose_sampling not in ("random", "grid"):
@@ -232,6 +235,7 @@ def checkpoint_config(config: TrainConfig, step: int) -> dict:
     return {
         **checkpoint_model_config(config.model),
         "metric_weights": None if config.metric_weights is None else list(config.metric_weights),
+        **({"symmetry": config.symmetry_report} if config.symmetry_report else {}),
         "training": {
             "step": step,
             "steps": config.steps,
@@ -295,7 +299,12 @@ def train(
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
 
-    criterion = loss_function(config.model.representation, config.weights_tensor())
+    criterion = loss_function(
+        config.model.representation,
+        config.weights_tensor(),
+        config.model.symmetry_planes,
+        config.model.anchor_half_size_mm,
+    )
     sources = [v.to(device) for v in volumes] if config.workers == 0 else volumes
     if config.pose_sampling == "grid":
         stream = EulerGridStream(sources, config.data, config.grid)

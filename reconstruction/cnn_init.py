@@ -27,6 +27,7 @@ between the two origins; hence ``A_i = T_k o C_k^-1``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -36,8 +37,15 @@ from models.network import ModelConfig, SlicePoseNet
 from models.predict import predict_stack_poses, stack_slice_poses
 from reconstruction.slices import SliceSet, Stack
 from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp, so3_log
+from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
 
-__all__ = ["CnnInitialisation", "cnn_slice_poses", "learned_consensus", "robust_mean_pose"]
+__all__ = [
+    "CnnInitialisation",
+    "cnn_slice_poses",
+    "disambiguate_stack",
+    "learned_consensus",
+    "robust_mean_pose",
+]
 
 _DISTANCE_FLOOR = 1e-12  # rad or mm: Weiszfeld weights are 1 / max(distance, this)
 _PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plane
@@ -52,7 +60,9 @@ class CnnInitialisation:
     canonical mm.
 
     Attributes:
-        predicted_poses: (N, 4, 4) each slice's pose as the network predicted it, ``P_i``.
+        predicted_poses: (N, 4, 4) each slice's predicted pose ``P_i``: the member of its
+            prediction's mirror orbit that its stack chose (the prediction itself for a model
+            without symmetry planes).
         consensus_poses: (N, 4, 4) ``A_s o S_i``: the slice's scanner pose ``S_i`` moved by its
             stack's transform, so the slices of a stack stay rigid with each other.
         stack_transforms: (S, 4, 4) ``A_s``, the robust mean of ``P_i o S_i^-1`` over the slices
@@ -62,6 +72,12 @@ class CnnInitialisation:
             pose's (degrees), to report outlier predictions.
         translation_deviation_mm: (N,) distance between each prediction's slice centre and its
             consensus pose's (mm).
+        raw_predicted_poses: (N, 4, 4) the network's predictions as they came.
+        orbit_member: (N,) int64 which orbit member each slice took (0: its prediction, ``k``:
+            its twin about the model's plane ``k - 1``): non-zero means the stack flipped it.
+        stack_support: (S,) fraction of each stack's slices that support its transform (within
+            the bounds); NaN for a stack with no slice.
+        supporting: (N,) bool whether each slice supports its stack's transform.
     """
 
     predicted_poses: Tensor
@@ -70,6 +86,15 @@ class CnnInitialisation:
     global_transform: Tensor
     rotation_deviation_deg: Tensor
     translation_deviation_mm: Tensor
+    raw_predicted_poses: Tensor
+    orbit_member: Tensor
+    stack_support: Tensor
+    supporting: Tensor
+
+    def flipped(self, stack_ids: Tensor) -> Tensor:
+        """(S,) int64 number of slices per stack that took a mirror twin of their prediction."""
+        count = torch.zeros(len(self.stack_support), dtype=torch.long, device=stack_ids.device)
+        return count.index_add(0, stack_ids, (self.orbit_member != 0).long().to(stack_ids.device))
 
     def outliers(self, max_rotation_deg: float, max_translation_mm: float) -> Tensor:
         """(N,) bool: predictions farther from their consensus pose than either bound."""
@@ -261,8 +286,13 @@ def cnn_slice_poses(
     stacks: list[Stack],
     slices: SliceSet,
     batch_size: int = 64,
+    max_rotation_deg: float = 30.0,
+    max_translation_mm: float = 20.0,
 ) -> CnnInitialisation:
     """Predict every slice's canonical pose and the per-stack rigid consensus of the predictions.
+
+    A model trained up to the mirror twin (``model_config.symmetry_planes``) has each stack
+    choose, per slice, between the prediction and its twin (:func:`learned_consensus`).
 
     Args:
         model: The slice-pose network, in eval mode (:func:`models.predict.load_pose_model`).
@@ -271,6 +301,8 @@ def cnn_slice_poses(
         slices: The slices (:func:`reconstruction.slices.extract_slices`); their
             ``scanner_poses`` are used, whatever frame ``poses`` is in.
         batch_size: Slices per forward pass, >= 1.
+        max_rotation_deg: Rotation bound (degrees) of a slice's support for its stack, > 0.
+        max_translation_mm: Slice-centre distance bound (mm) of support, > 0.
 
     Returns:
         The predicted and consensus poses, transforms and deviations (:class:`CnnInitialisation`),
@@ -301,24 +333,130 @@ def cnn_slice_poses(
             to_canonical[members] = _stack_scanner_to_canonical(
                 model, model_config, stack, scanner[members], file_k[members], batch_size
             )
-    return learned_consensus(slices, se3_compose(to_canonical, scanner))
+    return learned_consensus(
+        slices,
+        se3_compose(to_canonical, scanner),
+        model_config.symmetry_planes,
+        max_rotation_deg,
+        max_translation_mm,
+    )
 
 
-def learned_consensus(slices: SliceSet, predicted: Tensor) -> CnnInitialisation:
+def _pose_residuals(
+    hypotheses: Tensor, scanner: Tensor, candidates: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Angles (deg) and centre distances (mm) of candidates from each hypothesis's poses.
+
+    Args:
+        hypotheses: (H, 4, 4) scanner -> canonical transforms ``A_h``.
+        scanner: (M, 4, 4) the slices' scanner poses ``S_i``.
+        candidates: (K, M, 4, 4) each slice's candidate canonical poses.
+
+    Returns:
+        (H, M, K) rotation angles (degrees) and (H, M, K) distances (mm) between ``A_h o S_i``
+        and candidate ``k`` of slice ``i``.
+    """
+    implied = hypotheses[:, None] @ scanner[None]  # (H, M, 4, 4)
+    relative = (
+        implied[:, :, None, :3, :3].transpose(-1, -2)
+        @ candidates.transpose(0, 1)[None, :, :, :3, :3]
+    )
+    angle = torch.rad2deg(so3_log(relative).norm(dim=-1))
+    distance = (implied[:, :, None, :3, 3] - candidates.transpose(0, 1)[None, :, :, :3, 3]).norm(
+        dim=-1
+    )
+    return angle, distance
+
+
+def disambiguate_stack(
+    candidates: Tensor,
+    scanner: Tensor,
+    max_rotation_deg: float,
+    max_translation_mm: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """A stack's scanner -> canonical transform by a robust vote over its slices' pose candidates.
+
+    Every slice brings ``K`` candidate canonical poses (its prediction and its mirror twins); each
+    candidate ``C_ki`` proposes the stack transform ``C_ki o S_i^-1``. A hypothesis's support is
+    the number of slices with a candidate within both bounds of the pose the hypothesis gives them
+    (RANSAC over all ``K M`` proposals, ties broken by the smaller summed normalised residual).
+    A twin reverses the stack's slice order along its normal, so the twin of one slice proposes a
+    transform that only its neighbours within about half the translation bound support: the true
+    transform wins once most slices have one good candidate, whichever member it is. Each slice
+    then takes its candidate nearest to the winning hypothesis, and the transform is the robust
+    mean (:func:`robust_mean_pose`) of the chosen candidates of the supporting slices, after which
+    the choice is made once more against that mean.
+
+    Args:
+        candidates: (K, M, 4, 4) float64 candidate canonical poses of the stack's M slices
+            (index 0 the predictions themselves).
+        scanner: (M, 4, 4) float64 their scanner poses ``S_i``.
+        max_rotation_deg: Rotation bound of support (degrees), > 0.
+        max_translation_mm: Slice-centre distance bound of support (mm), > 0.
+
+    Returns:
+        ``(transform, choice, inlier)``: the (4, 4) transform, the (M,) int64 chosen candidate of
+        each slice and the (M,) bool support of each slice by the transform.
+    """
+    k, m = candidates.shape[:2]
+    hypotheses = (candidates @ se3_inverse(scanner)[None]).reshape(k * m, 4, 4)
+    angle, distance = _pose_residuals(hypotheses, scanner, candidates)
+    cost = (angle / max_rotation_deg).square() + (distance / max_translation_mm).square()
+    within = (angle <= max_rotation_deg) & (distance <= max_translation_mm)
+    support = within.any(dim=-1).sum(dim=-1).to(torch.float64)
+    best_cost = cost.min(dim=-1).values.clamp_max(2.0).sum(dim=-1)
+    best = int(torch.argmax(support - best_cost / (2.0 * m + 1.0)))
+    transform = hypotheses[best]
+    for _ in range(2):
+        angle, distance = _pose_residuals(transform[None], scanner, candidates)
+        cost = (angle[0] / max_rotation_deg).square() + (distance[0] / max_translation_mm).square()
+        choice = cost.argmin(dim=-1)
+        rows = torch.arange(m)
+        inlier = (angle[0, rows, choice] <= max_rotation_deg) & (
+            distance[0, rows, choice] <= max_translation_mm
+        )
+        chosen = candidates[choice, rows]
+        members = inlier if bool(inlier.any()) else torch.ones_like(inlier)
+        transform = robust_mean_pose(se3_compose(chosen[members], se3_inverse(scanner[members])))
+    angle, distance = _pose_residuals(transform[None], scanner, candidates)
+    cost = (angle[0] / max_rotation_deg).square() + (distance[0] / max_translation_mm).square()
+    choice = cost.argmin(dim=-1)
+    rows = torch.arange(m)
+    inlier = (angle[0, rows, choice] <= max_rotation_deg) & (
+        distance[0, rows, choice] <= max_translation_mm
+    )
+    return transform, choice, inlier
+
+
+def learned_consensus(
+    slices: SliceSet,
+    predicted: Tensor,
+    planes: Sequence[ReflectionPlane] = (),
+    max_rotation_deg: float = 30.0,
+    max_translation_mm: float = 20.0,
+) -> CnnInitialisation:
     """The per-stack and global robust consensus of canonical slice-pose predictions.
+
+    With mirror ``planes`` (a model trained up to the twin, ``ModelConfig.symmetry_planes``)
+    each prediction stands for its orbit ``{P_i, twin(P_i)}``, and the stack's slice order
+    decides which member each slice takes (:func:`disambiguate_stack`).
 
     Args:
         slices: The slices; their ``scanner_poses`` are used, whatever frame ``poses`` is in.
         predicted: (N, 4, 4) each slice's predicted canonical pose ``P_i`` (origin at the centre
             of the slice set's padded array, like ``slices.poses``).
+        planes: Canonical-frame mirror planes of the model (empty: no twins).
+        max_rotation_deg: Rotation bound (degrees) within which a slice supports its stack's
+            transform, > 0.
+        max_translation_mm: Slice-centre distance bound (mm) of support, > 0.
 
     Returns:
-        The predictions with their consensus poses, transforms and deviations
-        (:class:`CnnInitialisation`), float64 on ``slices.device``.
+        The (disambiguated) predictions with their consensus poses, transforms, support and
+        deviations (:class:`CnnInitialisation`), float64 on ``slices.device``.
 
     Raises:
-        ValueError: If ``predicted`` is not (N, 4, 4) for the N slices, is not finite, or
-            ``slices`` is empty.
+        ValueError: If ``predicted`` is not (N, 4, 4) for the N slices, is not finite,
+            ``slices`` is empty, or a bound is not a positive finite number.
     """
     if len(slices) == 0:
         raise ValueError("learned_consensus(): 'slices' is empty")
@@ -329,25 +467,47 @@ def learned_consensus(slices: SliceSet, predicted: Tensor) -> CnnInitialisation:
         )
     if not bool(predicted.isfinite().all()):
         raise ValueError("learned_consensus(): 'predicted' holds non-finite values")
+    for name, value in (
+        ("max_rotation_deg", max_rotation_deg),
+        ("max_translation_mm", max_translation_mm),
+    ):
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            raise ValueError(f"learned_consensus(): {name!r} must be finite and > 0, got {value!r}")
+    planes = check_planes(planes, "learned_consensus")
     scanner = slices.scanner_poses.to(torch.float64).cpu()
-    predicted = predicted.to(torch.float64).cpu()
+    raw = predicted.to(torch.float64).cpu()
+    orbit = orbit_matrices(raw, planes)  # (K, N, 4, 4)
     stack_ids = slices.stack_ids.cpu()
-    to_canonical = se3_compose(predicted, se3_inverse(scanner))
-    stack_transforms = torch.full((len(slices.stack_names), 4, 4), math.nan, dtype=torch.float64)
-    for sid in range(len(slices.stack_names)):
-        members = stack_ids == sid
-        if bool(members.any()):
-            stack_transforms[sid] = robust_mean_pose(to_canonical[members])
+    num_stacks = len(slices.stack_names)
+    stack_transforms = torch.full((num_stacks, 4, 4), math.nan, dtype=torch.float64)
+    support = torch.full((num_stacks,), math.nan, dtype=torch.float64)
+    member = torch.zeros(len(slices), dtype=torch.long)
+    inlier = torch.zeros(len(slices), dtype=torch.bool)
+    for sid in range(num_stacks):
+        rows = torch.nonzero(stack_ids == sid).flatten()
+        if len(rows) == 0:
+            continue
+        transform, choice, ok = disambiguate_stack(
+            orbit[:, rows], scanner[rows], max_rotation_deg, max_translation_mm
+        )
+        stack_transforms[sid], member[rows], inlier[rows] = transform, choice, ok
+        support[sid] = ok.to(torch.float64).mean()
+    chosen = orbit[member, torch.arange(len(slices))]
     consensus = se3_compose(stack_transforms[stack_ids], scanner)
-    relative = consensus[:, :3, :3].transpose(-1, -2) @ predicted[:, :3, :3]
+    relative = consensus[:, :3, :3].transpose(-1, -2) @ chosen[:, :3, :3]
+    to_canonical = se3_compose(chosen, se3_inverse(scanner))
     device = slices.device
     return CnnInitialisation(
-        predicted_poses=predicted.to(device),
+        predicted_poses=chosen.to(device),
         consensus_poses=consensus.to(device),
         stack_transforms=stack_transforms.to(device),
-        global_transform=robust_mean_pose(to_canonical).to(device),
+        global_transform=robust_mean_pose(
+            to_canonical[inlier] if bool(inlier.any()) else to_canonical
+        ).to(device),
         rotation_deviation_deg=torch.rad2deg(so3_log(relative).norm(dim=-1)).to(device),
-        translation_deviation_mm=(predicted[:, :3, 3] - consensus[:, :3, 3])
-        .norm(dim=-1)
-        .to(device),
+        translation_deviation_mm=(chosen[:, :3, 3] - consensus[:, :3, 3]).norm(dim=-1).to(device),
+        raw_predicted_poses=raw.to(device),
+        orbit_member=member.to(device),
+        stack_support=support.to(device),
+        supporting=inlier.to(device),
     )

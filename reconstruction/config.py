@@ -46,6 +46,9 @@ class ReconstructionConfig:
         cnn_max_deviation_deg: ``"cnn"``: a slice whose predicted rotation is farther than this
             (degrees) from its stack's consensus takes the consensus pose.
         cnn_max_deviation_mm: ``"cnn"``: likewise for the distance of its slice centre (mm).
+            Both bounds also define a slice's support for its stack's consensus.
+        cnn_min_support: ``"cnn"``: a stack whose fraction of supporting slices is below this
+            keeps stack registration (the model is unsure of it), in [0, 1].
         seed: Random seed.
     """
 
@@ -65,6 +68,7 @@ class ReconstructionConfig:
     ncc_threshold: float = 0.5
     cnn_max_deviation_deg: float = 30.0
     cnn_max_deviation_mm: float = 20.0
+    cnn_min_support: float = 0.5
     seed: int = 0
 
 
@@ -82,6 +86,8 @@ class ReconstructionResult:
         excluded: (N,) bool, slices left out of the final volume.
         initialisation: Per stack, the initialisation kept (``"cnn"``, ``"stack"``, ``"none"``).
         timings_s: Wall time of each phase in seconds, in order.
+        initialisation_notes: Per stack, why ``"cnn"`` kept what it kept (support, flipped
+            slices, NCC); empty for other registrations.
     """
 
     volume: Image
@@ -93,3 +99,4 @@ class ReconstructionResult:
     excluded: Tensor
     initialisation: tuple[str, ...]
     timings_s: dict[str, float] = field(default_factory=dict)
+    initialisation_notes: tuple[str, ...] = ()

@@ -15,10 +15,12 @@ Phases (each timed and logged):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -122,27 +124,70 @@ def _stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
     return total.index_add(0, slices.stack_ids, ncc) / count
 
 
+class LearnedStart(NamedTuple):
+    """What :func:`learned_initialisation` chose.
+
+    Attributes:
+        slices: The slices at their initial canonical poses.
+        choice: Per stack, ``"cnn"`` or ``"stack"``.
+        notes: Per stack, why (support, flipped slices, NCC), for the log and the QA figure.
+    """
+
+    slices: SliceSet
+    choice: tuple[str, ...]
+    notes: tuple[str, ...]
+
+
+def _canonical_frame(
+    learned: CnnInitialisation, registered: Tensor, slices: SliceSet, trusted: Tensor
+) -> Tensor | None:
+    """``G``: registered (template) frame -> canonical, from the trusted stacks' supporting slices.
+
+    The robust mean of ``P_i o X_i^-1`` over the slices that support their stack's transform in
+    the stacks with enough support, ``X_i`` their registered poses; ``None`` if there are none.
+    """
+    use = learned.supporting & trusted[slices.stack_ids]
+    if not bool(use.any()):
+        return None
+    chosen = learned.predicted_poses[use].to(torch.float64).cpu()
+    inverse = torch.linalg.inv(registered[use].to(torch.float64).cpu())
+    return robust_mean_pose(chosen @ inverse).to(registered)
+
+
+def _mean_ncc(per_stack: Tensor, slices: SliceSet) -> float:
+    """Slice-weighted mean of (S,) per-stack NCCs."""
+    counts = torch.bincount(slices.stack_ids.cpu(), minlength=len(per_stack)).to(per_stack)
+    return float((per_stack.cpu() * counts.cpu()).sum() / counts.sum().clamp_min(1))
+
+
 def learned_initialisation(
     slices: SliceSet, learned: CnnInitialisation, config: ReconstructionConfig
-) -> tuple[SliceSet, tuple[str, ...]]:
-    """Learned slice poses or stack registration, per stack, whichever fits better (by NCC).
+) -> LearnedStart:
+    """Learned slice poses or stack registration, per stack, chosen so as never to do harm.
 
-    The learned candidate is each slice's own prediction, or its stack's consensus pose where
-    the prediction is an outlier (:meth:`CnnInitialisation.refined_poses` with the config's
-    ``cnn_max_deviation_deg`` and ``cnn_max_deviation_mm``). The classical candidate is the
-    stack registration moved into canonical space by the predictions' global transform. For
-    each stack the candidate whose slices match their simulation from the candidate's own
-    scattered-data volume better (mean NCC) is kept, as NeSVoR chooses between SVoRT and stack
-    registration.
+    1. **Support.** A stack whose slices mostly disagree with their consensus (support below
+       ``config.cnn_min_support``; :func:`reconstruction.cnn_init.disambiguate_stack`) means the
+       model is unsure of it: it keeps stack registration, and the log and QA say so.
+    2. **Canonical frame.** Stack registration is moved into canonical space by ``G``, the robust
+       mean over the trusted stacks' supporting slices of (chosen prediction) o (registered
+       pose)^-1, so that the output is in atlas orientation whichever start each stack keeps. With
+       no trusted stack the predictions' global transform is used, and the log warns that the
+       orientation is unreliable.
+    3. **NCC per stack.** A trusted stack keeps its learned poses (each slice its own prediction,
+       or the consensus pose where that is an outlier: :meth:`CnnInitialisation.refined_poses`)
+       when they match their simulation from their own scattered-data volume at least as well
+       (mean NCC) as the registered poses do, as NeSVoR chooses between SVoRT and registration.
+    4. **Joint check.** The mixed start is kept only if its slice-weighted mean NCC is not below
+       that of stack registration alone; otherwise every stack starts from registration.
 
     Args:
         slices: All slices, at their scanner poses.
-        learned: The slices' predicted canonical poses and their consensus
+        learned: The slices' (disambiguated) predicted canonical poses and their consensus
             (:func:`reconstruction.cnn_init.cnn_slice_poses`).
         config: Settings.
 
     Returns:
-        The slices at their initial canonical poses and, per stack, ``"cnn"`` or ``"stack"``.
+        The slices at their initial canonical poses, the choice per stack and notes per stack.
     """
     outliers = learned.outliers(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm)
     log.info(
@@ -153,30 +198,57 @@ def learned_initialisation(
         config.cnn_max_deviation_deg,
         config.cnn_max_deviation_mm,
     )
+    support = learned.stack_support.cpu()
+    flipped = learned.flipped(slices.stack_ids).cpu()
+    trusted = (support >= config.cnn_min_support).to(slices.device)
     registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    frame = _canonical_frame(learned, registered, slices, trusted)
+    if frame is None:
+        log.warning(
+            "cnn: no stack has enough support (>= %.0f%% of its slices); the learned "
+            "initialisation is unsure and the output's atlas orientation is unreliable",
+            100 * config.cnn_min_support,
+        )
+        frame = learned.global_transform.to(registered)
     candidates = {
         "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
-        "stack": learned.global_transform.to(registered) @ registered,
+        "stack": frame @ registered,
     }
     scores = {
         name: _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
         for name, poses in candidates.items()
     }
-    choice = []
-    poses = candidates["cnn"].clone()
+    choice, notes = [], []
+    poses = candidates["stack"].clone()
     for sid, name in enumerate(slices.stack_names):
-        best = "cnn" if scores["cnn"][sid] >= scores["stack"][sid] else "stack"
+        ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
+        head = f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
+        if not bool(trusted[sid]):
+            best, why = "stack", f"cnn unsure ({head})"
+        else:
+            best = "cnn" if ncc_cnn >= ncc_stack else "stack"
+            why = f"{head}, NCC cnn {ncc_cnn:.3f} vs stack {ncc_stack:.3f}"
         members = slices.stack_ids == sid
         poses[members] = candidates[best][members]
         choice.append(best)
-        log.info(
-            "%s: initialisation %s (NCC cnn %.3f, stack %.3f)",
-            name,
-            best,
-            float(scores["cnn"][sid]),
-            float(scores["stack"][sid]),
+        notes.append(why)
+        log.info("%s: initialisation %s (%s)", name, best, why)
+    if "cnn" in choice:
+        mixed = _mean_ncc(
+            _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm), slices
         )
-    return slices.with_poses(poses, "canonical"), tuple(choice)
+        alone = _mean_ncc(scores["stack"], slices)
+        if mixed < alone:
+            log.info(
+                "cnn: the mixed start (mean NCC %.3f) fits worse than stack registration alone "
+                "(%.3f); every stack starts from registration",
+                mixed,
+                alone,
+            )
+            poses = candidates["stack"]
+            notes = [f"{n}; joint check failed ({mixed:.3f} < {alone:.3f})" for n in notes]
+            choice = ["stack"] * len(choice)
+    return LearnedStart(slices.with_poses(poses, "canonical"), tuple(choice), tuple(notes))
 
 
 def slice_groups(slices: SliceSet, packets: int, size: int) -> Tensor:
@@ -248,6 +320,7 @@ def reconstruct(
     timer = _Timer()
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(config.seed)
+    notes: tuple[str, ...] = ()
     try:
         with timer.phase("slices"):
             slices = extract_slices(stacks).to(device)
@@ -268,14 +341,21 @@ def reconstruct(
             elif config.registration == "cnn":
                 if model is None:
                     raise ValueError("reconstruct(): registration 'cnn' needs a model")
-                learned = cnn_slice_poses(*model, stacks, slices)
-                slices, init = learned_initialisation(slices, learned, config)
+                learned = cnn_slice_poses(
+                    *model,
+                    stacks,
+                    slices,
+                    max_rotation_deg=config.cnn_max_deviation_deg,
+                    max_translation_mm=config.cnn_max_deviation_mm,
+                )
+                slices, init, notes = learned_initialisation(slices, learned, config)
             else:
                 raise ValueError(
                     f"reconstruct(): 'registration' must be one of {REGISTRATIONS}, "
                     f"got {config.registration!r}"
                 )
-        return _rounds(slices, config, init, timer, progress)
+        result = _rounds(slices, config, init, timer, progress)
+        return dataclasses.replace(result, initialisation_notes=notes) if notes else result
     finally:
         torch.random.set_rng_state(generator_state)
 

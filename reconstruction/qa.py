@@ -66,9 +66,12 @@ def _text(result: ReconstructionResult) -> str:
     lines += [f"  {name}: {seconds:.1f}" for name, seconds in timings.items()]
     lines.append(f"  total: {sum(timings.values()):.1f}")
     lines.append("initialisation per stack")
+    notes = result.initialisation_notes or ("",) * len(result.initialisation)
     lines += [
-        f"  {Path(name).name}: {init}"
-        for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
+        f"  {Path(name).name}: {init}" + (f" ({note})" if note else "")
+        for name, init, note in zip(
+            result.slices.stack_names, result.initialisation, notes, strict=True
+        )
     ]
     spacing = float(result.volume.spacing[0])
     excluded = int(result.excluded.sum())

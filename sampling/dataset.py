@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
@@ -106,6 +107,10 @@ class SliceDatasetConfig:
             slice draws its own volume.
         representation: Label representation, one of :data:`sampling.poses.REPRESENTATIONS`.
         augment: Intensity augmentation, or ``None`` for none.
+        scale_range: ``None`` for none, else ``(low, high)``, ``0 < low <= high``: each batch
+            scales its volume about the canonical origin by a factor drawn log-uniformly per
+            canonical axis (a brain of another size and shape; the labels are the poses in the
+            scaled brain's canonical frame).
         batch_size: Slices per batch, >= 1.
         num_batches: Batches per epoch (over all ``DataLoader`` workers), >= 1, or ``None`` for an
             endless stream.
@@ -127,6 +132,7 @@ class SliceDatasetConfig:
     mix_volumes: bool = False
     representation: Representation = "se3"
     augment: SliceAugmentConfig | None = None
+    scale_range: tuple[float, float] | None = None
     batch_size: int = 32
     num_batches: int | None = None
     seed: int = 0
@@ -137,7 +143,7 @@ class SliceDatasetConfig:
             raise ValueError(
                 f"{owner}: 'slice' must be a SliceConfig, got {type(self.slice).__name__}"
             )
-        for name in ("thickness_range_mm", "spacing_range_mm"):
+        for name in ("thickness_range_mm", "spacing_range_mm", "scale_range"):
             check_positive_range(getattr(self, name), "SliceDatasetConfig", name, allow_none=True)
         if self.rotation not in ("euler", "uniform"):
             raise ValueError(
@@ -165,6 +171,15 @@ class SliceDatasetConfig:
 def _mask_image(volume: CanonicalVolume) -> Image:
     """The brain mask of ``volume`` as a float image on the volume's grid (1 inside)."""
     return Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
+
+
+def _scaled(image: Image, scale: Tensor | None) -> Image:
+    """``image`` scaled about the canonical origin by (3,) per-axis factors (``None``: as is)."""
+    if scale is None:
+        return image
+    factors = torch.ones(4, dtype=image.affine.dtype, device=image.affine.device)
+    factors[:3] = scale.to(factors)
+    return Image(image.data, factors[:, None] * image.affine)
 
 
 _GRID_ORDER_TAG = 0x67726964  # keeps the seeds of grid passes apart from those of batches
@@ -281,13 +296,18 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         generator = torch.Generator().manual_seed(_batch_seed(cfg.seed, epoch, index))
         b = cfg.batch_size
         slice_config = self._draw_slice_config(generator)
-        volume_index, poses = self._batch_poses(index, epoch, slice_config, generator)
+        scale = None
+        if cfg.scale_range is not None:
+            low, high = (math.log(x) for x in cfg.scale_range)
+            scale = torch.exp(low + (high - low) * torch.rand(3, generator=generator).double())
+        masks = tuple(_scaled(m, scale) for m in self._masks)
+        volume_index, poses = self._batch_poses(index, epoch, slice_config, generator, masks)
 
         slices = torch.empty((b, *slice_config.size), dtype=torch.float32, device=self.device)
         for v in volume_index.unique().tolist():
             chosen = volume_index == v
             slices[chosen.to(self.device)] = sample_slices(
-                self.volumes[v].image, poses[chosen].to(self.device), slice_config
+                _scaled(self.volumes[v].image, scale), poses[chosen].to(self.device), slice_config
             ).float()
         if cfg.augment is not None:
             slices = apply_augment(slices, draw_augment_params(cfg.augment, b, generator))
@@ -316,23 +336,33 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         return dataclasses.replace(cfg.slice, spacing_mm=spacing, thickness_mm=thickness)
 
     def _batch_poses(
-        self, index: int, epoch: int, slice_config: SliceConfig, generator: torch.Generator
+        self,
+        index: int,
+        epoch: int,
+        slice_config: SliceConfig,
+        generator: torch.Generator,
+        masks: Sequence[Image],
     ) -> tuple[Tensor, Tensor]:
         """The batch's (B,) int64 volume indices and (B, 6) float64 CPU poses.
 
         Random poses here (each batch from one volume unless ``config.mix_volumes``); subclasses
         choose them otherwise. ``index`` and ``epoch`` identify the batch; ``generator`` is its
-        random stream, after the slice configuration's draws.
+        random stream, after the slice configuration's draws; ``masks`` are the volumes' brain
+        masks as this batch sees them (scaled).
         """
         b, n = self.config.batch_size, len(self.volumes)
         if self.config.mix_volumes:
             volume_index = torch.randint(n, (b,), generator=generator)
         else:
             volume_index = torch.randint(n, (1,), generator=generator).repeat(b)
-        return volume_index, self._draw_poses(volume_index, slice_config, generator)
+        return volume_index, self._draw_poses(volume_index, slice_config, generator, masks)
 
     def _draw_poses(
-        self, volume_index: Tensor, slice_config: SliceConfig, generator: torch.Generator
+        self,
+        volume_index: Tensor,
+        slice_config: SliceConfig,
+        generator: torch.Generator,
+        masks: Sequence[Image],
     ) -> Tensor:
         """(B, 6) float64 CPU poses obeying the empty-slice rule, each in its slice's volume."""
         cfg = self.config
@@ -351,7 +381,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
                 for v in volume_index[slots].unique().tolist():
                     chosen = volume_index[slots] == v
                     fraction = brain_fraction(
-                        self._masks[v], candidates[chosen].to(self.device), slice_config
+                        masks[v], candidates[chosen].to(self.device), slice_config
                     )
                     keep[chosen] = fraction.cpu() >= cfg.min_brain_fraction
             poses[slots[keep]] = candidates[keep]
@@ -436,9 +466,17 @@ class EulerGridStream(SliceStream):
         return self._order[1]
 
     def _batch_poses(
-        self, index: int, epoch: int, slice_config: SliceConfig, generator: torch.Generator
+        self,
+        index: int,
+        epoch: int,
+        slice_config: SliceConfig,
+        generator: torch.Generator,
+        masks: Sequence[Image],
     ) -> tuple[Tensor, Tensor]:
-        """The batch's items of its pass, with in-plane shifts drawn from ``generator``."""
+        """The batch's items of its pass, with in-plane shifts drawn from ``generator``.
+
+        The grid's empty-slice rule was applied to the unscaled masks; ``masks`` is unused.
+        """
         b = self.config.batch_size
         pass_index, position = divmod(index, self.batches_per_pass)
         items = self._pass_order(epoch, pass_index)[position * b : (position + 1) * b]

@@ -17,6 +17,7 @@ from models.evaluation import EvalConfig, evaluate_poses, paired_tests, summariz
 from sampling.slicer import SliceConfig, sample_slices
 from sampling.volume import CanonicalVolume, canonicalize
 from svr.files import OutputExistsError
+from svr.geometry.symmetry import mirror_twin
 from svr.image import Image
 
 N_SLICES = 24
@@ -32,6 +33,9 @@ KEYS = {
     "euler_y_deg",
     "euler_z_deg",
     "translation_mm",
+    "geodesic_twin",
+    "rotation_twin_deg",
+    "translation_twin_mm",
 }
 
 
@@ -99,6 +103,23 @@ def test_perfect_predictions(volume, true_poses):
     assert (out["psnr"] >= 60).all()
     for key in KEYS - {"cc", "mse", "psnr", "ssim"}:
         np.testing.assert_allclose(out[key], 0.0, atol=1e-5, err_msg=key)
+
+
+def test_errors_up_to_the_mirror_twin(volume, true_poses):
+    """Predicting the twin: large raw errors, zero up to the twin; no planes: no twin columns."""
+    twins = mirror_twin(true_poses)
+    out = evaluate_poses(volume, true_poses, twins, CONFIG)
+    np.testing.assert_allclose(out["rotation_twin_deg"], 0.0, atol=1e-5)
+    np.testing.assert_allclose(out["translation_twin_mm"], 0.0, atol=1e-5)
+    np.testing.assert_allclose(out["geodesic_twin"], 0.0, atol=1e-5)
+    assert float(np.median(out["rotation_deg"])) > 30.0
+    # the twin error is the smaller of the errors to the truth and to its twin
+    noisy = perturb(true_poses, 10, 2, 3)
+    near = evaluate_poses(volume, true_poses, noisy, CONFIG)
+    to_twin = evaluate_poses(volume, twins, noisy, CONFIG, planes=())
+    expected = np.minimum(near["geodesic"], to_twin["geodesic"])
+    np.testing.assert_allclose(near["geodesic_twin"], expected, atol=1e-9)
+    assert "rotation_twin_deg" not in to_twin
 
 
 def test_worse_predictions_give_worse_metrics(volume, true_poses):

@@ -11,7 +11,7 @@ from models.backbones import BackboneConfig, build_backbone
 from models.heads import OUTPUT_SIZES, PoseHead
 from models.network import ModelConfig, SlicePoseNet, build_model, loss_function
 from sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
-from svr.geometry import se3_from_vector
+from svr.geometry import rotation_6d_to_matrix, se3_from_vector, so3_exp, so3_log
 from svr.losses import anchor_point_loss, posenet_loss, rotation6d_loss, se3_geodesic_loss
 
 BACKBONES = ("resnet", "inception")
@@ -121,6 +121,35 @@ def test_pose_head_validation(kwargs, field):
     args = {"in_features": 8, "representation": "se3", **kwargs}
     with pytest.raises(ValueError, match=field):
         PoseHead(**args)
+
+
+def test_se3_head_with_6d_rotation():
+    """The 6D head outputs the pose vector of its Gram-Schmidt rotation, differentiably."""
+    head = PoseHead(8, "se3", rotation="6d").double()
+    assert head.linear.out_features == 9
+    x = torch.randn(5, 8, dtype=torch.float64)
+    torch.testing.assert_close(head(x), torch.zeros(5, 6, dtype=torch.float64))  # identity
+    torch.nn.init.normal_(head.linear.weight, generator=torch.Generator().manual_seed(0))
+    raw = head.linear(x) * head.scale
+    out = head(x)
+    expected = so3_log(rotation_6d_to_matrix(raw[:, :6]))  # independent: log of the matrix
+    torch.testing.assert_close(so3_exp(out[:, :3]), so3_exp(expected))
+    torch.testing.assert_close(out[:, 3:], raw[:, 6:])
+    # a 180-degree rotation: the loss through the conversion stays finite and differentiable
+    with torch.no_grad():
+        head.linear.weight.zero_()
+        head.linear.bias.copy_(torch.tensor([-1.0, 0, 0, 0, -1.0, 0, 0, 0, 0]))
+    loss = se3_geodesic_loss(head(x), torch.zeros(5, 6, dtype=torch.float64))
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(head.linear.weight.grad).all()
+    with pytest.raises(ValueError, match="'rotation' must be one of"):
+        PoseHead(8, "quat_translation", rotation="6d")
+    with pytest.raises(ValueError, match="'se3_rotation' must be one of"):
+        ModelConfig(representation="anchor_points", se3_rotation="6d")
+    config = ModelConfig(se3_rotation="6d", input_size=(32, 32))
+    assert ModelConfig.from_dict(config.to_dict()) == config
+    model = build_model(config)
+    torch.testing.assert_close(model.predict_poses(torch.randn(2, 1, 32, 32)), torch.zeros(2, 6))
 
 
 def test_se3_to_pose_checks_the_shape():

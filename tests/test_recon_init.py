@@ -18,6 +18,7 @@ from reconstruction.pipeline import learned_initialisation, stack_registration
 from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from sampling.slicer import SliceConfig, sample_slices
 from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
+from svr.geometry.symmetry import SAGITTAL, mirror_twin_matrix
 from svr.image import Image
 from svr.pose_io import PoseTable
 
@@ -435,7 +436,7 @@ def test_learned_initialisation_keeps_good_predictions_per_slice(moving_scene):
     _, stacks, truth, slices = moving_scene
     config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
     exact = true_array_poses(slices, truth, stacks)
-    start, kept = learned_initialisation(slices, learned_consensus(slices, exact), config)
+    start, kept, _ = learned_initialisation(slices, learned_consensus(slices, exact), config)
     assert kept == ("cnn", "cnn", "cnn") and start.frame == "canonical"
     torch.testing.assert_close(start.poses, exact)
 
@@ -450,7 +451,102 @@ def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
     noisy = exact.clone()
     noisy[:, :3, :3] = exact[:, :3, :3] @ so3_exp(math.radians(40) * axes.to(F64))
     learned = learned_consensus(slices, noisy)
-    start, kept = learned_initialisation(slices, learned, config)
+    start, kept, notes = learned_initialisation(slices, learned, config)
     assert kept == ("stack", "stack", "stack")
     registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
-    torch.testing.assert_close(start.poses, learned.global_transform @ registered)
+    # Registration alone, rigidly moved into canonical space by one transform.
+    moved = start.poses @ torch.linalg.inv(registered)
+    torch.testing.assert_close(moved, moved[:1].expand_as(moved), atol=1e-6, rtol=0)
+    assert all(("cnn unsure" in n) or ("NCC" in n) for n in notes)
+
+
+# --- mirror twins: stack-level disambiguation and the safe choice -------------------------------
+
+
+def test_stack_order_undoes_random_twins(scene):
+    """Half the exact predictions replaced by their mirror twins: the stacks flip them back."""
+    _, stacks, truth, slices = scene
+    exact = true_array_poses(slices, truth, stacks)
+    generator = torch.Generator().manual_seed(21)
+    twin = torch.rand(len(slices), generator=generator) < 0.5
+    predicted = torch.where(twin[:, None, None], mirror_twin_matrix(exact), exact)
+    init = learned_consensus(slices, predicted, planes=(SAGITTAL,))
+    to_canonical = se3_inverse(G)
+    for transform in (*init.stack_transforms, init.global_transform):
+        torch.testing.assert_close(transform, to_canonical, atol=1e-5, rtol=0)
+    torch.testing.assert_close(init.predicted_poses, exact, atol=1e-5, rtol=0)
+    torch.testing.assert_close(init.raw_predicted_poses, predicted)
+    assert torch.equal(init.orbit_member.bool(), twin)
+    per_stack = torch.zeros(3, dtype=torch.long).index_add(0, slices.stack_ids, twin.long())
+    assert torch.equal(init.flipped(slices.stack_ids), per_stack)
+    assert torch.equal(init.stack_support, torch.ones(3, dtype=F64))
+    # Every prediction a twin: the stack takes every twin back.
+    init = learned_consensus(slices, mirror_twin_matrix(exact), planes=(SAGITTAL,))
+    torch.testing.assert_close(init.global_transform, to_canonical, atol=1e-5, rtol=0)
+    assert bool(init.orbit_member.bool().all())
+
+
+def test_without_the_flip_the_twins_break_the_consensus(scene):
+    """The same predictions with the twin logic removed (no planes): no stack is right."""
+    _, stacks, truth, slices = scene
+    exact = true_array_poses(slices, truth, stacks)
+    generator = torch.Generator().manual_seed(21)
+    twin = torch.rand(len(slices), generator=generator) < 0.5
+    predicted = torch.where(twin[:, None, None], mirror_twin_matrix(exact), exact)
+    init = learned_consensus(slices, predicted)
+    error = angle_deg(init.stack_transforms, se3_inverse(G).expand(3, 4, 4))
+    centre = (init.stack_transforms[:, :3, 3] - se3_inverse(G)[:3, 3]).norm(dim=-1)
+    assert bool(((error > 1.0) | (centre > 1.0) | (init.stack_support < 0.9)).all())
+
+
+def test_disambiguation_with_noisy_predictions_and_motion(moving_scene):
+    """8 deg / 3 mm motion, 5 deg / 2 mm prediction noise, 40 % twins: the stacks are right."""
+    _, stacks, truth, slices = moving_scene
+    exact = true_array_poses(slices, truth, stacks)
+    generator = torch.Generator().manual_seed(22)
+    axes = torch.nn.functional.normalize(torch.randn(len(slices), 3, generator=generator), dim=1)
+    noisy = exact.clone()
+    noisy[:, :3, :3] = exact[:, :3, :3] @ so3_exp(math.radians(5) * axes.to(F64))
+    noisy[:, :3, 3] += 2.0 * torch.randn(len(slices), 3, generator=generator, dtype=F64)
+    twin = torch.rand(len(slices), generator=generator) < 0.4
+    predicted = torch.where(twin[:, None, None], mirror_twin_matrix(noisy), noisy)
+    init = learned_consensus(slices, predicted, planes=(SAGITTAL,))
+    assert float(angle_deg(init.stack_transforms, se3_inverse(G).expand(3, 4, 4)).max()) < 5.0
+    assert float((init.orbit_member.bool() == twin).double().mean()) > 0.95
+
+
+def test_learned_initialisation_falls_back_on_a_wrong_model(moving_scene):
+    """Random predictions: the model is unsure of every stack, which starts from registration."""
+    _, _stacks, _truth, slices = moving_scene
+    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    generator = torch.Generator().manual_seed(23)
+    wrong = rigid(
+        random_rotations(len(slices), generator),
+        40 * torch.randn(len(slices), 3, generator=generator, dtype=F64),
+    )
+    learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
+    assert float(learned.stack_support.max()) < config.cnn_min_support
+    _start, kept, notes = learned_initialisation(slices, learned, config)
+    assert kept == ("stack",) * 3
+    assert all(n.startswith("cnn unsure") for n in notes)
+
+
+def test_learned_initialisation_rejects_confident_but_inconsistent_stacks(moving_scene):
+    """Each stack rigidly wrong by its own 25 deg: full support, but the stacks disagree."""
+    _, stacks, truth, slices = moving_scene
+    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    exact = true_array_poses(slices, truth, stacks)
+    errors = so3_exp(
+        torch.tensor([[0.44, 0.0, 0.0], [0.0, -0.44, 0.0], [0.0, 0.0, 0.44]], dtype=F64)
+    )
+    wrong = exact.clone()
+    wrong[:, :3, :3] = errors[slices.stack_ids] @ exact[:, :3, :3]
+    learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
+    assert bool((learned.stack_support == 1).all())
+    start, kept, _notes = learned_initialisation(slices, learned, config)
+    # At most one stack keeps its own frame: the others would tear the brain apart.
+    assert kept.count("cnn") <= 1
+    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    stack_rows = torch.tensor([k == "stack" for k in kept])[slices.stack_ids]
+    moved = start.poses[stack_rows] @ torch.linalg.inv(registered[stack_rows])
+    torch.testing.assert_close(moved, moved[:1].expand_as(moved), atol=1e-6, rtol=0)

@@ -217,6 +217,21 @@ def test_qa_figure_png_and_pdf(slices, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["qa.pdf", "qa.png"]
 
 
+def test_qa_text_carries_the_initialisation_notes(slices):
+    from dataclasses import replace
+
+    from reconstruction.qa import _text
+
+    result = replace(
+        make_result(slices),
+        initialisation_notes=("cnn unsure (support 20%, 0 flipped)", "support 90%, 3 flipped"),
+    )
+    text = _text(result)
+    assert "stack (cnn unsure (support 20%, 0 flipped))" in text
+    assert "cnn (support 90%, 3 flipped)" in text
+    assert "(" not in _text(make_result(slices)).split("initialisation per stack")[1].split("\n")[1]
+
+
 def test_resample_to_grid_by_world_position():
     volume, _ = ellipsoid_brain(16, 2.0, (10.0, 8.0, 6.0), seed=1, origin_mm=(-15.0,) * 3)
     # The same world positions on a grid with swapped axes and shifted origin.

@@ -226,6 +226,45 @@ def test_cli_trains_and_resumes(volume_files, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["steps"] == 6
 
 
+@pytest.mark.parametrize(
+    ("mode", "planes"),
+    [("sagittal", [{"normal": [1.0, 0.0, 0.0], "offset_mm": 0.0}]), ("none", [])],
+)
+def test_cli_symmetry_is_recorded_in_the_checkpoint(volume_files, tmp_path, capsys, mode, planes):
+    out = tmp_path / mode
+    args = ["train", "--output-dir", str(out), *volume_files, *TINY, "--steps", "2"]
+    assert main([*args, "--symmetry", mode, "--scale-range", "0.9", "1.1"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["symmetry_planes"] == planes
+    checkpoint = load_checkpoint(Path(summary["checkpoint"]))
+    assert checkpoint.config["model"]["symmetry_planes"] == planes
+    assert checkpoint.config["symmetry"]["mode"] == mode
+    config = ModelConfig.from_dict(checkpoint.config["model"])
+    assert [p.to_dict() for p in config.symmetry_planes] == planes
+
+
+def test_cli_symmetry_auto_measures_the_volumes(volume_files, tmp_path, capsys):
+    out = tmp_path / "auto"
+    args = ["train", "--output-dir", str(out), *volume_files, *TINY, "--steps", "1"]
+    assert main([*args, "--symmetry", "auto"]) == 0
+    captured = capsys.readouterr()
+    report = load_checkpoint(Path(json.loads(captured.out.strip().splitlines()[-1])["checkpoint"]))
+    volumes = report.config["symmetry"]["volumes"]
+    assert len(volumes) == 1
+    assert all(0.0 <= v["correlation"] <= 1.0 for v in volumes.values())
+
+
+def test_scale_augmentation_scales_the_brain(volume):
+    config = SliceDatasetConfig(
+        slice=SliceConfig(size=(32, 32), spacing_mm=1.5), batch_size=6, min_brain_fraction=0.0
+    )
+    plain = SliceStream([volume], config).batch(0)
+    scaled = SliceStream([volume], dataclasses.replace(config, scale_range=(1.3, 1.4))).batch(0)
+    assert not torch.equal(plain["slices"], scaled["slices"])
+    with pytest.raises(ValueError, match="scale_range"):
+        SliceDatasetConfig(scale_range=(0.0, 1.0))
+
+
 def test_cli_trains_on_the_paper_grid(volume_files, tmp_path, capsys):
     out = tmp_path / "grid"
     args = ["train", "--output-dir", str(out), *volume_files, *TINY, "--steps", "2"]

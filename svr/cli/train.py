@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import sys
 from pathlib import Path
 
 from svr.cli.common import (
@@ -112,10 +114,34 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "shuffled (needs --rotation euler; the sweep at the start takes a while on a CPU)",
     )
     slices.add_argument("--shift-mm", type=float, default=0.0, help="in-plane shift range")
+    model.add_argument(
+        "--se3-rotation",
+        choices=["rotvec", "6d"],
+        default="rotvec",
+        help="se3 head: regress the rotation vector, or 6D columns turned into it (continuous "
+        "over all of SO(3); the loss is the same SE(3) geodesic loss)",
+    )
+    model.add_argument(
+        "--symmetry",
+        choices=["none", "sagittal", "auto"],
+        default="auto",
+        help="mirror symmetry of the training anatomy: the loss goes to the nearer of a slice's "
+        "pose and its mirror twin. auto: measure each volume's reflection plane and use it when "
+        "every volume is symmetric (brain r >= 0.85); sagittal: the canonical plane x = 0; "
+        "none: the plain loss",
+    )
     slices.add_argument(
         "--augment",
         action="store_true",
         help="intensity scaling, gamma, bias field and Rician noise",
+    )
+    slices.add_argument(
+        "--scale-range",
+        type=positive_float,
+        nargs=2,
+        default=None,
+        metavar=("LOW", "HIGH"),
+        help="scale each batch's brain by per-axis factors in this range (other sizes and shapes)",
     )
     opt = p.add_argument_group("optimisation")
     opt.add_argument("--steps", type=positive_int, default=1000)
@@ -180,6 +206,26 @@ def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
     return volumes, [f"phantom GA {ga:g}" for ga in args.phantom_ga]
 
 
+def _symmetry_summary(report: dict) -> str:
+    """One line per measured volume and the planes the loss uses."""
+    lines = []
+    for name, fit in report.get("volumes", {}).items():
+        lines.append(
+            f"symmetry: {name}: r = {fit['correlation']:.4f} about a plane "
+            f"{fit['tilt_deg']:.2f}° from x = 0, offset {fit['offset_mm']:.2f} mm"
+        )
+    planes = report["planes"]
+    if planes:
+        used = "; ".join(
+            f"normal ({', '.join(f'{v:.4f}' for v in p['normal'])}), offset {p['offset_mm']:.2f} mm"
+            for p in planes
+        )
+        lines.append(f"symmetry ({report['mode']}): loss up to the mirror twin about {used}")
+    else:
+        lines.append(f"symmetry ({report['mode']}): plain loss (no mirror plane)")
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train``."""
     from models.backbones import BackboneConfig
@@ -188,6 +234,7 @@ def run(args: argparse.Namespace) -> int:
     from sampling.augment import SliceAugmentConfig
     from sampling.dataset import SliceDatasetConfig
     from sampling.slicer import SliceConfig
+    from sampling.symmetry import resolve_symmetry
 
     check_run_folder(args.output_dir)
     check_finite(args, "--weight-decay", "--metric-weights")
@@ -200,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
             representation=representation,
             input_size=size,
             spacing_mm=args.spacing,
+            se3_rotation=args.se3_rotation if representation == "se3" else "rotvec",
         ),
         data=SliceDatasetConfig(
             slice=SliceConfig(size=size, spacing_mm=args.spacing),
@@ -209,6 +257,7 @@ def run(args: argparse.Namespace) -> int:
             shift_mm=args.shift_mm,
             representation=representation,
             augment=SliceAugmentConfig() if args.augment else None,
+            scale_range=tuple(args.scale_range) if args.scale_range else None,
             batch_size=args.batch_size,
             seed=args.seed,
         ),
@@ -236,7 +285,17 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as err:
             raise CliError(f"--metric-weights: {err}") from err
     volumes, sources = _volumes(args)
-    config = TrainConfig(**{**config.__dict__, "data_sources": tuple(sources)})
+    planes, report = resolve_symmetry(args.symmetry, volumes, sources)
+    if not args.quiet:
+        print(_symmetry_summary(report), file=sys.stderr)
+    config = TrainConfig(
+        **{
+            **config.__dict__,
+            "model": dataclasses.replace(config.model, symmetry_planes=planes),
+            "data_sources": tuple(sources),
+            "symmetry_report": report,
+        }
+    )
     result = train(
         config,
         volumes,
@@ -246,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
     )
     summary = {
         "checkpoint": str(result.checkpoint),
+        "symmetry_planes": report["planes"],
         "steps": result.steps_done,
         "last_loss": result.last_loss,
     }
