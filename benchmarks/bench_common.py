@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import torch
 
@@ -52,3 +56,24 @@ def true_slice_poses(
     if centre_mm is not None:
         poses[:, :3, 3] -= centre_mm.cpu().to(torch.float64)
     return poses
+
+
+def run_scorer(scorer: Path, volume_path: Path, case: Path) -> dict[str, float]:
+    """PSNR, SSIM and NCC of a volume against a case by the shared ``score_recon.py``."""
+    output = subprocess.run(
+        [sys.executable, str(scorer), str(volume_path), str(case)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return json.loads(output.stdout.strip().splitlines()[-1])
+
+
+def load_case_stacks(case: Path) -> list:
+    """The stacks of a case in the bench layout (``stacks/``, ``masks/``, ``case.json``)."""
+    from reconstruction.stacks import load_stacks
+
+    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+    paths = sorted((case / "stacks").glob("*.nii.gz"))
+    masks = [case / "masks" / p.name.replace(".nii.gz", "_mask.nii.gz") for p in paths]
+    return load_stacks(paths, masks, info["thickness"])

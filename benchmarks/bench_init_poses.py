@@ -32,21 +32,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import true_slice_poses
+from bench_common import load_case_stacks, run_scorer, true_slice_poses
 
 from models.predict import load_pose_model
 from reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
 from reconstruction.config import ReconstructionConfig, ReconstructionResult
 from reconstruction.pipeline import learned_initialisation, reconstruct, stack_registration
 from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
-from reconstruction.stacks import load_stacks
 from sampling.volume import load_canonical_volume
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_exp
 from svr.image import Image, save_nifti
@@ -124,13 +122,7 @@ def score(
     """
 
     def run(volume_path: Path) -> dict[str, float]:
-        output = subprocess.run(
-            [sys.executable, str(scorer), str(volume_path), str(case)],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        return json.loads(output.stdout.strip().splitlines()[-1])
+        return run_scorer(scorer, volume_path, case)
 
     save_nifti(result.volume, path, overwrite=True)
     quality: dict[str, float | None] = dict(run(path))
@@ -169,9 +161,7 @@ def bench_case(
     info = json.loads((case / "case.json").read_text(encoding="utf-8"))
     atlas = atlas_dir / info["source"].removeprefix("fetal_SB_atlas_")
     centre = load_canonical_volume(atlas / "srr.nii.gz", atlas / "mask.nii.gz").centre_mm
-    paths = sorted((case / "stacks").glob("*.nii.gz"))
-    masks = [case / "masks" / p.name.replace(".nii.gz", "_mask.nii.gz") for p in paths]
-    stacks: list[Stack] = load_stacks(paths, masks, info["thickness"])
+    stacks: list[Stack] = load_case_stacks(case)
     slices = extract_slices(stacks)
     scanner_truth = slice_truth(case, slices, "scanner", None)
     canonical_truth = slice_truth(case, slices, "atlas", centre)

@@ -35,14 +35,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import true_slice_poses
+from bench_common import load_case_stacks, run_scorer, true_slice_poses
 
 from models.predict import load_pose_model
 from reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
 from reconstruction.config import ReconstructionConfig
 from reconstruction.pipeline import reconstruct
 from reconstruction.slices import SliceSet, extract_slices, plane_poses
-from reconstruction.stacks import load_stacks
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.geometry.symmetry import orbit_matrices
 from svr.image import save_nifti
@@ -142,10 +141,7 @@ def transform_error(estimate: torch.Tensor, truth: torch.Tensor) -> tuple[float,
 
 def stack_rows(case: Path, model, planes_off: bool) -> tuple[list[dict], dict]:
     """Per-stack transform errors (with and without disambiguation) and per-slice errors."""
-    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
-    paths = sorted((case / "stacks").glob("*.nii.gz"))
-    masks = [case / "masks" / p.name.replace(".nii.gz", "_mask.nii.gz") for p in paths]
-    stacks = load_stacks(paths, masks, info["thickness"])
+    stacks = load_case_stacks(case)
     slices = extract_slices(stacks)
     canonical_truth, _ = case_truth(case, slices)
     nominal = plane_poses(slices, slices.scanner_poses)
@@ -195,21 +191,8 @@ def frame_error(case: Path, result) -> tuple[float, float]:
     )
 
 
-def score(volume_path: Path, case: Path, scorer: Path) -> dict:
-    out = subprocess.run(
-        [sys.executable, str(scorer), str(volume_path), str(case)],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def recon_rows(case: Path, model, out: Path, scorer: Path) -> dict:
-    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
-    paths = sorted((case / "stacks").glob("*.nii.gz"))
-    masks = [case / "masks" / p.name.replace(".nii.gz", "_mask.nii.gz") for p in paths]
-    stacks = load_stacks(paths, masks, info["thickness"])
+    stacks = load_case_stacks(case)
     row: dict = {"case": case.name}
     for registration in ("stack", "cnn"):
         start = time.perf_counter()
@@ -221,7 +204,7 @@ def recon_rows(case: Path, model, out: Path, scorer: Path) -> dict:
         )
         path = out / f"{case.name}-{registration}.nii.gz"
         save_nifti(result.volume, path, overwrite=True)
-        quality = score(path, case, scorer)
+        quality = run_scorer(scorer, path, case)
         row[f"{registration} psnr"] = quality["psnr"]
         row[f"{registration} ssim"] = quality["ssim"]
         row[f"{registration} s"] = time.perf_counter() - start

@@ -3,7 +3,7 @@ r"""Export the shipped slice-pose model (``models/pretrained/default``) and eval
 Run from the repository root once the training command :data:`TRAINING_COMMAND` has finished::
 
     python benchmarks/export_default_model.py \
-        --checkpoint runs/default-model/checkpoints/step_000012000 \
+        --checkpoint runs/sym-heldout/checkpoints/step_000032000 \
         --out models/pretrained/default --overwrite
 
 Steps:
@@ -17,7 +17,8 @@ Steps:
          random poses (a) in the paper's Euler box (angles in +-90 deg, offsets in +-40 mm) and
          (b) with uniform rotations on SO(3) (offsets in +-40 mm), that pass the empty-slice rule
          (:func:`models.evaluation.draw_validation_poses`);
-       * for reference, the same on the training atlas volumes (seen anatomy), when
+       * the same on the atlas volumes training held out (``--num-slices`` each) and, for
+         reference, on the training atlas volumes (seen anatomy, ``--atlas-slices`` each), when
          ``--atlas-dir`` exists;
        * on the bench cases (``--bench-dir``, when it exists): every slice of the acquired,
          motion-corrupted stacks is posed with :func:`models.predict.predict_stack_poses` and
@@ -25,11 +26,11 @@ Steps:
          plane mm -> the source atlas's world frame; canonical = that frame shifted by the atlas
          mask centroid, checked against ``case.json``'s ``atlas_centre_mm``). The convention is
          verified first: the atlas cut at the true poses must reproduce the acquired slices
-         (median CC >= 0.9), or the script stops. The bench cases are simulated from atlas
-         volumes that were in the training set, so they measure the acquisition's effect
-         (motion, thick slices, noise, stack geometry), not unseen anatomy.
+         (median CC >= 0.9), or the script stops. The bench cases are simulated from the atlas
+         volumes GA24 and GA28 (held out by the model trained with ``--hold-out 24 28 32``).
 
-       Per set: rotation and translation errors (median, mean) and slice CC
+       Per set: rotation and translation errors (median, mean), raw and up to the mirror twin,
+       and slice CC
        (:func:`models.evaluation.evaluate_poses`: the volume cut at the true and at the
        predicted pose), and the float16-vs-float32 prediction difference.
     3. ``OUT/README.md``: the model card (command, data, licence, size, the tables); the tables
@@ -72,11 +73,12 @@ from svr.metrics import pose_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAINING_COMMAND = (
-    ".venv/bin/svr train --output-dir runs/default-model "
-    "--atlas-dir ../shared/data/atlas/sb-fidon2021 --loss se3 --backbone resnet --width 16 "
-    "--depth 4 --size 96 --spacing 1.4 --rotation uniform --thickness-range 1.0 4.5 "
-    "--shift-mm 6 --augment --steps 12000 --batch-size 32 --checkpoint-every 1000 "
-    "--warmup-steps 200 --seed 0 --quiet"
+    "OMP_NUM_THREADS=1 .venv/bin/svr train --output-dir runs/sym-heldout "
+    "--atlas-dir ../shared/data/atlas/sb-fidon2021 --hold-out 24 28 32 --loss se3 "
+    "--symmetry auto --backbone resnet --width 16 --depth 4 --size 64 --spacing 2 "
+    "--rotation uniform --thickness-range 1.5 4.5 --shift-mm 6 --scale-range 0.85 1.15 "
+    "--augment --steps 32000 --batch-size 32 --checkpoint-every 1000 --keep-checkpoints 40 "
+    "--warmup-steps 500 --seed 0 --quiet"
 )
 DATA = {
     "name": "sb-fidon2021",
@@ -347,8 +349,9 @@ def model_card(
         "phantoms are anatomy the model did not see; the bench cases are simulated from GA24 "
         "and GA28 of the atlas.",
         "## Evaluation",
-        f"Random-pose slices: {args.num_slices} per phantom volume and {args.atlas_slices} per "
-        f"atlas volume and pose set, {args.thickness:g} mm thick (Gaussian PSF), "
+        f"Random-pose slices: {args.num_slices} per phantom and held-out atlas volume and "
+        f"{args.atlas_slices} per training atlas volume, per pose set, {args.thickness:g} mm "
+        "thick (Gaussian PSF), "
         f"{model['input_size'][0]}×{model['input_size'][1]} at {model['spacing_mm']:g} mm, "
         f"kept when ≥ {VALIDATION_BRAIN_FRACTION:.0%} of the pixels are brain, seed {args.seed}. "
         "Bench stacks: every slice with a nonempty mask, posed with "

@@ -368,6 +368,28 @@ def _pose_residuals(
     return angle, distance
 
 
+def _nearest_members(
+    transform: Tensor,
+    scanner: Tensor,
+    candidates: Tensor,
+    max_rotation_deg: float,
+    max_translation_mm: float,
+) -> tuple[Tensor, Tensor]:
+    """Each slice's candidate nearest ``transform o S_i`` and whether it is within the bounds.
+
+    Returns:
+        (M,) int64 chosen candidate and (M,) bool support.
+    """
+    angle, distance = _pose_residuals(transform[None], scanner, candidates)
+    cost = (angle[0] / max_rotation_deg).square() + (distance[0] / max_translation_mm).square()
+    choice = cost.argmin(dim=-1)
+    rows = torch.arange(len(choice))
+    inlier = (angle[0, rows, choice] <= max_rotation_deg) & (
+        distance[0, rows, choice] <= max_translation_mm
+    )
+    return choice, inlier
+
+
 def disambiguate_stack(
     candidates: Tensor,
     scanner: Tensor,
@@ -408,22 +430,14 @@ def disambiguate_stack(
     best = int(torch.argmax(support - best_cost / (2.0 * m + 1.0)))
     transform = hypotheses[best]
     for _ in range(2):
-        angle, distance = _pose_residuals(transform[None], scanner, candidates)
-        cost = (angle[0] / max_rotation_deg).square() + (distance[0] / max_translation_mm).square()
-        choice = cost.argmin(dim=-1)
-        rows = torch.arange(m)
-        inlier = (angle[0, rows, choice] <= max_rotation_deg) & (
-            distance[0, rows, choice] <= max_translation_mm
+        choice, inlier = _nearest_members(
+            transform, scanner, candidates, max_rotation_deg, max_translation_mm
         )
-        chosen = candidates[choice, rows]
+        chosen = candidates[choice, torch.arange(m)]
         members = inlier if bool(inlier.any()) else torch.ones_like(inlier)
         transform = robust_mean_pose(se3_compose(chosen[members], se3_inverse(scanner[members])))
-    angle, distance = _pose_residuals(transform[None], scanner, candidates)
-    cost = (angle[0] / max_rotation_deg).square() + (distance[0] / max_translation_mm).square()
-    choice = cost.argmin(dim=-1)
-    rows = torch.arange(m)
-    inlier = (angle[0, rows, choice] <= max_rotation_deg) & (
-        distance[0, rows, choice] <= max_translation_mm
+    choice, inlier = _nearest_members(
+        transform, scanner, candidates, max_rotation_deg, max_translation_mm
     )
     return transform, choice, inlier
 

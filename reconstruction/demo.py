@@ -87,6 +87,7 @@ from sampling.dataset import SliceDatasetConfig
 from sampling.phantom import gestational_age_config, make_phantom, required_field_of_view_mm
 from sampling.simulate import SimulationConfig, simulate_case, write_case
 from sampling.slicer import SliceConfig
+from sampling.symmetry import resolve_symmetry
 from sampling.volume import CanonicalVolume, canonicalize
 from svr.files import atomic_directory
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
@@ -422,6 +423,9 @@ def _obtain_model(
         log.info("loading the slice-pose model %s", model)
         return load_pose_model(model, config.device), model
     run = replace(config, output_dir=str(folder / "model"))
+    if not run.model.symmetry_planes:
+        planes, report = resolve_symmetry("auto", [volume], ["demo volume"])
+        run = replace(run, model=replace(run.model, symmetry_planes=planes), symmetry_report=report)
     log.info("training a slice-pose model on the volume (%d steps)", run.steps)
     result = train(run, [volume], resume=False, overwrite=True, progress=progress)
     log.info("last training loss %.4g", result.last_loss)

@@ -89,6 +89,7 @@ def test_report_of_two_checkpoints_on_shared_slices(files, tmp_path, capsys):
     tests = _read_csv(out / "paired_tests.csv")
     assert {(t["metric"], t["method_a"], t["method_b"]) for t in tests} == {
         ("geodesic", "run_se3", "anchor"),
+        ("geodesic_twin", "run_se3", "anchor"),
         ("cc", "run_se3", "anchor"),
     }
     assert (out / "error_histograms.png").is_file()

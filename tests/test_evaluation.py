@@ -278,7 +278,7 @@ def test_report_folder(results, volume, true_poses, tmp_path, monkeypatch, caplo
     cc_good = next(r for r in summary if r["method"] == "good" and r["metric"] == "cc")
     assert float(cc_good["median"]) == pytest.approx(np.median(results["good"]["cc"]))
     tests = read_csv(out / "paired_tests.csv")
-    assert [r["metric"] for r in tests] == ["geodesic", "cc"]
+    assert [r["metric"] for r in tests] == ["geodesic", "geodesic_twin", "cc"]
 
     md = (out / "summary.md").read_text(encoding="utf-8")
     table = [line for line in md.splitlines() if line.startswith("| ")]
