@@ -43,9 +43,8 @@ from reconstruction.config import ReconstructionConfig
 from reconstruction.pipeline import reconstruct
 from reconstruction.slices import SliceSet, extract_slices, plane_poses
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
-from svr.geometry.symmetry import orbit_matrices
 from svr.image import save_nifti
-from svr.metrics import rotation_error_rad, translation_error_mm
+from svr.metrics import nearest_orbit_member, rotation_error_rad, translation_error_mm
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -167,12 +166,10 @@ def stack_rows(case: Path, model, planes_off: bool) -> tuple[list[dict], dict]:
         rows.append(row)
     raw = se3_to_vector(plane_poses(slices, learned.raw_predicted_poses).cpu())
     truth_v = se3_to_vector(canonical_truth)
-    orbit = orbit_matrices(canonical_truth, model[1].symmetry_planes or ())
-    ang = (
-        torch.stack([rotation_error_rad(raw, se3_to_vector(o)).rad2deg() for o in orbit])
-        .min(0)
-        .values
+    nearest, _ = nearest_orbit_member(
+        raw, truth_v, model[1].symmetry_planes, distance=rotation_error_rad
     )
+    ang = rotation_error_rad(raw, nearest).rad2deg()
     per_slice = {
         "rot raw": float(rotation_error_rad(raw, truth_v).rad2deg().median()),
         "rot twin": float(ang.median()),

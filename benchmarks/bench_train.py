@@ -1,12 +1,13 @@
-"""Training images per second and peak memory of each backbone at 128 x 128, data against model.
+"""Training images per second and peak memory of each backbone, data against model.
 
 Run from the repository root::
 
-    python benchmarks/bench_train.py [--batch-size 32] [--width 32] [--depth 4] [--warmup 3]
-        [--repeats 5] [--threads 2] [--device cpu|cuda|all]
+    python benchmarks/bench_train.py [--batch-size 32] [--width 32] [--depth 4] [--size 128]
+        [--spacing 1.0] [--warmup 3] [--repeats 5] [--threads 2] [--device cpu|cuda|all]
 
 For the ResNet and Inception backbones (``--width``, ``--depth``) with the SE(3) pose head and
-loss, at a batch of ``--batch-size`` 1 x 128 x 128 slices (1 mm), the table gives images per second
+loss, at a batch of ``--batch-size`` 1 x ``--size`` x ``--size`` slices (``--spacing`` mm; default
+128 x 128 at 1 mm), the table gives images per second
 (batch size over the median wall time of ``--repeats`` steps, after ``--warmup`` untimed ones) and
 the peak memory of:
 
@@ -88,14 +89,24 @@ class Settings:
     warmup: int
     repeats: int
     threads: int
+    size: int = 128
+    spacing_mm: float = 1.0
 
     def model_config(self, backbone: str) -> ModelConfig:
-        """The SE(3) model with ``backbone`` at the chosen width and depth."""
-        return ModelConfig(backbone=BackboneConfig(backbone, self.width, self.depth))
+        """The SE(3) model with ``backbone`` at the chosen width, depth and input geometry."""
+        return ModelConfig(
+            backbone=BackboneConfig(backbone, self.width, self.depth),
+            input_size=(self.size, self.size),
+            spacing_mm=self.spacing_mm,
+        )
 
     def data_config(self, name: str) -> SliceDatasetConfig:
-        """The stream ``name`` of :data:`DATA_CONFIGS` at the chosen batch size."""
-        return dataclasses.replace(DATA_CONFIGS[name], batch_size=self.batch_size)
+        """The stream ``name`` of :data:`DATA_CONFIGS` at the chosen batch size and geometry."""
+        config = DATA_CONFIGS[name]
+        slices = dataclasses.replace(
+            config.slice, size=(self.size, self.size), spacing_mm=self.spacing_mm
+        )
+        return dataclasses.replace(config, slice=slices, batch_size=self.batch_size)
 
 
 @dataclass(frozen=True)
@@ -248,11 +259,10 @@ def measure(case: Case, settings: Settings, inputs: Inputs) -> tuple[float, floa
     return settings.batch_size / statistics.median(times[settings.warmup :]), peak / 2**20
 
 
-def make_inputs(batch_size: int) -> Inputs:
+def make_inputs(settings: Settings) -> Inputs:
     """The canonical phantom and batch 0 of its thin-slice stream."""
     volume = canonicalize(*make_phantom(gestational_age_config(GESTATIONAL_AGE_WEEKS)))
-    config = dataclasses.replace(DATA_CONFIGS[THIN], batch_size=batch_size)
-    batch = SliceStream([volume], config).batch(0)
+    batch = SliceStream([volume], settings.data_config(THIN)).batch(0)
     return Inputs(
         volume.image.data.numpy(),
         volume.image.affine.numpy(),
@@ -297,20 +307,30 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=32, help="slices per step")
     parser.add_argument("--width", type=int, default=32, help="backbone width")
     parser.add_argument("--depth", type=int, default=4, help="backbone depth")
+    parser.add_argument("--size", type=int, default=128, help="slice height and width, pixels")
+    parser.add_argument("--spacing", type=float, default=1.0, help="in-plane spacing, mm")
     parser.add_argument("--warmup", type=int, default=3, help="untimed steps first")
     parser.add_argument("--repeats", type=int, default=5, help="timed steps per row")
     add_device_options(parser)
     args = parser.parse_args()
     devices = resolve_devices(parser, args)
     settings = Settings(
-        args.batch_size, args.width, args.depth, args.warmup, args.repeats, args.threads
+        args.batch_size,
+        args.width,
+        args.depth,
+        args.warmup,
+        args.repeats,
+        args.threads,
+        size=args.size,
+        spacing_mm=args.spacing,
     )
 
-    inputs = make_inputs(args.batch_size)
+    inputs = make_inputs(settings)
     print(
         f"torch {torch.__version__}, {args.threads} CPU threads; phantom GA "
         f"{GESTATIONAL_AGE_WEEKS} weeks {inputs.data.shape}; batches of {args.batch_size} "
-        f"slices 1x128x128; median of {args.repeats} steps after {args.warmup} warm-up"
+        f"slices 1x{args.size}x{args.size} at {args.spacing:g} mm; median of {args.repeats} "
+        f"steps after {args.warmup} warm-up"
     )
     counts = ", ".join(
         f"{name} {parameter_count(build_model(settings.model_config(name))):,}"

@@ -46,10 +46,9 @@ from sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from sampling.volume import load_canonical_volume
 from svr.cli import main as svr
 from svr.geometry import se3_error
-from svr.geometry.symmetry import orbit_poses
 from svr.image import Image
 from svr.losses import estimate_metric_weights
-from svr.metrics import geodesic_distance
+from svr.metrics import nearest_orbit_member
 
 ROOT = Path(__file__).resolve().parents[1]
 LOSSES = ("se3", "posenet", "anchor")
@@ -198,10 +197,8 @@ def adaptive_weights(
         with torch.no_grad():
             slices = sample_slices(volume.image, poses, slice_config)[:, None]
             predicted = model.predict_poses(slices).double()
-        orbit = orbit_poses(poses.double(), config.symmetry_planes)
-        candidates = se3_error(predicted.expand_as(orbit), orbit)  # (K, N, 6)
-        nearest = geodesic_distance(predicted.expand_as(orbit), orbit).argmin(0)
-        errors.append(candidates[nearest, torch.arange(len(poses))].cpu())
+        member, _ = nearest_orbit_member(predicted, poses.double(), config.symmetry_planes)
+        errors.append(se3_error(predicted, member).cpu())
     return estimate_metric_weights(torch.cat(errors)).tolist()
 
 

@@ -44,10 +44,10 @@ from sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from sampling.volume import CanonicalVolume
 from svr.files import atomic_directory
 from svr.geometry._validation import check_tensor
-from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, orbit_poses
+from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
 from svr.image import Image
 from svr.image_metrics import mse, ncc, psnr, ssim
-from svr.metrics import geodesic_distance, pose_errors
+from svr.metrics import nearest_orbit_member, pose_errors
 
 log = logging.getLogger(__name__)
 
@@ -188,10 +188,9 @@ def evaluate_poses(
     errors = pose_errors(pred_poses, true_poses)
     out.update({key: errors[key] for key in _METRICS if key in errors})
     if planes:
-        orbit = orbit_poses(true_poses, planes)
-        nearest = geodesic_distance(pred_poses.expand_as(orbit), orbit).argmin(0)
-        twin_truth = orbit.gather(0, nearest[None, :, None].expand(1, n, 6))[0]
-        twin_errors = pose_errors(pred_poses, twin_truth)
+        twin_errors = pose_errors(
+            pred_poses, nearest_orbit_member(pred_poses, true_poses, planes)[0]
+        )
         out["geodesic_twin"] = twin_errors["geodesic"]
         out["rotation_twin_deg"] = twin_errors["rotation_deg"]
         out["translation_twin_mm"] = twin_errors["translation_mm"]

@@ -40,6 +40,7 @@ from reconstruction.superres import (
     slice_intensity_scales,
     super_resolution,
 )
+from svr.geometry import se3_compose, se3_inverse
 
 __all__ = ["learned_initialisation", "reconstruct", "stack_registration"]
 
@@ -150,8 +151,8 @@ def _canonical_frame(
     if not bool(use.any()):
         return None
     chosen = learned.predicted_poses[use].to(torch.float64).cpu()
-    inverse = torch.linalg.inv(registered[use].to(torch.float64).cpu())
-    return robust_mean_pose(chosen @ inverse).to(registered)
+    inverse = se3_inverse(registered[use].to(torch.float64).cpu())
+    return robust_mean_pose(se3_compose(chosen, inverse)).to(registered)
 
 
 def _mean_ncc(per_stack: Tensor, slices: SliceSet) -> float:
@@ -214,18 +215,20 @@ def learned_initialisation(
         "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
         "stack": frame @ registered,
     }
+    # The learned candidate is only scored when some stack may keep it.
     scores = {
         name: _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
         for name, poses in candidates.items()
+        if name == "stack" or bool(trusted.any())
     }
     choice, notes = [], []
     poses = candidates["stack"].clone()
     for sid, name in enumerate(slices.stack_names):
-        ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
         head = f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
         if not bool(trusted[sid]):
             best, why = "stack", f"cnn unsure ({head})"
         else:
+            ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
             best = "cnn" if ncc_cnn >= ncc_stack else "stack"
             why = f"{head}, NCC cnn {ncc_cnn:.3f} vs stack {ncc_stack:.3f}"
         members = slices.stack_ids == sid

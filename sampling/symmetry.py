@@ -30,7 +30,7 @@ from svr.image import sample_world
 log = logging.getLogger(__name__)
 
 SymmetryMode = Literal["none", "sagittal", "auto"]
-SYMMETRY_MODES: tuple[str, ...] = ("none", "sagittal", "auto")
+SYMMETRY_MODES: tuple[SymmetryMode, ...] = ("none", "sagittal", "auto")
 
 SYMMETRY_THRESHOLD = 0.85
 """Correlation with its own mirror image above which ``"auto"`` calls a volume symmetric.
@@ -151,7 +151,7 @@ def mean_plane(planes: Sequence[ReflectionPlane]) -> ReflectionPlane:
 
 
 def resolve_symmetry(
-    mode: str,
+    mode: SymmetryMode,
     volumes: Sequence[CanonicalVolume],
     names: Sequence[str] | None = None,
     threshold: float = SYMMETRY_THRESHOLD,

@@ -16,6 +16,7 @@ error of a prediction is ``e = Log_id(pred^-1 o target) = (e_r, e_t)``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -23,6 +24,7 @@ from torch import Tensor
 from svr.geometry._validation import check_tensor
 from svr.geometry.se3 import se3_error
 from svr.geometry.so3 import matrix_to_euler, so3_exp
+from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, check_planes, orbit_poses
 from svr.losses.se3 import quadratic_form, resolve_weights
 
 
@@ -119,3 +121,30 @@ def pose_errors(pred: Tensor, target: Tensor, weights: Tensor | None = None) -> 
         "euler_y_deg": euler[..., 1],
         "euler_z_deg": euler[..., 2],
     }
+
+
+def nearest_orbit_member(
+    pred: Tensor,
+    target: Tensor,
+    planes: Sequence[ReflectionPlane] = (SAGITTAL,),
+    distance: Callable[[Tensor, Tensor], Tensor] | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The member of each target's mirror orbit nearest to its prediction (errors up to the twin).
+
+    Args:
+        pred: (..., 6) predicted pose vectors (rad, mm).
+        target: (..., 6) true pose vectors, the same shape.
+        planes: Canonical-frame mirror planes (:mod:`svr.geometry.symmetry`); empty: the target.
+        distance: ``(pred, target) -> (...)`` between pose vectors; default
+            :func:`geodesic_distance` with the default Z.
+
+    Returns:
+        ``(member, index)``: (..., 6) the nearest orbit member of each target and the (...)
+        int64 index of it (0: the target itself, ``k``: its twin about ``planes[k - 1]``).
+    """
+    _check_poses(pred, target, "nearest_orbit_member")
+    orbit = orbit_poses(target, check_planes(planes, "nearest_orbit_member"))
+    measure = geodesic_distance if distance is None else distance
+    index = measure(pred.expand_as(orbit), orbit).argmin(0)
+    member = orbit.gather(0, index[None, ..., None].expand(1, *target.shape))[0]
+    return member, index

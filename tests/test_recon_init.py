@@ -463,13 +463,19 @@ def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
 # --- mirror twins: stack-level disambiguation and the safe choice -------------------------------
 
 
-def test_stack_order_undoes_random_twins(scene):
-    """Half the exact predictions replaced by their mirror twins: the stacks flip them back."""
+def half_twinned(scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Exact predictions with a random half replaced by their mirror twins: (exact, twin, pred)."""
     _, stacks, truth, slices = scene
     exact = true_array_poses(slices, truth, stacks)
     generator = torch.Generator().manual_seed(21)
     twin = torch.rand(len(slices), generator=generator) < 0.5
-    predicted = torch.where(twin[:, None, None], mirror_twin_matrix(exact), exact)
+    return exact, twin, torch.where(twin[:, None, None], mirror_twin_matrix(exact), exact)
+
+
+def test_stack_order_undoes_random_twins(scene):
+    """Half the exact predictions replaced by their mirror twins: the stacks flip them back."""
+    slices = scene[3]
+    exact, twin, predicted = half_twinned(scene)
     init = learned_consensus(slices, predicted, planes=(SAGITTAL,))
     to_canonical = se3_inverse(G)
     for transform in (*init.stack_transforms, init.global_transform):
@@ -488,11 +494,8 @@ def test_stack_order_undoes_random_twins(scene):
 
 def test_without_the_flip_the_twins_break_the_consensus(scene):
     """The same predictions with the twin logic removed (no planes): no stack is right."""
-    _, stacks, truth, slices = scene
-    exact = true_array_poses(slices, truth, stacks)
-    generator = torch.Generator().manual_seed(21)
-    twin = torch.rand(len(slices), generator=generator) < 0.5
-    predicted = torch.where(twin[:, None, None], mirror_twin_matrix(exact), exact)
+    slices = scene[3]
+    _, _, predicted = half_twinned(scene)
     init = learned_consensus(slices, predicted)
     error = angle_deg(init.stack_transforms, se3_inverse(G).expand(3, 4, 4))
     centre = (init.stack_transforms[:, :3, 3] - se3_inverse(G)[:3, 3]).norm(dim=-1)

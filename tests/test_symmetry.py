@@ -27,7 +27,8 @@ from svr.geometry.symmetry import (
 )
 from svr.image import Image
 from svr.losses import se3_geodesic_loss
-from svr.losses.symmetry import orbit_error_index, orbit_min_loss, symmetric_se3_geodesic_loss
+from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
+from svr.metrics import nearest_orbit_member
 
 F64 = torch.float64
 S = np.diag([-1.0, 1.0, 1.0])  # the sagittal reflection of the canonical frame
@@ -204,24 +205,35 @@ def test_symmetric_se3_loss_gradients_finite_at_0_and_pi(angle):
 
 def test_switching_set_takes_the_target_members_gradient():
     """Equidistant from T and twin(T): the subgradient is that of the target itself."""
+    # T = (I, (10, 0, 0)); its sagittal twin is a half turn about y at (-10, 0, 0). The point
+    # (0, 5, 0) is exactly as far from both translations: a loss on translations ties exactly.
     target = torch.tensor([[0.0, 0.0, 0.0, 10.0, 0.0, 0.0]], dtype=F64)
-    # the identity and its sagittal twin (diag(-1, 1, -1), t = (-10, 0, 0)) are both 180° apart
-    # in rotation from the pose below but have the same translation distance to it
-    pred = torch.tensor([[0.0, 0.0, 0.0, 0.0, 5.0, 0.0]], dtype=F64)
-    both = orbit_min_loss(
-        functools.partial(se3_geodesic_loss, reduction="none"), pred, target, return_index=True
-    )
     twin = mirror_twin(target)
-    plain_t = se3_geodesic_loss(pred, target, reduction="none")
-    plain_w = se3_geodesic_loss(pred, twin, reduction="none")
-    if torch.isclose(plain_t, plain_w).all():
-        assert int(both[1]) == 0
+
+    def translation_loss(p: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return (p[..., 3:] - t[..., 3:]).square().sum(-1)
+
+    pred = torch.tensor([[0.3, -0.2, 0.1, 0.0, 5.0, 0.0]], dtype=F64, requires_grad=True)
+    loss, index = orbit_min_loss(translation_loss, pred, target, return_index=True)
+    ties = [float(translation_loss(pred.detach(), t)) for t in (target, twin)]
+    assert ties == [125.0, 125.0]
+    assert int(index) == 0
+    loss.backward()
+    torch.testing.assert_close(pred.grad[0, 3:], torch.tensor([-20.0, 10.0, 0.0], dtype=F64))
+    # The SE(3) loss at a quarter turn about y: the same angle and distance to both members (up to
+    # rounding); the gradient is the target's, which differs from the twin's.
+    pred = torch.tensor([[0.0, math.pi / 2, 0.0, 0.0, 5.0, 0.0]], dtype=F64)
+    plain = [se3_geodesic_loss(pred, t, reduction="none") for t in (target, twin)]
+    assert float(plain[0]) == pytest.approx(float(plain[1]), rel=1e-14)
+    grads = []
+    for member in (target, twin):
+        q = pred.clone().requires_grad_(True)
+        se3_geodesic_loss(q, member).backward()
+        grads.append(q.grad)
+    assert not torch.allclose(grads[0], grads[1])
     p = pred.clone().requires_grad_(True)
     symmetric_se3_geodesic_loss(p, target).backward()
-    q = pred.clone().requires_grad_(True)
-    member = target if int(both[1]) == 0 else twin
-    se3_geodesic_loss(q, member).backward()
-    torch.testing.assert_close(p.grad, q.grad)
+    torch.testing.assert_close(p.grad, grads[0])
 
 
 @pytest.mark.parametrize("representation", REPRESENTATIONS)
@@ -246,17 +258,21 @@ def test_orbit_losses_for_every_representation(representation):
     assert torch.isfinite(out.grad).all() and float(out.grad.abs().sum()) > 0
 
 
-def test_orbit_error_index_reports_the_member():
+def test_nearest_orbit_member_reports_the_member():
     target = random_poses(20, 11)
     pred = mirror_twin(target)
     pred[:10] = target[:10]
-
-    def angle(a, b):
-        return se3_error(a, b)[..., :3].norm(dim=-1)
-
-    values, index = orbit_error_index(angle, pred, target)
-    assert float(values.max()) < 1e-6
+    member, index = nearest_orbit_member(pred, target)
+    torch.testing.assert_close(se3_from_vector(member), se3_from_vector(pred))
     assert index.tolist() == [0] * 10 + [1] * 10
+    # by rotation alone, and with no plane (the target itself)
+    _, index = nearest_orbit_member(
+        pred, target, distance=lambda a, b: se3_error(a, b)[..., :3].norm(dim=-1)
+    )
+    assert index.tolist() == [0] * 10 + [1] * 10
+    member, index = nearest_orbit_member(pred, target, planes=())
+    torch.testing.assert_close(member, target)
+    assert not bool(index.any())
 
 
 # --- measuring a volume's plane -----------------------------------------------------------------

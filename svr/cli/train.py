@@ -46,6 +46,9 @@ examples:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train``."""
+    from models.heads import SE3_ROTATIONS
+    from sampling.symmetry import SYMMETRY_MODES, SYMMETRY_THRESHOLD
+
     p = subparsers.add_parser(
         "train",
         help="train a slice-pose CNN",
@@ -116,19 +119,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     slices.add_argument("--shift-mm", type=float, default=0.0, help="in-plane shift range")
     model.add_argument(
         "--se3-rotation",
-        choices=["rotvec", "6d"],
+        choices=SE3_ROTATIONS,
         default="rotvec",
         help="se3 head: regress the rotation vector, or 6D columns turned into it (continuous "
         "over all of SO(3); the loss is the same SE(3) geodesic loss)",
     )
     model.add_argument(
         "--symmetry",
-        choices=["none", "sagittal", "auto"],
+        choices=SYMMETRY_MODES,
         default="auto",
         help="mirror symmetry of the training anatomy: the loss goes to the nearer of a slice's "
         "pose and its mirror twin. auto: measure each volume's reflection plane and use it when "
-        "every volume is symmetric (brain r >= 0.85); sagittal: the canonical plane x = 0; "
-        "none: the plain loss",
+        f"every volume is symmetric (brain r >= {SYMMETRY_THRESHOLD}); sagittal: the canonical "
+        "plane x = 0; none: the plain loss",
     )
     slices.add_argument(
         "--augment",

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import torch
 from torch import Tensor
 
 from svr.geometry._validation import check_tensor
@@ -118,26 +117,3 @@ def symmetric_se3_geodesic_loss(
         return se3_geodesic_loss(p, t, z, reduction="none", gradient=gradient)
 
     return orbit_min_loss(per_pose, pred, target, planes, reduction=reduction)
-
-
-def orbit_error_index(
-    distance: Callable[[Tensor, Tensor], Tensor],
-    pred_poses: Tensor,
-    target_poses: Tensor,
-    planes: Sequence[ReflectionPlane] = (SAGITTAL,),
-) -> tuple[Tensor, Tensor]:
-    """Smallest ``distance(pred, member)`` over each target's orbit, and which member it is.
-
-    Args:
-        distance: ``(pred, target) -> (...)`` between pose vectors, e.g. a rotation angle.
-        pred_poses: (..., 6) predicted pose vectors.
-        target_poses: (..., 6) true pose vectors.
-        planes: Canonical-frame reflection planes.
-
-    Returns:
-        ``(values, index)``: (...) smallest distances and (...) int64 orbit indices.
-    """
-    orbit = orbit_poses(target_poses, check_planes(planes, "orbit_error_index"))
-    d = distance(pred_poses.unsqueeze(0).expand_as(orbit), orbit)
-    values, index = torch.min(d, dim=0)
-    return values, index
