@@ -39,6 +39,7 @@ from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from sampling._validation import check_positive_range, is_finite_number
 from sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
+from sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
 from sampling.poses import (
     DEFAULT_EULER_GRID,
     REPRESENTATIONS,
@@ -111,6 +112,11 @@ class SliceDatasetConfig:
             scales its volume about the canonical origin by a factor drawn log-uniformly per
             canonical axis (a brain of another size and shape; the labels are the poses in the
             scaled brain's canonical frame).
+        deform_mm: Random smooth non-rigid deformation of each batch's volume(s)
+            (:func:`sampling.deform.random_displacement`): standard deviation of the control
+            displacements in mm, >= 0; 0 for none. The field has no rigid part, so the labels stay
+            the poses in the canonical frame; the empty-slice rule reads the undeformed mask.
+        deform_control_points: Control points per axis of that field, >= 2.
         batch_size: Slices per batch, >= 1.
         num_batches: Batches per epoch (over all ``DataLoader`` workers), >= 1, or ``None`` for an
             endless stream.
@@ -133,6 +139,8 @@ class SliceDatasetConfig:
     representation: Representation = "se3"
     augment: SliceAugmentConfig | None = None
     scale_range: tuple[float, float] | None = None
+    deform_mm: float = 0.0
+    deform_control_points: int = DEFAULT_CONTROL_POINTS
     batch_size: int = 32
     num_batches: int | None = None
     seed: int = 0
@@ -149,12 +157,13 @@ class SliceDatasetConfig:
             raise ValueError(
                 f"{owner}: 'rotation' must be 'euler' or 'uniform', got {self.rotation!r}"
             )
-        for name in ("angle_range_deg", "tz_range_mm", "shift_mm"):
+        for name in ("angle_range_deg", "tz_range_mm", "shift_mm", "deform_mm"):
             value = getattr(self, name)
             if not (is_finite_number(value) and value >= 0):
                 raise ValueError(f"{owner}: '{name}' must be a finite number >= 0, got {value!r}")
         _check_fraction(self.min_brain_fraction, owner)
         _check_int(self.max_resample_rounds, "max_resample_rounds", 1)
+        _check_int(self.deform_control_points, "deform_control_points", 2)
         if not isinstance(self.mix_volumes, bool):
             raise ValueError(f"{owner}: 'mix_volumes' must be a bool, got {self.mix_volumes!r}")
         _check_representation(self.representation, owner)
@@ -306,8 +315,14 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         slices = torch.empty((b, *slice_config.size), dtype=torch.float32, device=self.device)
         for v in volume_index.unique().tolist():
             chosen = volume_index == v
+            image = _scaled(self.volumes[v].image, scale)
+            displacement = None
+            if cfg.deform_mm > 0:
+                displacement = random_displacement(
+                    image, cfg.deform_mm, generator, cfg.deform_control_points
+                )
             slices[chosen.to(self.device)] = sample_slices(
-                _scaled(self.volumes[v].image, scale), poses[chosen].to(self.device), slice_config
+                image, poses[chosen].to(self.device), slice_config, displacement
             ).float()
         if cfg.augment is not None:
             slices = apply_augment(slices, draw_augment_params(cfg.augment, b, generator))

@@ -25,7 +25,7 @@ from torch import Tensor
 
 from svr.geometry import se3_from_vector
 from svr.geometry._validation import check_tensor
-from svr.image import Image, sample_grid, world_to_grid
+from svr.image import Image, sample_channels, sample_grid, world_to_grid
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 IN_PLANE_PSF_FWHM = 1.2067  # in-plane PSF FWHM in units of the pixel spacing (NeSVoR)
@@ -174,13 +174,23 @@ def psf_offsets(config: SliceConfig) -> list[tuple[tuple[float, float, float], f
     ]
 
 
-def sample_slices(volume: Image, poses: Tensor, config: SliceConfig = SliceConfig()) -> Tensor:
+def sample_slices(
+    volume: Image,
+    poses: Tensor,
+    config: SliceConfig = SliceConfig(),
+    displacement_mm: Tensor | None = None,
+) -> Tensor:
     """Cut slices from a volume at the given poses.
 
     Args:
         volume: The volume (its world frame is the poses' target frame).
         poses: (B, 6), (B, 4, 4) or (B, 3, 4) slice poses, on the volume's device.
         config: Size, spacing, PSF and interpolation.
+        displacement_mm: ``None``, or a (3, c, c, c) world-frame displacement field in mm on a
+            control grid spanning the volume's voxel grid corner to corner (array order; see
+            :mod:`sampling.deform`): each point ``x`` reads the volume at ``x + d(x)``, with
+            ``d`` trilinear between control points and read on the slice's centre plane (one
+            ``d`` per pixel for all PSF samples).
 
     Returns:
         (B, H, W) slices in the dtype of ``volume.data``. A float16 volume is sampled with a
@@ -192,20 +202,41 @@ def sample_slices(volume: Image, poses: Tensor, config: SliceConfig = SliceConfi
     to_grid = world_to_grid(volume).to(T.device)
     h, w = config.size
     out = volume.data.new_zeros((T.shape[0], h, w))
+    grid_displacement = None
+    if displacement_mm is not None:
+        if displacement_mm.dim() != 4 or displacement_mm.shape[0] != 3:
+            raise ValueError(
+                "sample_slices(): 'displacement_mm' must have shape (3, c, c, c), "
+                f"got {tuple(displacement_mm.shape)}"
+            )
+        # mm in the world frame -> grid_sample units, once per control point.
+        flat = to_grid[:, :3] @ displacement_mm.to(to_grid).reshape(3, -1)
+        grid_displacement = flat.reshape(displacement_mm.shape).to(volume.data.dtype)
     # Chunks of ~1M points keep each grid in cache between being built and being sampled.
     chunk = max(1, _POINTS_PER_CHUNK // (h * w))
     for start in range(0, T.shape[0], chunk):
         part = T[start : start + chunk]
-        for offset, weight in psf_offsets(config):
+
+        def plane(offset: tuple[float, float, float], part: Tensor = part) -> Tensor:
             # Each slice's origin and pixel steps are mapped to grid coordinates once (B x 3).
             origin, step_u, step_v = _slice_frames(part, config.size, config.spacing_mm, offset)
-            grid = _plane(
+            return _plane(
                 origin @ to_grid[:, :3].T + to_grid[:, 3],
                 step_u @ to_grid[:, :3].T,
                 step_v @ to_grid[:, :3].T,
                 config.size,
                 volume.data.dtype,
             )
+
+        shift = None
+        if grid_displacement is not None:
+            # Read at the slice's centre plane and used for every PSF sample: the field is
+            # smooth over tens of mm, the PSF spans a few.
+            shift = sample_channels(grid_displacement, plane((0.0, 0.0, 0.0))).movedim(0, -1)
+        for offset, weight in psf_offsets(config):
+            grid = plane(offset)
+            if shift is not None:
+                grid = grid + shift
             out[start : start + chunk].add_(sample_grid(volume, grid, config.mode), alpha=weight)
     return out
 

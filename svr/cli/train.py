@@ -146,6 +146,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar=("LOW", "HIGH"),
         help="scale each batch's brain by per-axis factors in this range (other sizes and shapes)",
     )
+    slices.add_argument(
+        "--deform-mm",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="random smooth non-rigid deformation of each batch's brain: standard deviation of "
+        "the control displacements (about 30 mm apart), mm; 0 (default) for none",
+    )
     opt = p.add_argument_group("optimisation")
     opt.add_argument("--steps", type=positive_int, default=1000)
     opt.add_argument("--batch-size", type=positive_int, default=32)
@@ -261,6 +269,7 @@ def run(args: argparse.Namespace) -> int:
             representation=representation,
             augment=SliceAugmentConfig() if args.augment else None,
             scale_range=tuple(args.scale_range) if args.scale_range else None,
+            deform_mm=args.deform_mm,
             batch_size=args.batch_size,
             seed=args.seed,
         ),
