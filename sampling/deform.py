@@ -72,7 +72,8 @@ def remove_rigid_part(displacement_mm: Tensor, positions_mm: Tensor) -> Tensor:
     )  # (N, 3, 3): d_k = t_k + (skew @ w)_k
     eye = torch.eye(3, dtype=torch.float64, device=x.device).expand(n, 3, 3)
     design = torch.cat([eye, skew], dim=2).reshape(3 * n, 6)
-    params = torch.linalg.lstsq(design, d.reshape(3 * n, 1)).solution
+    # Normal equations (6 x 6, well conditioned for a spread-out grid): bit-reproducible.
+    params = torch.linalg.solve(design.T @ design, design.T @ d.reshape(3 * n, 1))
     return d - (design @ params).reshape(n, 3)
 
 
