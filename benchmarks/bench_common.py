@@ -71,7 +71,7 @@ def run_scorer(scorer: Path, volume_path: Path, case: Path) -> dict[str, float]:
 
 def load_case_stacks(case: Path) -> list:
     """The stacks of a case in the bench layout (``stacks/``, ``masks/``, ``case.json``)."""
-    from reconstruction.stacks import load_stacks
+    from svr.reconstruction.stacks import load_stacks
 
     info = json.loads((case / "case.json").read_text(encoding="utf-8"))
     paths = sorted((case / "stacks").glob("*.nii.gz"))

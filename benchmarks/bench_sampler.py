@@ -12,7 +12,7 @@ size over the median wall time of ``--repeats`` calls, after one warm-up call; t
 turns, call by call, so that changes in the machine's load hit them alike) and how many times
 faster our thin-slice sampler is than each row on the same device:
 
-* ``ours``: ``sampling.slicer.sample_slices`` with thin slices (trilinear, no PSF);
+* ``ours``: ``svr.sampling.slicer.sample_slices`` with thin slices (trilinear, no PSF);
 * ``ours thick 3 mm (no peer)``: the same with a 3 mm through-plane Gaussian PSF (5 Gauss-Hermite
   samples); no peer computes it, so it is only compared with our thin slices;
 * ``SimpleITK``: ``ResampleImageFilter`` per slice, into a (128, 128, 1) output image whose
@@ -32,8 +32,8 @@ one call in a fresh process, on CUDA ``torch.cuda.max_memory_allocated``, and th
 sampler's largest temporaries worked out from the batch shape.
 
 The volume is ``--volume``/``--mask`` (NIfTI), by default the GA28 atlas under ``../shared/data``
-when present, else ``sampling.phantom.make_phantom`` when that module exists, else a smooth random
-128^3 volume at 0.8 mm inside a ball mask.
+when present, else ``svr.sampling.phantom.make_phantom`` when that module exists, else a smooth
+random 128^3 volume at 0.8 mm inside a ball mask.
 """
 
 from __future__ import annotations
@@ -57,10 +57,10 @@ from bench_common import add_device_options, resolve_devices
 from scipy import ndimage
 from torch import Tensor
 
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
 from svr.geometry import matrix_from_quat
 from svr.image import Image
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 ATLAS_DIR = REPO_ROOT.parent / "shared/data/atlas/sb-fidon2021/GA28_operated"
@@ -96,10 +96,10 @@ def load_volume(volume_path: Path | None, mask_path: Path | None) -> tuple[Canon
     if volume_path is not None:
         return load_canonical_volume(volume_path, mask_path), str(volume_path.resolve())
     try:
-        from sampling.phantom import PhantomConfig, make_phantom
+        from svr.sampling.phantom import PhantomConfig, make_phantom
     except ImportError:
         return canonicalize(*random_volume()), "smooth random volume (built in)"
-    return canonicalize(*make_phantom(PhantomConfig())), "sampling.phantom.make_phantom"
+    return canonicalize(*make_phantom(PhantomConfig())), "svr.sampling.phantom.make_phantom"
 
 
 def random_poses(n: int, generator: torch.Generator) -> Tensor:

@@ -5,7 +5,7 @@ that the model did not see, with real fetal motion trajectories, orthogonal and 
 and several motion levels) this measures, in one run:
 
 * **per-stack orientation error**: the angle (and translation) between each stack's learned
-  scanner -> canonical transform (:func:`reconstruction.cnn_init.cnn_slice_poses`) and the true
+  scanner -> canonical transform (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`) and the true
   one (the robust mean over the stack's slices of ``true canonical pose o nominal scanner
   pose^-1``), with the stack-order disambiguation of mirror twins (the model's planes) and
   without it (no planes: the plain robust consensus), and how many slices each stack flipped;
@@ -37,14 +37,14 @@ import numpy as np
 import torch
 from bench_common import load_case_stacks, run_scorer, true_slice_poses
 
-from models.predict import load_pose_model
-from reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
-from reconstruction.config import ReconstructionConfig
-from reconstruction.pipeline import reconstruct
-from reconstruction.slices import SliceSet, extract_slices, plane_poses
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.image import save_nifti
 from svr.metrics import nearest_orbit_member, rotation_error_rad, translation_error_mm
+from svr.models.predict import load_pose_model
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"

@@ -12,15 +12,15 @@ loss, at a batch of ``--batch-size`` 1 x ``--size`` x ``--size`` slices (``--spa
 the peak memory of:
 
 * ``model step``: forward, the ``se3`` loss, backward and an AdamW step, as in
-  ``models.train.train``, on one fixed batch (thin slices of the phantom); on CUDA also ``model
+  ``svr.models.train.train``, on one fixed batch (thin slices of the phantom); on CUDA also ``model
   step amp``: float16 autocast with a ``GradScaler``;
-* ``data thin`` and ``data thick 3 mm + aug``: ``sampling.dataset.SliceStream`` making batches of
-  that size (random poses with the empty-slice rule, sampling, labels) from the phantom on the
+* ``data thin`` and ``data thick 3 mm + aug``: ``svr.sampling.dataset.SliceStream`` making batches
+  of that size (random poses with the empty-slice rule, sampling, labels) from the phantom on the
   device, as thin slices, and as 3 mm thick slices (Gaussian PSF, 5 samples) with the default
   intensity augmentation; one backbone-free row each;
-* ``train() e2e``: ``models.train.train`` run for ``--warmup`` + ``--repeats`` steps on the thick,
-  augmented stream (no ``DataLoader`` workers: batches made in the training process), each step's
-  time read from its ``log.csv`` (``log_every=1``).
+* ``train() e2e``: ``svr.models.train.train`` run for ``--warmup`` + ``--repeats`` steps on the
+  thick, augmented stream (no ``DataLoader`` workers: batches made in the training process), each
+  step's time read from its ``log.csv`` (``log_every=1``).
 
 Data and model run one after the other in one process, so the end-to-end rate is about
 ``1 / (1 / model + 1 / data)``; the lines after the table say which of the two limits each backbone.
@@ -33,7 +33,7 @@ the AdamW state, the gradients, the activations and the allocator's and thread p
 on CUDA of ``torch.cuda.max_memory_allocated``. CUDA steps are bracketed by
 ``torch.cuda.synchronize``. By default it runs on the CPU, and on CUDA too when available.
 
-The volume is ``sampling.phantom.make_phantom(gestational_age_config(28))``, canonicalised.
+The volume is ``svr.sampling.phantom.make_phantom(gestational_age_config(28))``, canonicalised.
 """
 
 from __future__ import annotations
@@ -57,15 +57,15 @@ import torch
 from bench_common import add_device_options, resolve_devices
 from bench_sampler import status_kib
 
-from models.backbones import BACKBONE_NAMES, BackboneConfig
-from models.network import ModelConfig, build_model, loss_function
-from models.train import TrainConfig, train
-from sampling.augment import SliceAugmentConfig
-from sampling.dataset import SliceDatasetConfig, SliceStream
-from sampling.phantom import gestational_age_config, make_phantom
-from sampling.slicer import SliceConfig
-from sampling.volume import CanonicalVolume, canonicalize
 from svr.image import Image
+from svr.models.backbones import BACKBONE_NAMES, BackboneConfig
+from svr.models.network import ModelConfig, build_model, loss_function
+from svr.models.train import TrainConfig, train
+from svr.sampling.augment import SliceAugmentConfig
+from svr.sampling.dataset import SliceDatasetConfig, SliceStream
+from svr.sampling.phantom import gestational_age_config, make_phantom
+from svr.sampling.slicer import SliceConfig
+from svr.sampling.volume import CanonicalVolume, canonicalize
 
 GESTATIONAL_AGE_WEEKS = 28
 THIN = "thin"

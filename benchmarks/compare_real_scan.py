@@ -5,7 +5,7 @@ how well each explains the acquired data: every observed slice (the stacks prepa
 ``svr reconstruct`` prepares them: given brain masks, 5 mm in-plane crop margin, no bias
 correction, intensities over the in-mask 99th percentile) is compared, by NCC over its masked
 pixels, with the slice simulated from a volume through the acquisition model
-(:class:`reconstruction.operators.SliceProjector`: Gaussian PSF, 5 nodes along the normal, the
+(:class:`svr.reconstruction.operators.SliceProjector`: Gaussian PSF, 5 nodes along the normal, the
 same operator and NCC as the reconstruction's own ``ncc`` column) at **our** final slice poses
 (the transforms table). The volumes:
 
@@ -76,18 +76,18 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from reconstruction.operators import SliceProjector, VolumeGrid
-from reconstruction.outputs import slice_affines
-from reconstruction.pipeline import SVR_PSF_SAMPLES
-from reconstruction.qa import orthogonal_planes
-from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
-from reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
-from reconstruction.stacks import load_stacks
 from svr import image_metrics
 from svr.files import atomic_write_bytes, atomic_write_text, check_output_path
 from svr.geometry import se3_from_vector
 from svr.image import Image, load_nifti
 from svr.pose_io import read_pose_table
+from svr.reconstruction.operators import SliceProjector, VolumeGrid
+from svr.reconstruction.outputs import slice_affines
+from svr.reconstruction.pipeline import SVR_PSF_SAMPLES
+from svr.reconstruction.qa import orthogonal_planes
+from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
+from svr.reconstruction.stacks import load_stacks
 
 _LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS (ITK's world frame)
 _RUN = re.compile(r"run-(\d+)")

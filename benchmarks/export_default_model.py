@@ -7,7 +7,7 @@ Run from the repository root once the training command :data:`TRAINING_COMMAND` 
         --out models/pretrained/default --overwrite
 
 Steps:
-    1. :func:`models.pretrained.export.export_model`: float16 safetensors + JSON config with the
+    1. :func:`svr.models.pretrained.export.export_model`: float16 safetensors + JSON config with the
        provenance (the exact training command, the data and its licence, steps, versions).
     2. The *exported* model (loaded back, as ``svr predict --model default`` loads it) is
        evaluated:
@@ -16,12 +16,12 @@ Steps:
          (``--phantom-ga``): ``--num-slices`` slices per volume, ``--thickness`` mm thick, at
          random poses (a) in the paper's Euler box (angles in +-90 deg, offsets in +-40 mm) and
          (b) with uniform rotations on SO(3) (offsets in +-40 mm), that pass the empty-slice rule
-         (:func:`models.evaluation.draw_validation_poses`);
+         (:func:`svr.models.evaluation.draw_validation_poses`);
        * the same on the atlas volumes training held out (``--num-slices`` each) and, for
          reference, on the training atlas volumes (seen anatomy, ``--atlas-slices`` each), when
          ``--atlas-dir`` exists;
        * on the bench cases (``--bench-dir``, when it exists): every slice of the acquired,
-         motion-corrupted stacks is posed with :func:`models.predict.predict_stack_poses` and
+         motion-corrupted stacks is posed with :func:`svr.models.predict.predict_stack_poses` and
          compared with its true pose from ``truth_slices.json`` (``atlas.R``, ``atlas.t``: slice
          plane mm -> the source atlas's world frame; canonical = that frame shifted by the atlas
          mask centroid, checked against ``case.json``'s ``atlas_centre_mm``). The convention is
@@ -31,7 +31,7 @@ Steps:
 
        Per set: rotation and translation errors (median, mean), raw and up to the mirror twin,
        and slice CC
-       (:func:`models.evaluation.evaluate_poses`: the volume cut at the true and at the
+       (:func:`svr.models.evaluation.evaluate_poses`: the volume cut at the true and at the
        predicted pose), and the float16-vs-float32 prediction difference.
     3. ``OUT/README.md``: the model card (command, data, licence, size, the tables); the tables
        are also printed.
@@ -50,26 +50,26 @@ import numpy as np
 import torch
 from bench_common import true_slice_poses
 
-from models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
-from models.evaluation import (
-    VALIDATION_BRAIN_FRACTION,
-    EvalConfig,
-    draw_validation_poses,
-    evaluate_poses,
-    summarize,
-)
-from models.network import ModelConfig, SlicePoseNet
-from models.predict import load_pose_model, predict_stack_poses
-from models.pretrained.export import export_model
-from sampling.phantom import gestational_age_config, make_phantom
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
 from svr.cli.common import resolve_device
 from svr.files import atomic_write_text
 from svr.geometry import se3_to_vector
 from svr.image import load_nifti
 from svr.image_metrics import ncc
 from svr.metrics import pose_errors
+from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
+from svr.models.evaluation import (
+    VALIDATION_BRAIN_FRACTION,
+    EvalConfig,
+    draw_validation_poses,
+    evaluate_poses,
+    summarize,
+)
+from svr.models.network import ModelConfig, SlicePoseNet
+from svr.models.predict import load_pose_model, predict_stack_poses
+from svr.models.pretrained.export import export_model
+from svr.sampling.phantom import gestational_age_config, make_phantom
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAINING_COMMAND = (
@@ -321,7 +321,8 @@ def model_card(
         "# Default slice-pose model (`--model default`)",
         "A CNN that predicts the pose of a 2D fetal-brain MRI slice in canonical (atlas) space, "
         "trained with the SE(3) geodesic loss. Load it with `svr predict --model default ...`, "
-        '`svr evaluate --checkpoints default ...` or `models.predict.load_pose_model("default")` '
+        "`svr evaluate --checkpoints default ...` or "
+        '`svr.models.predict.load_pose_model("default")` '
         "(safetensors + JSON: loading runs no code; the float16 weights are cast back to "
         "float32).",
         "## Model",
@@ -332,10 +333,10 @@ def model_card(
         f"\n- Trained up to the mirror twin about "
         f"{symmetry_words(model.get('symmetry_planes', []))}: a prediction stands for the pose or "
         "its mirror twin, and a stack's slice order decides which "
-        "(`reconstruction.cnn_init.disambiguate_stack`).\n"
+        "(`svr.reconstruction.cnn_init.disambiguate_stack`).\n"
         f"- Input: {model['input_size'][0]}×{model['input_size'][1]} slices at "
         f"{model['spacing_mm']:g} mm, masked, divided by the in-mask 99th percentile "
-        f"(`models.predict` prepares stacks this way).\n"
+        f"(`svr.models.predict` prepares stacks this way).\n"
         f"- Files: `{CHECKPOINT_WEIGHTS}` (float16, {weights.stat().st_size / 1e6:.2f} MB) and "
         f"`{CHECKPOINT_CONFIG}`; {size / 1e6:.2f} MB in all.\n"
         f"- Trained for {prov['steps']} steps of {prov['batch_size']} slices{step_note}, "
@@ -355,10 +356,10 @@ def model_card(
         f"{model['input_size'][0]}×{model['input_size'][1]} at {model['spacing_mm']:g} mm, "
         f"kept when ≥ {VALIDATION_BRAIN_FRACTION:.0%} of the pixels are brain, seed {args.seed}. "
         "Bench stacks: every slice with a nonempty mask, posed with "
-        "`models.predict.predict_stack_poses`. Rotation error: geodesic angle; translation "
+        "`svr.models.predict.predict_stack_poses`. Rotation error: geodesic angle; translation "
         "error: distance between the slice centres; CC: the volume cut at the true vs the "
-        "predicted pose (`models.evaluation.evaluate_poses`). The phantom is procedural "
-        "(`sampling.phantom`) and looks unlike real anatomy in its details, so its rows are a "
+        "predicted pose (`svr.models.evaluation.evaluate_poses`). The phantom is procedural "
+        "(`svr.sampling.phantom`) and looks unlike real anatomy in its details, so its rows are a "
         "hard out-of-distribution test.",
         table(results, "group"),
         "By volume:",

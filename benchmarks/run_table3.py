@@ -39,16 +39,16 @@ from pathlib import Path
 
 import torch
 
-from models.checkpoint import load_checkpoint
-from models.network import ModelConfig, build_model
-from sampling.poses import random_slice_poses
-from sampling.slicer import SliceConfig, brain_fraction, sample_slices
-from sampling.volume import load_canonical_volume
 from svr.cli import main as svr
 from svr.geometry import se3_error
 from svr.image import Image
 from svr.losses import estimate_metric_weights
 from svr.metrics import nearest_orbit_member
+from svr.models.checkpoint import load_checkpoint
+from svr.models.network import ModelConfig, build_model
+from svr.sampling.poses import random_slice_poses
+from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from svr.sampling.volume import load_canonical_volume
 
 ROOT = Path(__file__).resolve().parents[1]
 LOSSES = ("se3", "posenet", "anchor")

@@ -4,11 +4,11 @@ For every slice, the ground-truth slice (given, or cut from the volume at the tr
 compared with the slice cut from the same volume at the predicted pose, as SVRnet's Table 3 does:
 
 * ``cc``, ``mse``, ``psnr``, ``ssim``: :mod:`svr.image_metrics` on the whole slices. The
-  intensities are those of the :class:`~sampling.volume.CanonicalVolume` (in-mask 99th percentile
-  = 1), so MSE is in those units, not in the paper's 8-bit ones. PSNR and SSIM need the intensity
-  span: :attr:`EvalConfig.data_range`, by default the 99.9th percentile of all the ground-truth
-  slices of the call pooled (so every method evaluated on the same slices gets the same span).
-  PSNR of a perfect prediction is capped at 100 dB.
+  intensities are those of the :class:`~svr.sampling.volume.CanonicalVolume` (in-mask 99th
+  percentile = 1), so MSE is in those units, not in the paper's 8-bit ones. PSNR and SSIM need the
+  intensity span: :attr:`EvalConfig.data_range`, by default the 99.9th percentile of all the
+  ground-truth slices of the call pooled (so every method evaluated on the same slices gets the same
+  span). PSNR of a perfect prediction is capped at 100 dB.
 * ``geodesic``, ``rotation_deg``, ``euler_x_deg``, ``euler_y_deg``, ``euler_z_deg``,
   ``translation_mm``: :func:`svr.metrics.pose_errors`. ``geodesic`` is the left-invariant SE(3)
   distance in radian-equivalents (1 = 1 rad or 30 mm), not the paper's GD scale.
@@ -39,15 +39,15 @@ from scipy import stats
 from skimage import io as skio
 from torch import Tensor
 
-from sampling.poses import RotationSampling, random_slice_poses
-from sampling.slicer import SliceConfig, brain_fraction, sample_slices
-from sampling.volume import CanonicalVolume
 from svr.files import atomic_directory
 from svr.geometry._validation import check_tensor
 from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
 from svr.image import Image
 from svr.image_metrics import mse, ncc, psnr, ssim
 from svr.metrics import nearest_orbit_member, pose_errors
+from svr.sampling.poses import RotationSampling, random_slice_poses
+from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
 
@@ -208,10 +208,10 @@ def draw_validation_poses(
 ) -> Tensor:
     """Random validation poses of a volume whose slices show enough brain.
 
-    Poses are drawn :func:`~sampling.poses.random_slice_poses` (Euler angles in +-90 deg and
+    Poses are drawn :func:`~svr.sampling.poses.random_slice_poses` (Euler angles in +-90 deg and
     offsets in +-40 mm, the paper's validation poses, or uniform rotations) in rounds of
     ``2 * num_slices``, keeping those whose slice has at least ``min_brain_fraction`` of its
-    pixels in the brain mask (:func:`~sampling.slicer.brain_fraction`), in the order drawn.
+    pixels in the brain mask (:func:`~svr.sampling.slicer.brain_fraction`), in the order drawn.
 
     Args:
         volume: The canonical volume (poses are in its frame).
@@ -555,7 +555,7 @@ def write_report(
         test_metrics: The metrics to run paired tests on.
         reference: As in :func:`paired_tests`.
         examples: ``{method: (truth, predicted)}``, two (K, H, W) arrays of example slices
-            (e.g. from :func:`sampling.slicer.sample_slices` at the true and predicted poses).
+            (e.g. from :func:`svr.sampling.slicer.sample_slices` at the true and predicted poses).
 
     Returns:
         The report folder.

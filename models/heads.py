@@ -1,6 +1,6 @@
 """Pose heads: a linear layer from backbone features to the labels of one pose representation.
 
-A head's output is in the units of :func:`sampling.poses.pose_labels` (rad, mm), so that it goes
+A head's output is in the units of :func:`svr.sampling.poses.pose_labels` (rad, mm), so that it goes
 straight into the representation's loss and :meth:`PoseHead.to_pose` recovers pose vectors with
 the :mod:`svr.geometry` converters. The linear layer's raw outputs are kept O(1): its millimetre
 outputs are multiplied by ``translation_scale_mm`` (by ``anchor_half_size_mm`` for the anchor
@@ -32,7 +32,6 @@ import math
 import torch
 from torch import Tensor, nn
 
-from sampling.poses import REPRESENTATIONS, Representation, pose_labels
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
@@ -44,6 +43,7 @@ from svr.geometry import (
     rotvec_from_quat,
 )
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
+from svr.sampling.poses import REPRESENTATIONS, Representation, pose_labels
 
 OUTPUT_SIZES: dict[str, int] = {
     "se3": 6,
@@ -58,7 +58,7 @@ SE3_ROTATIONS = ("rotvec", "6d")
 
 
 def check_representation(representation: object, owner: str) -> None:
-    """Check that ``representation`` is one of :data:`sampling.poses.REPRESENTATIONS`.
+    """Check that ``representation`` is one of :data:`svr.sampling.poses.REPRESENTATIONS`.
 
     Raises:
         ValueError: Naming ``owner`` and listing the valid names.
@@ -86,7 +86,7 @@ class PoseHead(nn.Module):
 
     Args:
         in_features: Number of input features, >= 1.
-        representation: One of :data:`sampling.poses.REPRESENTATIONS`.
+        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
         translation_scale_mm: Millimetres per unit of the raw translation outputs, > 0.
         anchor_half_size_mm: Half-size ``a`` (mm) of the anchor-point triangle and millimetres per
             unit of the raw anchor-point outputs, > 0 (``"anchor_points"`` only).
@@ -151,7 +151,7 @@ class PoseHead(nn.Module):
 
         Returns:
             (B, OUTPUT_SIZES[representation]) outputs in the label units of
-            :func:`sampling.poses.pose_labels` (rad, mm).
+            :func:`svr.sampling.poses.pose_labels` (rad, mm).
         """
         raw = self.linear(features) * self.scale
         if self.rotation == "rotvec":

@@ -1,7 +1,7 @@
 """Slice-pose networks: a backbone and a pose head, their configuration, and the matching loss.
 
 A :class:`SlicePoseNet` maps ``(B, 1, H, W)`` slices (in-plane spacing ``spacing_mm``, normally
-``input_size`` pixels) to the labels of its representation (:func:`sampling.poses.pose_labels`,
+``input_size`` pixels) to the labels of its representation (:func:`svr.sampling.poses.pose_labels`,
 rad and mm); :meth:`SlicePoseNet.predict_poses` turns them into pose vectors in the canonical
 frame. :func:`loss_function` gives the loss that trains each representation.
 """
@@ -17,9 +17,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from models.backbones import BackboneConfig, build_backbone
-from models.heads import SE3_ROTATIONS, PoseHead, check_length, check_representation
-from sampling.poses import Representation, pose_labels
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
@@ -36,6 +33,9 @@ from svr.losses import (
     validate_metric_weights,
 )
 from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
+from svr.models.backbones import BackboneConfig, build_backbone
+from svr.models.heads import SE3_ROTATIONS, PoseHead, check_length, check_representation
+from svr.sampling.poses import Representation, pose_labels
 
 MIN_INPUT_SIZE = 32
 """Smallest height and width (pixels) of ``ModelConfig.input_size``."""
@@ -47,19 +47,19 @@ class ModelConfig:
 
     Attributes:
         backbone: The backbone's architecture.
-        representation: One of :data:`sampling.poses.REPRESENTATIONS`.
+        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
         input_size: ``(H, W)`` in pixels (each >= 32) of the slices the model is trained on; the
             network itself accepts any size.
         spacing_mm: In-plane pixel spacing (mm) of the slices the model expects, > 0.
         translation_scale_mm: Millimetres per unit of the head's raw translation outputs, > 0.
         anchor_half_size_mm: Half-size (mm) of the anchor-point triangle, > 0.
         se3_rotation: Rotation parameterisation of the ``"se3"`` head's linear layer:
-            ``"rotvec"`` or ``"6d"`` (:class:`models.heads.PoseHead`); the head's output is the
+            ``"rotvec"`` or ``"6d"`` (:class:`svr.models.heads.PoseHead`); the head's output is the
             pose vector either way.
         symmetry_planes: Canonical-frame mirror planes of the training anatomy. Non-empty: the
             network was trained up to the mirror twin (:mod:`svr.losses.symmetry`), so each
             prediction stands for its whole orbit; the stack consensus picks the member
-            (:mod:`reconstruction.cnn_init`) and evaluation reports errors up to the twin.
+            (:mod:`svr.reconstruction.cnn_init`) and evaluation reports errors up to the twin.
 
     Raises:
         ValueError: Naming the field, for a value of the wrong type or out of range.
@@ -169,7 +169,7 @@ class SlicePoseNet(nn.Module):
     Attributes:
         config: The configuration it was built from.
         backbone: Module mapping (B, 1, H, W) slices to (B, F) features.
-        head: The :class:`models.heads.PoseHead` of ``config.representation``.
+        head: The :class:`svr.models.heads.PoseHead` of ``config.representation``.
     """
 
     def __init__(self, config: ModelConfig) -> None:
@@ -261,7 +261,7 @@ def loss_function(
     SE(3) loss and the baselines meet the symmetry on the same terms.
 
     Args:
-        representation: One of :data:`sampling.poses.REPRESENTATIONS`.
+        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
         weights: Z as a (6,) diagonal or (6, 6) SPD matrix (rad, mm), or ``None`` for the
             default; ``"se3"`` only.
         planes: Canonical-frame mirror planes of the training anatomy (empty: plain losses).

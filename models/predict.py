@@ -4,14 +4,14 @@ Preparation (as SVoRT's in NeSVoR): every slice of a thick-slice stack, an ``(I,
 whose slices are its k-planes with in-plane axes along array axes 0 and 1, is
 
 * masked: with a brain mask, voxels outside it are set to 0 (the training volumes are masked,
-  :func:`sampling.volume.canonicalize`) and slices whose mask is empty are dropped. A mask on
+  :func:`svr.sampling.volume.canonicalize`) and slices whose mask is empty are dropped. A mask on
   another grid is first resampled onto the stack's (nearest neighbour, by world position);
 * normalised: divided by the 99th percentile of the stack's in-mask voxels (without a mask: its
-  nonzero voxels), the rule of :mod:`sampling.volume`;
+  nonzero voxels), the rule of :mod:`svr.sampling.volume`;
 * resampled in-plane (bilinear) to the model's ``spacing_mm`` and cropped or zero-padded to its
   ``input_size``, centred on the centroid of the slice's mask (without a mask: the slice centre).
 
-The prepared slice ``k`` is cut with :func:`sampling.slicer.sample_slices` at its *crop pose*
+The prepared slice ``k`` is cut with :func:`svr.sampling.slicer.sample_slices` at its *crop pose*
 ``C_k``: the rotation of the stack's k-plane (``u`` along array axis 0, ``v`` along axis 1,
 normal ``u x v``) and the world position of the crop centre as translation. The model predicts
 the canonical pose ``P_k`` of the prepared slice, i.e. about the crop centre. The poses returned
@@ -38,14 +38,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint
-from models.network import ModelConfig, SlicePoseNet, build_model
-from models.pretrained import resolve_model_path
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import DEFAULT_PERCENTILE
 from svr.geometry import se3_compose, se3_from_vector, se3_inverse, se3_to_vector
 from svr.image import Image, ImageError, load_nifti, sample_world
+from svr.models.checkpoint import Checkpoint, CheckpointError, load_checkpoint
+from svr.models.network import ModelConfig, SlicePoseNet, build_model
+from svr.models.pretrained import resolve_model_path
 from svr.pose_io import PoseTable
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import DEFAULT_PERCENTILE
 
 __all__ = [
     "SliceFile",
@@ -96,10 +96,10 @@ def load_pose_model(
     """Load a slice-pose network from a checkpoint folder or the shipped model, for inference.
 
     Args:
-        path: A checkpoint folder written by :func:`models.checkpoint.save_checkpoint` whose config
-            has a ``"model"`` section (:meth:`ModelConfig.to_dict`), as ``svr train`` and
-            :func:`models.pretrained.export.export_model` write; or the name ``"default"``
-            (:data:`models.pretrained.DEFAULT_MODEL`) for the model shipped in the package.
+        path: A checkpoint folder written by :func:`svr.models.checkpoint.save_checkpoint` whose
+            config has a ``"model"`` section (:meth:`ModelConfig.to_dict`), as ``svr train`` and
+            :func:`svr.models.pretrained.export.export_model` write; or the name ``"default"``
+            (:data:`svr.models.pretrained.DEFAULT_MODEL`) for the model shipped in the package.
             Weights stored in float16 are cast back to their recorded float32.
         device: Where the network runs.
 
@@ -109,7 +109,7 @@ def load_pose_model(
     Raises:
         CheckpointError: Naming the path, if ``"default"`` is asked for but the shipped model is
             not installed, the checkpoint cannot be read (see
-            :func:`~models.checkpoint.load_checkpoint`; nothing in it is executed), or
+            :func:`~svr.models.checkpoint.load_checkpoint`; nothing in it is executed), or
             :func:`pose_model_from_checkpoint` refuses it.
     """
     checkpoint = load_checkpoint(resolve_model_path(path), map_location=device)
@@ -122,7 +122,7 @@ def pose_model_from_checkpoint(
     """Build the slice-pose network that a loaded checkpoint describes, with its weights.
 
     Args:
-        checkpoint: A loaded checkpoint (:func:`~models.checkpoint.load_checkpoint`).
+        checkpoint: A loaded checkpoint (:func:`~svr.models.checkpoint.load_checkpoint`).
         device: Where the network runs.
 
     Returns:

@@ -1,14 +1,14 @@
 """Training slice-pose networks: the loop behind ``svr train``.
 
-Data: :class:`sampling.dataset.SliceStream` batches (random poses) or
-:class:`sampling.dataset.EulerGridStream` batches (the shuffled Euler grid,
+Data: :class:`svr.sampling.dataset.SliceStream` batches (random poses) or
+:class:`svr.sampling.dataset.EulerGridStream` batches (the shuffled Euler grid,
 ``TrainConfig.pose_sampling="grid"``) are addressed by index, so step ``s`` always trains on the
 same batch whatever the interruptions: a run resumed from its latest checkpoint
 continues exactly as if it had not stopped (up to floating-point nondeterminism of the device).
 
-Outputs in ``output_dir``: ``checkpoints/step_NNNNNNNNN/`` (:mod:`models.checkpoint`; the newest
+Outputs in ``output_dir``: ``checkpoints/step_NNNNNNNNN/`` (:mod:`svr.models.checkpoint`; the newest
 ``keep_checkpoints`` are kept), ``log.csv`` and TensorBoard event files
-(:mod:`models.training_log`), and ``train_config.json``.
+(:mod:`svr.models.training_log`), and ``train_config.json``.
 
 Distributed data-parallel training: launched with ``torchrun --nproc_per_node N``, each process
 takes every N-th batch (``gloo`` on the CPU, ``nccl`` on CUDA); rank 0 writes the outputs.
@@ -32,19 +32,19 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
-from models.checkpoint import (
+from svr.files import OutputExistsError
+from svr.models.checkpoint import (
     checkpoint_name,
     latest_checkpoint,
     load_checkpoint,
     prune_checkpoints,
     save_checkpoint,
 )
-from models.network import ModelConfig, build_model, checkpoint_model_config, loss_function
-from models.training_log import TrainingLog
-from sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
-from sampling.poses import DEFAULT_EULER_GRID, EulerGridConfig
-from sampling.volume import CanonicalVolume
-from svr.files import OutputExistsError
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config, loss_function
+from svr.models.training_log import TrainingLog
+from svr.sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
+from svr.sampling.poses import DEFAULT_EULER_GRID, EulerGridConfig
+from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
 
@@ -103,13 +103,13 @@ class TrainConfig:
         seed: Seed of the weight initialisation.
         data_sources: Names of the training volumes, recorded in checkpoints.
         pose_sampling: ``"random"``: random poses drawn per batch
-            (:class:`~sampling.dataset.SliceStream`);
+            (:class:`~svr.sampling.dataset.SliceStream`);
             ``"grid"``: the Euler-grid poses of every volume, shuffled
-            (:class:`~sampling.dataset.EulerGridStream`; needs ``data.rotation == "euler"``, and
+            (:class:`~svr.sampling.dataset.EulerGridStream`; needs ``data.rotation == "euler"``, and
             ``data.angle_range_deg`` and ``data.tz_range_mm`` are replaced by ``grid``'s).
         grid: The Euler grid of ``pose_sampling="grid"`` (default: the paper's).
         symmetry_report: How ``model.symmetry_planes`` were chosen
-            (:func:`sampling.symmetry.resolve_symmetry`), recorded in checkpoints.
+            (:func:`svr.sampling.symmetry.resolve_symmetry`), recorded in checkpoints.
     """
 
     output_dir: str

@@ -1,6 +1,6 @@
 """Learned pose initialisation: CNN slice poses made rigid per stack by robust averaging.
 
-A slice-pose network (:mod:`models.predict`) predicts the canonical pose ``P_i`` of every slice
+A slice-pose network (:mod:`svr.models.predict`) predicts the canonical pose ``P_i`` of every slice
 independently, so single predictions can be far off. Within a stack the slices are (up to fetal
 motion) one rigid body, so each prediction also proposes a scanner -> canonical transform
 
@@ -14,13 +14,13 @@ scanner-frame poses (e.g. from stack registration) into canonical space. Refined
 with its stack's consensus and takes the consensus pose where it does not, so the learned
 initialisation follows the motion of single slices that a rigid stack pose cannot.
 
-Frames and origins (``DESIGN.md``): :func:`models.predict.predict_stack_poses` returns poses of
+Frames and origins (``DESIGN.md``): :func:`svr.models.predict.predict_stack_poses` returns poses of
 the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
-stack's (cropped) array, indexed by that array's ``k``. A :class:`~reconstruction.slices.SliceSet`
-slice has its origin at the centre of its zero-padded array and is indexed by the file's ``k``
-(``Stack.k_indices``). With ``C_k`` the k-plane's scanner pose
-(:func:`models.predict.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the slice's
-predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
+stack's (cropped) array, indexed by that array's ``k``. A
+:class:`~svr.reconstruction.slices.SliceSet` slice has its origin at the centre of its zero-padded
+array and is indexed by the file's ``k`` (``Stack.k_indices``). With ``C_k`` the k-plane's scanner
+pose (:func:`svr.models.predict.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the
+slice's predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
 between the two origins; hence ``A_i = T_k o C_k^-1``.
 """
 
@@ -33,11 +33,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from models.network import ModelConfig, SlicePoseNet
-from models.predict import predict_stack_poses, stack_slice_poses
-from reconstruction.slices import SliceSet, Stack
 from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp, so3_log
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
+from svr.models.network import ModelConfig, SlicePoseNet
+from svr.models.predict import predict_stack_poses, stack_slice_poses
+from svr.reconstruction.slices import SliceSet, Stack
 
 __all__ = [
     "CnnInitialisation",
@@ -53,7 +53,7 @@ _PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plan
 
 @dataclass(frozen=True)
 class CnnInitialisation:
-    """Learned slice poses of a :class:`~reconstruction.slices.SliceSet` and their consensus.
+    """Learned slice poses of a :class:`~svr.reconstruction.slices.SliceSet` and their consensus.
 
     All poses are float64 on the slice set's device and map slice-plane mm (origin at the centre
     of the slice set's padded array) to the canonical frame; transforms map scanner mm to
@@ -295,10 +295,10 @@ def cnn_slice_poses(
     choose, per slice, between the prediction and its twin (:func:`learned_consensus`).
 
     Args:
-        model: The slice-pose network, in eval mode (:func:`models.predict.load_pose_model`).
+        model: The slice-pose network, in eval mode (:func:`svr.models.predict.load_pose_model`).
         model_config: Its configuration.
         stacks: The stacks the slices were cut from, in the order of ``slices.stack_names``.
-        slices: The slices (:func:`reconstruction.slices.extract_slices`); their
+        slices: The slices (:func:`svr.reconstruction.slices.extract_slices`); their
             ``scanner_poses`` are used, whatever frame ``poses`` is in.
         batch_size: Slices per forward pass, >= 1.
         max_rotation_deg: Rotation bound (degrees) of a slice's support for its stack, > 0.

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 from torch import Tensor
 
-from reconstruction.slices import SliceSet
 from svr.image import Image
+from svr.reconstruction.slices import SliceSet
 
 __all__ = ["REGISTRATIONS", "ReconstructionConfig", "ReconstructionResult"]
 

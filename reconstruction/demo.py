@@ -3,15 +3,15 @@
 :func:`run_demo` runs the whole toolkit on one case whose truth is known:
 
 1. **Slice-pose model** (``"cnn"`` only): train a small SE(3) model on the volume
-   (:func:`models.train.train`) or load a given one. A model trained here has seen the very
+   (:func:`svr.models.train.train`) or load a given one. A model trained here has seen the very
    anatomy it is tested on (in-distribution): this shows the pipeline at work, not how a model
    generalises to new brains.
 2. **Simulate** motion-corrupted thick-slice stacks from the volume
-   (:func:`sampling.simulate.simulate_case`; ``svr demo`` uses the built-in phantom by
+   (:func:`svr.sampling.simulate.simulate_case`; ``svr demo`` uses the built-in phantom by
    default): three 3 mm stacks planned along the brain's axes (axial, coronal, sagittal, as
    radiographers plan fetal stacks; no random placement), random-walk motion of a few degrees
    and millimetres during the scan, and Rician noise.
-3. **Reconstruct** with each registration (:func:`reconstruction.pipeline.reconstruct`):
+3. **Reconstruct** with each registration (:func:`svr.reconstruction.pipeline.reconstruct`):
    ``"stack"`` (the volume in the scanner frame) and ``"cnn"`` (in canonical space), from the
    simulated stacks and their brain masks.
 4. **Score** the initial volume (the scattered-data approximation at the initial poses) and the
@@ -71,29 +71,29 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from models.backbones import BackboneConfig
-from models.network import ModelConfig, SlicePoseNet
-from models.predict import load_pose_model
-from models.train import OptimConfig, TrainConfig, train
-from reconstruction.cnn_init import robust_mean_pose
-from reconstruction.config import ReconstructionConfig, ReconstructionResult
-from reconstruction.outputs import write_transforms, write_volume
-from reconstruction.pipeline import reconstruct
-from reconstruction.qa import orthogonal_planes, resample_to_grid
-from reconstruction.slices import SliceSet, plane_poses
-from reconstruction.stacks import prepare_stacks
-from sampling.augment import SliceAugmentConfig
-from sampling.dataset import SliceDatasetConfig
-from sampling.phantom import gestational_age_config, make_phantom, required_field_of_view_mm
-from sampling.simulate import SimulationConfig, simulate_case, write_case
-from sampling.slicer import SliceConfig
-from sampling.symmetry import resolve_symmetry
-from sampling.volume import CanonicalVolume, canonicalize
 from svr.files import atomic_directory
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.image import Image
 from svr.image_metrics import ncc, psnr, ssim
 from svr.metrics import pose_errors
+from svr.models.backbones import BackboneConfig
+from svr.models.network import ModelConfig, SlicePoseNet
+from svr.models.predict import load_pose_model
+from svr.models.train import OptimConfig, TrainConfig, train
+from svr.reconstruction.cnn_init import robust_mean_pose
+from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
+from svr.reconstruction.outputs import write_transforms, write_volume
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.qa import orthogonal_planes, resample_to_grid
+from svr.reconstruction.slices import SliceSet, plane_poses
+from svr.reconstruction.stacks import prepare_stacks
+from svr.sampling.augment import SliceAugmentConfig
+from svr.sampling.dataset import SliceDatasetConfig
+from svr.sampling.phantom import gestational_age_config, make_phantom, required_field_of_view_mm
+from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
+from svr.sampling.slicer import SliceConfig
+from svr.sampling.symmetry import resolve_symmetry
+from svr.sampling.volume import CanonicalVolume, canonicalize
 
 __all__ = [
     "DEMO_REGISTRATIONS",
@@ -224,7 +224,7 @@ def quick_phantom(weeks: float = 28.0) -> tuple[CanonicalVolume, str]:
     """The built-in phantom at 2 mm on the smallest grid that holds it, for the quick demo.
 
     Args:
-        weeks: Gestational age in [20, 38] (:func:`sampling.phantom.gestational_age_config`).
+        weeks: Gestational age in [20, 38] (:func:`svr.sampling.phantom.gestational_age_config`).
 
     Returns:
         The phantom in canonical space, and a name for it.
@@ -324,9 +324,9 @@ def frame_alignment(slices: SliceSet, true_poses: Sequence[Tensor]) -> Tensor:
             the stack's k-planes (origin at the plane centre) in the truth's frame.
 
     Returns:
-        (4, 4) float64 ``G``, the robust mean (:func:`~reconstruction.cnn_init.robust_mean_pose`)
-        of ``T_true o T_final^-1`` over the slices: a point ``x`` of the reconstruction's frame
-        is at ``G x`` in the truth's.
+        (4, 4) float64 ``G``, the robust mean
+        (:func:`~svr.reconstruction.cnn_init.robust_mean_pose`) of ``T_true o T_final^-1`` over the
+        slices: a point ``x`` of the reconstruction's frame is at ``G x`` in the truth's.
     """
     truth = _true_plane_poses(slices, true_poses)
     final = plane_poses(slices).cpu()
@@ -503,7 +503,7 @@ def run_demo(
 
     Args:
         volume: The brain (ground truth), e.g. :func:`quick_phantom` or
-            :func:`sampling.volume.load_canonical_volume`.
+            :func:`svr.sampling.volume.load_canonical_volume`.
         config: The settings (:func:`demo_config`).
         output_dir: The folder to create.
         model: For ``"cnn"``: :data:`TRAIN_MODEL` (``"train"``) to train a model on ``volume``,

@@ -28,9 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from reconstruction.slices import SliceSet
-from sampling.slicer import FWHM_TO_SIGMA, IN_PLANE_PSF_FWHM
 from svr.image import Image, sample_grid, world_to_grid
+from svr.reconstruction.slices import SliceSet
+from svr.sampling.slicer import FWHM_TO_SIGMA, IN_PLANE_PSF_FWHM
 
 __all__ = [
     "SliceProjector",

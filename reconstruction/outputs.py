@@ -12,7 +12,8 @@ existing output untouched) and refuses to replace an existing output unless ``ov
   ``excluded`` (left out of the volume).
 * :func:`write_slices_folder`: ``0.nii.gz, 1.nii.gz, ...`` (one slice ``(H, W, 1)`` each, posed
   by its affine) and ``mask_0.nii.gz, ...``, the slice-folder format of NeSVoR that
-  :func:`models.predict.load_slice_folder` reads. File ``n`` is row ``n`` of the transforms table.
+  :func:`svr.models.predict.load_slice_folder` reads. File ``n`` is row ``n`` of the transforms
+  table.
 """
 
 from __future__ import annotations
@@ -23,11 +24,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from reconstruction.config import ReconstructionResult
-from reconstruction.slices import SliceSet, plane_poses
 from svr.files import atomic_directory
 from svr.image import Image, save_nifti
 from svr.pose_io import table_from_matrices, write_pose_table
+from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.slices import SliceSet, plane_poses
 
 __all__ = ["slice_affines", "write_slices_folder", "write_transforms", "write_volume"]
 
@@ -96,7 +97,7 @@ def slice_affines(slices: SliceSet) -> Tensor:
     Column 0 is ``R[:, 0] * spacing_u``, column 1 ``R[:, 1] * spacing_v``, column 2
     ``R[:, 2] * thickness``, and the translation places voxel ``(0, 0, 0)`` at
     ``T (-(H - 1) / 2 * spacing_u, -(W - 1) / 2 * spacing_v, 0)``, so that pixel ``(a, b)`` sits
-    at its world position and :func:`models.predict.stack_slice_poses` gives back the pose.
+    at its world position and :func:`svr.models.predict.stack_slice_poses` gives back the pose.
 
     Args:
         slices: The slices, posed in their frame.

@@ -26,21 +26,21 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from models.network import ModelConfig, SlicePoseNet
-from reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses, robust_mean_pose
-from reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
-from reconstruction.operators import SliceProjector, VolumeGrid
-from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
-from reconstruction.robust import robust_weights
-from reconstruction.slices import SliceSet, Stack, extract_slices
-from reconstruction.superres import (
+from svr.geometry import se3_compose, se3_inverse
+from svr.models.network import ModelConfig, SlicePoseNet
+from svr.reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses, robust_mean_pose
+from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
+from svr.reconstruction.operators import SliceProjector, VolumeGrid
+from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from svr.reconstruction.robust import robust_weights
+from svr.reconstruction.slices import SliceSet, Stack, extract_slices
+from svr.reconstruction.superres import (
     coverage,
     output_grid,
     scattered_data_approximation,
     slice_intensity_scales,
     super_resolution,
 )
-from svr.geometry import se3_compose, se3_inverse
 
 __all__ = ["learned_initialisation", "reconstruct", "stack_registration"]
 
@@ -167,7 +167,7 @@ def learned_initialisation(
     """Learned slice poses or stack registration, per stack, chosen so as never to do harm.
 
     1. **Support.** A stack whose slices mostly disagree with their consensus (support below
-       ``config.cnn_min_support``; :func:`reconstruction.cnn_init.disambiguate_stack`) means the
+       ``config.cnn_min_support``; :func:`svr.reconstruction.cnn_init.disambiguate_stack`) means the
        model is unsure of it: it keeps stack registration, and the log and QA say so.
     2. **Canonical frame.** Stack registration is moved into canonical space by ``G``, the robust
        mean over the trusted stacks' supporting slices of (chosen prediction) o (registered
@@ -184,7 +184,7 @@ def learned_initialisation(
     Args:
         slices: All slices, at their scanner poses.
         learned: The slices' (disambiguated) predicted canonical poses and their consensus
-            (:func:`reconstruction.cnn_init.cnn_slice_poses`).
+            (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`).
         config: Settings.
 
     Returns:
@@ -300,10 +300,10 @@ def reconstruct(
     """Reconstruct a volume from prepared stacks.
 
     Args:
-        stacks: The stacks (:func:`reconstruction.stacks.load_stacks`).
+        stacks: The stacks (:func:`svr.reconstruction.stacks.load_stacks`).
         config: Settings.
         model: The slice-pose network and its configuration
-            (:func:`models.predict.load_pose_model`), needed by ``registration="cnn"``.
+            (:func:`svr.models.predict.load_pose_model`), needed by ``registration="cnn"``.
         initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``;
             when given, ``config.registration`` is not run.
         frame: The frame of ``initial_poses``.

@@ -22,9 +22,9 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from reconstruction.config import ReconstructionResult
 from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, sample_world
+from svr.reconstruction.config import ReconstructionResult
 
 __all__ = ["FIGURE_SUFFIXES", "qa_figure", "resample_to_grid"]
 

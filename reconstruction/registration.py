@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from reconstruction.operators import SliceProjector, gaussian_blur
 from svr.geometry import so3_exp
 from svr.image import sample_channels
+from svr.reconstruction.operators import SliceProjector, gaussian_blur
 
 __all__ = ["RegistrationConfig", "register_rigid", "slice_ncc"]
 

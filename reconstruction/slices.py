@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from models.predict import stack_slice_poses
 from svr.image import Image
+from svr.models.predict import stack_slice_poses
 
 __all__ = ["SliceSet", "Stack", "array_poses", "extract_slices", "plane_poses"]
 
@@ -191,7 +191,7 @@ def extract_slices(stacks: list[Stack]) -> SliceSet:
     """Cut stacks into slices, drop those with an empty mask, and pad them to one size.
 
     Args:
-        stacks: Prepared stacks (:func:`reconstruction.stacks.prepare_stacks`).
+        stacks: Prepared stacks (:func:`svr.reconstruction.stacks.prepare_stacks`).
 
     Returns:
         The slices in the scanner frame, ordered by stack then k.

@@ -5,7 +5,7 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
 (:func:`load_stacks` for files, :func:`prepare_stacks` for images in memory), per stack:
 
 1. **Mask.** A given mask on another grid is resampled onto the stack's (nearest neighbour, by
-   world position, as :mod:`models.predict` does); it must overlap the stack. Without masks, an
+   world position, as :mod:`svr.models.predict` does); it must overlap the stack. Without masks, an
    automatic one: voxels above the stack's Otsu threshold, kept only inside the region that every
    stack's field of view covers (each stack covering the boxes of its voxels), then the largest
    3D connected component with its holes filled. This suits stacks already cropped around the
@@ -14,13 +14,13 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
 2. **Crop.** In-plane (axes 0 and 1) to the mask's bounding box over all planes plus
    ``crop_margin_mm``, clipped to the array; along k to the planes from the first to the last
    with mask (a contiguous range; planes with an empty mask inside it are kept and dropped later
-   by :func:`reconstruction.slices.extract_slices`). The cropped affine maps crop voxel
+   by :func:`svr.reconstruction.slices.extract_slices`). The cropped affine maps crop voxel
    ``(0, 0, k')`` to the file's voxel ``(i0, j0, k_indices[k'])``.
 3. **Bias field** (optional): N4 (SimpleITK) fitted on the in-mask voxels of the cropped stack,
    downsampled in-plane by ``n4_shrink_factor``, then divided out at full resolution.
 4. **Intensities.** Divided by the 99th percentile of the in-mask voxels (the rule of
-   :mod:`sampling.volume`); voxels outside the mask are set to 0 and the unmasked intensities are
-   not kept.
+   :mod:`svr.sampling.volume`); voxels outside the mask are set to 0 and the unmasked intensities
+   are not kept.
 
 The slice thickness (FWHM of the through-plane PSF) defaults to the slice spacing (the norm of
 the affine's third column), with a warning, as in NeSVoR.
@@ -42,9 +42,9 @@ from scipy import ndimage
 from skimage.filters import threshold_otsu
 from torch import Tensor
 
-from models.predict import _intensity_scale, _mask_on_grid
-from reconstruction.slices import Stack
 from svr.image import Image, ImageError, load_nifti
+from svr.models.predict import _intensity_scale, _mask_on_grid
+from svr.reconstruction.slices import Stack
 
 __all__ = ["StackConfig", "load_stacks", "prepare_stacks"]
 
@@ -107,7 +107,7 @@ def load_stacks(
         config: Preparation settings; default :class:`StackConfig`'s.
 
     Returns:
-        One :class:`~reconstruction.slices.Stack` per file, in order, on the CPU: float32
+        One :class:`~svr.reconstruction.slices.Stack` per file, in order, on the CPU: float32
         intensities and a bool mask on the cropped grid; ``name`` is the file path as given.
 
     Raises:
@@ -151,7 +151,7 @@ def prepare_stacks(
         mask_names: The masks' names for messages; default ``"mask of <stack name>"``.
 
     Returns:
-        One prepared :class:`~reconstruction.slices.Stack` per image.
+        One prepared :class:`~svr.reconstruction.slices.Stack` per image.
 
     Raises:
         ImageError: Beginning with the stack's or mask's name (see :func:`load_stacks`).

@@ -4,7 +4,7 @@ The volume ``x`` minimises
 
     sum_p w_p (c_{s(p)} (A x)_p - y_p)^2 + lambda * sum_d sum_v phi(D_d x)_v,
 
-``A`` the slice acquisition model (:class:`~reconstruction.operators.SliceProjector`), ``y`` the
+``A`` the slice acquisition model (:class:`~svr.reconstruction.operators.SliceProjector`), ``y`` the
 observed pixels, ``w`` robust (EM) pixel weights, ``c`` per-slice intensity scales and ``phi`` an
 edge-preserving penalty on forward differences along the three axes, linearised around the
 current volume (lagged diffusivity, ``phi'(g)/g = 1 / sqrt(1 + (g / delta)^2)``, as SVRTK's
@@ -20,8 +20,8 @@ import math
 import torch
 from torch import Tensor
 
-from reconstruction.operators import SliceProjector, VolumeGrid
-from reconstruction.slices import SliceSet
+from svr.reconstruction.operators import SliceProjector, VolumeGrid
+from svr.reconstruction.slices import SliceSet
 
 __all__ = [
     "coverage",

@@ -25,10 +25,10 @@ Geometric augmentations are not applied to pixels, because they change the slice
 
 * **In-plane shifts** move the slice plane within itself. :func:`shift_poses` applies them to the
   poses *before* sampling (``t += R (du, dv, 0)``), so the sampled slice is the shifted one and the
-  label (computed from the shifted pose) stays exact; :class:`sampling.dataset.SliceStream` does
+  label (computed from the shifted pose) stays exact; :class:`svr.sampling.dataset.SliceStream` does
   this with its ``shift_mm`` option.
 * **Resolution and thickness jitter** is a property of the sampling (in-plane spacing and PSF):
-  :class:`sampling.dataset.SliceStream` draws them per batch (``spacing_range_mm``,
+  :class:`svr.sampling.dataset.SliceStream` draws them per batch (``spacing_range_mm``,
   ``thickness_range_mm``) and samples with them.
 """
 
@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from sampling._validation import check_positive_range, is_finite_number
 from svr.geometry import so3_exp
+from svr.sampling._validation import check_positive_range, is_finite_number
 
 NOISE_REFERENCE_PERCENTILE = 99.0
 """Percentile (nearest rank) of ``|x|`` over a slice that the relative Rician noise level

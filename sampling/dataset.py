@@ -3,18 +3,19 @@
 * :class:`SliceStream`: an endless (or ``num_batches``-long) stream of random batches for training,
   sampled on the fly: random poses (Euler angles or uniform rotations, offsets along the normal,
   in-plane shifts), the empty-slice rule, per-batch in-plane spacing and thickness jitter, and
-  intensity augmentation (:mod:`sampling.augment`).
+  intensity augmentation (:mod:`svr.sampling.augment`).
 * :class:`EulerGridDataset`: the paper's regular Euler grid over one volume (map-style), for the
   paper-scale experiment; :class:`EulerGridStream`: the grids of several volumes as a shuffled,
   resumable training stream with :class:`SliceStream`'s batches and augmentation.
 
 **Empty-slice rule.** A slice is kept only if at least ``min_brain_fraction`` of its pixels lie
-inside the brain mask (:func:`sampling.slicer.brain_fraction`: the mask sampled by nearest
+inside the brain mask (:func:`svr.sampling.slicer.brain_fraction`: the mask sampled by nearest
 neighbour on the slice's centre plane, with the slice's size and in-plane spacing). Rejected random
 poses are redrawn; rejected grid poses are left out.
 
-**Labels** are :func:`sampling.poses.pose_labels` of the poses actually sampled (after any in-plane
-shift), in float32; the poses themselves come in float64. Poses map slice-plane mm to canonical mm.
+**Labels** are :func:`svr.sampling.poses.pose_labels` of the poses actually sampled (after any
+in-plane shift), in float32; the poses themselves come in float64. Poses map slice-plane mm to
+canonical mm.
 
 **Reproducibility.** Batch ``i`` of epoch ``e`` of a :class:`SliceStream` is a pure function of
 ``(config.seed, e, i)``: its ``torch.Generator`` is seeded with a hash of the three, and nothing
@@ -37,10 +38,11 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
-from sampling._validation import check_positive_range, is_finite_number
-from sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
-from sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
-from sampling.poses import (
+from svr.image import Image
+from svr.sampling._validation import check_positive_range, is_finite_number
+from svr.sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
+from svr.sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
+from svr.sampling.poses import (
     DEFAULT_EULER_GRID,
     REPRESENTATIONS,
     EulerGridConfig,
@@ -50,9 +52,8 @@ from sampling.poses import (
     pose_labels,
     random_slice_poses,
 )
-from sampling.slicer import SliceConfig, brain_fraction, sample_slices
-from sampling.volume import CanonicalVolume
-from svr.image import Image
+from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from svr.sampling.volume import CanonicalVolume
 
 DEFAULT_MIN_BRAIN_FRACTION = 0.02
 """Default of the empty-slice rule: at least 2 % of a slice's pixels inside the brain mask.
@@ -96,24 +97,24 @@ class SliceDatasetConfig:
         spacing_range_mm: ``None`` to use ``slice.spacing_mm``, else ``(low, high)``: each batch has
             one in-plane spacing, uniform in the range, mm (the field of view changes with it).
         rotation: ``"euler"`` (three Euler angles uniform in +-``angle_range_deg``, the paper's) or
-            ``"uniform"`` (uniform on SO(3)); see :func:`sampling.poses.random_slice_poses`.
+            ``"uniform"`` (uniform on SO(3)); see :func:`svr.sampling.poses.random_slice_poses`.
         angle_range_deg: Half-width of each Euler angle's range, degrees, >= 0.
         tz_range_mm: Half-width of the offset along the slice normal, mm, >= 0.
         shift_mm: Maximum in-plane shift, mm, >= 0: ``du`` and ``dv`` are each uniform in
             ``[-shift_mm, +shift_mm]`` and applied to the pose before sampling
-            (:func:`sampling.augment.shift_poses`), so the label is that of the shifted slice.
+            (:func:`svr.sampling.augment.shift_poses`), so the label is that of the shifted slice.
         min_brain_fraction: The empty-slice rule (module docstring), in [0, 1]; 0 keeps all.
         max_resample_rounds: How many times rejected poses are redrawn before giving up, >= 1.
         mix_volumes: ``False``: each batch comes from one volume drawn uniformly; ``True``: each
             slice draws its own volume.
-        representation: Label representation, one of :data:`sampling.poses.REPRESENTATIONS`.
+        representation: Label representation, one of :data:`svr.sampling.poses.REPRESENTATIONS`.
         augment: Intensity augmentation, or ``None`` for none.
         scale_range: ``None`` for none, else ``(low, high)``, ``0 < low <= high``: each batch
             scales its volume about the canonical origin by a factor drawn log-uniformly per
             canonical axis (a brain of another size and shape; the labels are the poses in the
             scaled brain's canonical frame).
         deform_mm: Random smooth non-rigid deformation of each batch's volume(s)
-            (:func:`sampling.deform.random_displacement`): standard deviation of the control
+            (:func:`svr.sampling.deform.random_displacement`): standard deviation of the control
             displacements in mm, >= 0; 0 for none. The field has no rigid part, so the labels stay
             the poses in the canonical frame; the empty-slice rule reads the undeformed mask.
         deform_control_points: Control points per axis of that field, >= 2.
@@ -210,7 +211,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
     Each yielded batch is a dict of tensors, on the volumes' device:
 
     * ``"slices"``: (B, 1, H, W) float32 slices (after augmentation).
-    * ``"labels"``: (B, D) float32 :func:`~sampling.poses.pose_labels` of ``"poses"`` in
+    * ``"labels"``: (B, D) float32 :func:`~svr.sampling.poses.pose_labels` of ``"poses"`` in
       ``config.representation`` (D = 6, 7, 9 or 9).
     * ``"poses"``: (B, 6) float64 pose vectors (rad, mm), slice plane -> canonical frame.
     * ``"volume_index"``: (B,) int64 index of each slice's volume in ``volumes``.
@@ -504,7 +505,7 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
     """Slices of one volume at the Euler-grid poses that pass the empty-slice rule (map-style).
 
     The kept poses are found once, on construction, by sweeping the grid in chunks of
-    ``chunk_size`` poses (:func:`sampling.poses.iter_euler_grid_poses`); slices are sampled when
+    ``chunk_size`` poses (:func:`svr.sampling.poses.iter_euler_grid_poses`); slices are sampled when
     read. Item ``i`` is ``(slice, label)``: a (1, H, W) float32 slice at ``poses[i]`` and its
     (D,) float32 label in ``representation``. ``DataLoader`` reads whole batches at once through
     :meth:`__getitems__`.
@@ -514,12 +515,12 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
         grid_config: The Euler grid (default: the paper's, 54,571 poses).
         slice_config: Slice size, spacing, PSF and interpolation.
         min_brain_fraction: The empty-slice rule (module docstring), in [0, 1].
-        representation: Label representation, one of :data:`sampling.poses.REPRESENTATIONS`.
+        representation: Label representation, one of :data:`svr.sampling.poses.REPRESENTATIONS`.
         chunk_size: Poses per chunk of the sweep, >= 1.
 
     Attributes:
         grid_indices: (K,) int64 indices of the kept poses in the grid order of
-            :func:`sampling.poses.euler_grid_poses`, increasing.
+            :func:`svr.sampling.poses.euler_grid_poses`, increasing.
         poses: (K, 6) float64 kept poses (rad, mm), slice plane -> canonical frame, on the CPU.
         labels: (K, D) float32 labels of ``poses``, on the CPU.
 

@@ -3,7 +3,7 @@
 A deformation is a world-frame displacement field ``d`` in mm on a coarse ``c x c x c`` control
 grid that spans the volume's voxel grid corner to corner (array order ``I, J, K``); between control
 points it is trilinear. A deformed volume reads the original at ``x + d(x)``:
-``J(x) = I(x + d(x))`` (:func:`sampling.slicer.sample_slices` with ``displacement_mm``).
+``J(x) = I(x + d(x))`` (:func:`svr.sampling.slicer.sample_slices` with ``displacement_mm``).
 
 :func:`random_displacement` draws the control values as independent Gaussians of standard deviation
 ``std_mm`` per component, then removes their least-squares *rigid* part (a translation ``t`` and a
@@ -17,8 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from sampling._validation import is_finite_number
 from svr.image import Image
+from svr.sampling._validation import is_finite_number
 
 DEFAULT_CONTROL_POINTS = 5
 """Control points per axis: about 27-38 mm apart over the atlas volumes (108-151 mm across)."""
@@ -94,7 +94,7 @@ def random_displacement(
 
     Returns:
         (3, c, c, c) float64 world-frame displacements in mm, on the image's device, for
-        :func:`sampling.slicer.sample_slices`'s ``displacement_mm``.
+        :func:`svr.sampling.slicer.sample_slices`'s ``displacement_mm``.
 
     Raises:
         ValueError: Naming the argument, if ``std_mm`` or ``control_points`` is invalid.

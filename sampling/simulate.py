@@ -31,12 +31,12 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import CanonicalVolume
 from svr.files import atomic_directory
 from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti
+from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import CanonicalVolume
 
 Orientation = Literal["orthogonal", "oblique", "random"]
 Motion = Literal["trajectories", "random_walk", "none"]

@@ -3,8 +3,8 @@
 Slice geometry (``DESIGN.md``): a slice of ``size = (H, W)`` pixels with in-plane spacing ``s`` mm
 has pixel ``(a, b)`` at slice-plane coordinates ``u = (a - (H - 1) / 2) s`` (array axis 0) and
 ``v = (b - (W - 1) / 2) s`` (array axis 1), ``w = 0``; its pose ``(R, t)`` maps ``(u, v, w)`` to the
-volume's world frame (canonical space for a :class:`~sampling.volume.CanonicalVolume`). The slice
-normal is ``R[:, 2]``.
+volume's world frame (canonical space for a :class:`~svr.sampling.volume.CanonicalVolume`). The
+slice normal is ``R[:, 2]``.
 
 Point-spread function: a slice of thickness ``T`` mm integrates the volume along its normal with a
 Gaussian of FWHM ``T`` (sigma = T / 2.3548), as the peers model it; the in-plane PSF (optional) is a
@@ -188,7 +188,7 @@ def sample_slices(
         config: Size, spacing, PSF and interpolation.
         displacement_mm: ``None``, or a (3, c, c, c) world-frame displacement field in mm on a
             control grid spanning the volume's voxel grid corner to corner (array order; see
-            :mod:`sampling.deform`): each point ``x`` reads the volume at ``x + d(x)``, with
+            :mod:`svr.sampling.deform`): each point ``x`` reads the volume at ``x + d(x)``, with
             ``d`` trilinear between control points and read on the slice's centre plane (one
             ``d`` per pixel for all PSF samples).
 

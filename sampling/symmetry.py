@@ -23,9 +23,9 @@ import torch
 from scipy.optimize import minimize
 from torch import Tensor
 
-from sampling.volume import CanonicalVolume
 from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
 from svr.image import sample_world
+from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
 

@@ -116,7 +116,7 @@ def run_loss_demo(config: LossDemoConfig, targets: Tensor) -> list[LossDemoResul
 
     Args:
         config: The settings.
-        targets: (N, 6) float32 target poses, e.g. ``sampling.poses.random_slice_poses``.
+        targets: (N, 6) float32 target poses, e.g. ``svr.sampling.poses.random_slice_poses``.
 
     Returns:
         One result per method, in the order se3, posenet, anchor, rot6d.

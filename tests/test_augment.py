@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from sampling.augment import (
+from svr.sampling.augment import (
     AugmentParams,
     SliceAugmentConfig,
     apply_augment,

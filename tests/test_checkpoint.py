@@ -1,4 +1,4 @@
-"""Tests of models.checkpoint: round trips, resuming, atomic writes and refusal of unsafe files."""
+"""Tests of svr.models.checkpoint: round trips, resuming, atomic writes, refusing unsafe files."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ import torch
 from torch import nn
 
 import svr
-from models.checkpoint import (
+from svr.files import OutputExistsError
+from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CHECKPOINT_WEIGHTS,
     FORMAT_VERSION,
@@ -32,7 +33,6 @@ from models.checkpoint import (
     prune_checkpoints,
     save_checkpoint,
 )
-from svr.files import OutputExistsError
 
 CONFIG = {
     "architecture": {"name": "tiny", "channels": [4, 8]},

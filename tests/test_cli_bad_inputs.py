@@ -36,21 +36,21 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-import reconstruction.demo as recon_demo
-import reconstruction.pipeline as pipeline
 import svr.files
 import svr.image
-from models.backbones import BackboneConfig
-from models.checkpoint import (
+import svr.reconstruction.demo as recon_demo
+import svr.reconstruction.pipeline as pipeline
+from svr.cli import SUBCOMMANDS, main
+from svr.image import save_nifti
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CHECKPOINT_WEIGHTS,
     TRAINING_STATE,
     checkpoint_name,
     save_checkpoint,
 )
-from models.network import ModelConfig, build_model, checkpoint_model_config
-from svr.cli import SUBCOMMANDS, main
-from svr.image import save_nifti
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 
 # --- the pickle payload: unpickling it creates a marker file -------------------------------------
 

@@ -12,9 +12,11 @@ from pathlib import Path
 import pytest
 import torch
 
-import reconstruction.demo as demo
 import svr.cli
-from reconstruction.demo import (
+import svr.reconstruction.demo as demo
+from svr.geometry import se3_compose, se3_from_vector, se3_inverse
+from svr.image import Image, load_nifti
+from svr.reconstruction.demo import (
     DemoConfig,
     DemoResult,
     MethodResult,
@@ -24,9 +26,7 @@ from reconstruction.demo import (
     quick_phantom,
     score_volume,
 )
-from reconstruction.slices import SliceSet
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse
-from svr.image import Image, load_nifti
+from svr.reconstruction.slices import SliceSet
 
 F64 = torch.float64
 QUICK = ["--quick", "--phantom-ga", "20", "--train-steps", "5", "--device", "cpu", "-q"]

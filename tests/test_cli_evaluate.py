@@ -10,11 +10,11 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-from models.backbones import BackboneConfig
-from models.checkpoint import checkpoint_name, save_checkpoint
-from models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.cli import evaluate, main
 from svr.image import save_nifti
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import checkpoint_name, save_checkpoint
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 
 
 def _save_model(folder, representation, size=32, seed=0):

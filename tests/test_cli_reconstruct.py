@@ -10,20 +10,20 @@ import numpy as np
 import pytest
 import torch
 
-import reconstruction.pipeline as pipeline
 import svr.cli
 import svr.files
-from models.backbones import BackboneConfig
-from models.checkpoint import save_checkpoint
-from models.network import ModelConfig, build_model, checkpoint_model_config
-from models.predict import load_slice_folder, stack_slice_poses
-from reconstruction.config import ReconstructionConfig
-from reconstruction.qa import resample_to_grid
-from sampling.phantom import gestational_age_config, make_phantom
-from sampling.simulate import SimulationConfig, simulate_case, write_case
-from sampling.volume import canonicalize
+import svr.reconstruction.pipeline as pipeline
 from svr.image import Image, load_nifti, save_nifti
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import save_checkpoint
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config
+from svr.models.predict import load_slice_folder, stack_slice_poses
 from svr.pose_io import read_pose_table
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.qa import resample_to_grid
+from svr.sampling.phantom import gestational_age_config, make_phantom
+from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
+from svr.sampling.volume import canonicalize
 
 F64 = torch.float64
 # 2.5 mm in-plane, 5 mm slices of a 20-week phantom at 2 mm: three 26 x 26 x 13 stacks.

@@ -8,10 +8,10 @@ import pytest
 from oracles import foreground_cc, truth_poses
 from synthetic import ellipsoid_brain
 
-from sampling.slicer import SliceConfig, sample_slices
 from svr.cli import main
 from svr.image import load_nifti, save_nifti
 from svr.pose_io import read_pose_table
+from svr.sampling.slicer import SliceConfig, sample_slices
 
 
 @pytest.fixture(scope="module")

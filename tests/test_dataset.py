@@ -11,12 +11,12 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 from torch.utils.data import DataLoader
 
-from sampling.augment import SliceAugmentConfig, shift_poses
-from sampling.dataset import EulerGridDataset, EulerGridStream, SliceDatasetConfig, SliceStream
-from sampling.poses import EulerGridConfig, euler_grid_poses, pose_labels
-from sampling.slicer import SliceConfig, brain_fraction, sample_slices
-from sampling.volume import CanonicalVolume, canonicalize
 from svr.image import Image
+from svr.sampling.augment import SliceAugmentConfig, shift_poses
+from svr.sampling.dataset import EulerGridDataset, EulerGridStream, SliceDatasetConfig, SliceStream
+from svr.sampling.poses import EulerGridConfig, euler_grid_poses, pose_labels
+from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from svr.sampling.volume import CanonicalVolume, canonicalize
 
 SLICE = SliceConfig(size=(24, 20), spacing_mm=2.5)
 LABEL_DIMS = {"se3": 6, "quat_translation": 7, "anchor_points": 9, "rotation6d_translation": 9}

@@ -9,11 +9,11 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 from test_slicer import random_poses, smooth_volume
 
-from sampling.dataset import SliceDatasetConfig, SliceStream
-from sampling.deform import control_point_positions, random_displacement, remove_rigid_part
-from sampling.slicer import SliceConfig, sample_slices, slice_points
-from sampling.volume import CanonicalVolume
 from svr.image import Image
+from svr.sampling.dataset import SliceDatasetConfig, SliceStream
+from svr.sampling.deform import control_point_positions, random_displacement, remove_rigid_part
+from svr.sampling.slicer import SliceConfig, sample_slices, slice_points
+from svr.sampling.volume import CanonicalVolume
 
 
 def _rigid_fit(d: np.ndarray, x: np.ndarray) -> np.ndarray:

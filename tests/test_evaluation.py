@@ -13,12 +13,12 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 from skimage import io as skio
 
-from models.evaluation import EvalConfig, evaluate_poses, paired_tests, summarize, write_report
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import CanonicalVolume, canonicalize
 from svr.files import OutputExistsError
 from svr.geometry.symmetry import mirror_twin
 from svr.image import Image
+from svr.models.evaluation import EvalConfig, evaluate_poses, paired_tests, summarize, write_report
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import CanonicalVolume, canonicalize
 
 N_SLICES = 24
 CONFIG = EvalConfig(slice=SliceConfig(size=(32, 32), spacing_mm=2.0))
@@ -257,7 +257,7 @@ def test_report_folder(results, volume, true_poses, tmp_path, monkeypatch, caplo
         )
     }
     out = tmp_path / "report"
-    with caplog.at_level(logging.WARNING, logger="models.evaluation"):
+    with caplog.at_level(logging.WARNING, logger="svr.models.evaluation"):
         assert write_report(results, out, examples=examples) == out
     assert "matplotlib" in caplog.text
     assert sorted(p.name for p in out.iterdir()) == [

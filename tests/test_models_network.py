@@ -7,12 +7,12 @@ import json
 import pytest
 import torch
 
-from models.backbones import BackboneConfig, build_backbone
-from models.heads import OUTPUT_SIZES, PoseHead
-from models.network import ModelConfig, SlicePoseNet, build_model, loss_function
-from sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
 from svr.geometry import rotation_6d_to_matrix, se3_from_vector, so3_exp, so3_log
 from svr.losses import anchor_point_loss, posenet_loss, rotation6d_loss, se3_geodesic_loss
+from svr.models.backbones import BackboneConfig, build_backbone
+from svr.models.heads import OUTPUT_SIZES, PoseHead
+from svr.models.network import ModelConfig, SlicePoseNet, build_model, loss_function
+from svr.sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
 
 BACKBONES = ("resnet", "inception")
 

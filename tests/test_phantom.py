@@ -9,7 +9,8 @@ import pytest
 import torch
 from scipy import ndimage
 
-from sampling.phantom import (
+from svr.image import Image, world_to_voxel
+from svr.sampling.phantom import (
     GA_WEEKS,
     T2_INTENSITY,
     PhantomConfig,
@@ -20,7 +21,6 @@ from sampling.phantom import (
     phantom_affine,
     required_field_of_view_mm,
 )
-from svr.image import Image, world_to_voxel
 
 SMALL = {"shape": (64, 64, 64), "spacing_mm": 1.6}
 

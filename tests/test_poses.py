@@ -1,4 +1,4 @@
-"""Tests of the slice poses in :mod:`sampling.poses`.
+"""Tests of the slice poses in :mod:`svr.sampling.poses`.
 
 Oracles: scipy's ``Rotation.from_euler("xyz", ...)`` / ``as_euler`` for the rotations, the
 definition ``t = R (0, 0, Tz)`` for the translations, NumPy grids for the grid values and order,
@@ -20,7 +20,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import svr.geometry as g
-from sampling.poses import (
+from svr.sampling.poses import (
     REPRESENTATIONS,
     EulerGridConfig,
     euler_grid,

@@ -10,10 +10,12 @@ import pytest
 import torch
 
 import svr.cli
-from models.backbones import BackboneConfig
-from models.checkpoint import CheckpointError, save_checkpoint
-from models.network import ModelConfig, build_model, checkpoint_model_config
-from models.predict import (
+from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp
+from svr.image import Image, ImageError, save_nifti
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import CheckpointError, save_checkpoint
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config
+from svr.models.predict import (
     load_pose_model,
     load_slice_folder,
     predict_slice_folder,
@@ -21,10 +23,8 @@ from models.predict import (
     prepare_stack_slices,
     stack_slice_poses,
 )
-from sampling.slicer import SliceConfig, sample_slices
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp
-from svr.image import Image, ImageError, save_nifti
 from svr.pose_io import read_pose_table
+from svr.sampling.slicer import SliceConfig, sample_slices
 
 CONFIG = ModelConfig(backbone=BackboneConfig(width=8, depth=2), input_size=(32, 32), spacing_mm=2.0)
 F64 = torch.float64

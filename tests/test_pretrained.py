@@ -12,29 +12,29 @@ import torch
 from safetensors import safe_open
 from synthetic import ellipsoid_brain
 
-import models.pretrained
-import models.pretrained.export
-from models.backbones import BackboneConfig
-from models.checkpoint import (
+import svr.models.pretrained
+import svr.models.pretrained.export
+from svr.cli import main
+from svr.files import OutputExistsError
+from svr.image import Image, save_nifti
+from svr.metrics import pose_errors
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CHECKPOINT_WEIGHTS,
     TRAINING_STATE,
     CheckpointError,
     save_checkpoint,
 )
-from models.network import ModelConfig, build_model, checkpoint_model_config
-from models.predict import load_pose_model
-from models.pretrained import (
+from svr.models.network import ModelConfig, build_model, checkpoint_model_config
+from svr.models.predict import load_pose_model
+from svr.models.pretrained import (
     DEFAULT_MODEL,
     MAX_MODEL_BYTES,
     default_model_path,
     resolve_model_path,
 )
-from models.pretrained.export import export_model
-from svr.cli import main
-from svr.files import OutputExistsError
-from svr.image import Image, save_nifti
-from svr.metrics import pose_errors
+from svr.models.pretrained.export import export_model
 
 CONFIG = ModelConfig(backbone=BackboneConfig(width=8, depth=2), input_size=(32, 32), spacing_mm=2.0)
 PROVENANCE = {
@@ -139,7 +139,7 @@ def test_export_needs_provenance(checkpoint, tmp_path, provenance, message):
 
 
 def test_export_refuses_a_model_over_the_size_limit(checkpoint, tmp_path, monkeypatch):
-    monkeypatch.setattr(models.pretrained.export, "MAX_MODEL_BYTES", 20_000)
+    monkeypatch.setattr(svr.models.pretrained.export, "MAX_MODEL_BYTES", 20_000)
     with pytest.raises(CheckpointError, match=r"must stay within 0\.02 MB"):
         export_model(checkpoint, tmp_path / "model", provenance=PROVENANCE)
     assert not (tmp_path / "model").exists()
@@ -174,7 +174,7 @@ def test_a_pickle_in_the_weights_file_is_refused_without_running_it(exported, tm
 
 def test_default_names_the_shipped_folder_and_paths_stay_paths():
     folder = default_model_path()
-    assert folder.parent == Path(models.pretrained.__file__).parent
+    assert folder.parent == Path(svr.models.pretrained.__file__).parent
     assert folder.name == DEFAULT_MODEL
     assert resolve_model_path("./default") == Path("default")
     assert resolve_model_path(Path("default")) == Path("default")
@@ -183,14 +183,14 @@ def test_default_names_the_shipped_folder_and_paths_stay_paths():
 def test_default_without_shipped_weights_is_a_clear_error(tmp_path, monkeypatch):
     empty = tmp_path / "default"
     empty.mkdir()
-    monkeypatch.setattr(models.pretrained, "default_model_path", lambda: empty)
+    monkeypatch.setattr(svr.models.pretrained, "default_model_path", lambda: empty)
     with pytest.raises(CheckpointError, match="default model is not installed") as info:
         load_pose_model(DEFAULT_MODEL)
     assert info.value.path == empty
 
 
 def test_default_loads_the_folder_it_resolves_to(exported, monkeypatch):
-    monkeypatch.setattr(models.pretrained, "default_model_path", lambda: exported)
+    monkeypatch.setattr(svr.models.pretrained, "default_model_path", lambda: exported)
     model, config = load_pose_model(DEFAULT_MODEL)
     assert config == CONFIG and not model.training
 
@@ -212,7 +212,7 @@ def test_the_shipped_model_loads():
 
 
 def test_cli_predict_and_evaluate_take_default(exported, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(models.pretrained, "default_model_path", lambda: exported)
+    monkeypatch.setattr(svr.models.pretrained, "default_model_path", lambda: exported)
     volume, mask = ellipsoid_brain(24, 2.0, (16, 18, 14), seed=5)
     save_nifti(volume, tmp_path / "brain.nii.gz")
     save_nifti(mask, tmp_path / "mask.nii.gz")
@@ -230,7 +230,7 @@ def test_cli_predict_and_evaluate_take_default(exported, tmp_path, monkeypatch, 
     info = json.loads((report / "evaluation.json").read_text())
     assert info["checkpoints"] == {"default": str(exported)}
     capsys.readouterr()
-    monkeypatch.setattr(models.pretrained, "default_model_path", lambda: tmp_path / "none")
+    monkeypatch.setattr(svr.models.pretrained, "default_model_path", lambda: tmp_path / "none")
     assert main([*args, "--output-poses", str(tmp_path / "other.csv")]) == 1
     err = capsys.readouterr().err
     assert "default model is not installed" in err and err.count("\n") == 1

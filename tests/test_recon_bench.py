@@ -17,10 +17,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from reconstruction.config import ReconstructionConfig
-from reconstruction.outputs import write_volume
-from reconstruction.pipeline import reconstruct
-from reconstruction.stacks import load_stacks
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.outputs import write_volume
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.stacks import load_stacks
 
 PSNR_FLOOR_DB = 24.0
 SSIM_FLOOR = 0.90

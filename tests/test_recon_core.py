@@ -15,23 +15,23 @@ import torch
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from reconstruction.config import ReconstructionConfig
-from reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur, psf_nodes
-from reconstruction.pipeline import reconstruct, slice_groups
-from reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
-from reconstruction.robust import robust_weights
-from reconstruction.slices import SliceSet
-from reconstruction.stacks import prepare_stacks
-from reconstruction.superres import (
+from svr.image import Image
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur, psf_nodes
+from svr.reconstruction.pipeline import reconstruct, slice_groups
+from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from svr.reconstruction.robust import robust_weights
+from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.stacks import prepare_stacks
+from svr.reconstruction.superres import (
     output_grid,
     scattered_data_approximation,
     super_resolution,
 )
-from sampling.phantom import PhantomConfig, make_phantom
-from sampling.simulate import SimulationConfig, acquisition_order, simulate_case
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import canonicalize
-from svr.image import Image
+from svr.sampling.phantom import PhantomConfig, make_phantom
+from svr.sampling.simulate import SimulationConfig, acquisition_order, simulate_case
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import canonicalize
 
 F64 = torch.float64
 SIGMA_PER_FWHM = 1.0 / 2.3548  # sigma of a Gaussian of unit FWHM (2 sqrt(2 ln 2) = 2.35482)

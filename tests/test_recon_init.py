@@ -9,18 +9,18 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-import reconstruction.cnn_init as cnn_init
-from models.backbones import BackboneConfig
-from models.network import ModelConfig, build_model
-from reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
-from reconstruction.config import ReconstructionConfig
-from reconstruction.pipeline import learned_initialisation, stack_registration
-from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
-from sampling.slicer import SliceConfig, sample_slices
+import svr.reconstruction.cnn_init as cnn_init
 from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
 from svr.geometry.symmetry import SAGITTAL, mirror_twin_matrix
 from svr.image import Image
+from svr.models.backbones import BackboneConfig
+from svr.models.network import ModelConfig, build_model
 from svr.pose_io import PoseTable
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.pipeline import learned_initialisation, stack_registration
+from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
+from svr.sampling.slicer import SliceConfig, sample_slices
 
 F64 = torch.float64
 SPACING = 2.0  # in-plane mm of the synthetic stacks
@@ -244,7 +244,7 @@ def moving_scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSe
 
 
 def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool = False):
-    """A stand-in for :func:`models.predict.predict_stack_poses` that knows the true poses.
+    """A stand-in for :func:`svr.models.predict.predict_stack_poses` that knows the true poses.
 
     It keeps its contract: rows for the cropped stack's k-planes with a nonempty mask, poses
     about the plane centre. A fraction ``corrupt`` of the rows get random poses instead.

@@ -11,21 +11,21 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-from models.predict import load_slice_folder, stack_slice_poses
-from reconstruction.config import ReconstructionResult
-from reconstruction.outputs import (
+from svr.files import OutputExistsError
+from svr.geometry import se3_from_vector, so3_exp
+from svr.image import Image, ImageError, load_nifti
+from svr.models.predict import load_slice_folder, stack_slice_poses
+from svr.pose_io import COLUMNS, PoseTable, read_pose_table, write_pose_table
+from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.outputs import (
     slice_affines,
     write_slices_folder,
     write_transforms,
     write_volume,
 )
-from reconstruction.qa import qa_figure, resample_to_grid
-from reconstruction.slices import SliceSet, extract_slices
-from reconstruction.stacks import prepare_stacks
-from svr.files import OutputExistsError
-from svr.geometry import se3_from_vector, so3_exp
-from svr.image import Image, ImageError, load_nifti
-from svr.pose_io import COLUMNS, PoseTable, read_pose_table, write_pose_table
+from svr.reconstruction.qa import qa_figure, resample_to_grid
+from svr.reconstruction.slices import SliceSet, extract_slices
+from svr.reconstruction.stacks import prepare_stacks
 
 F64 = torch.float64
 
@@ -220,7 +220,7 @@ def test_qa_figure_png_and_pdf(slices, tmp_path):
 def test_qa_text_carries_the_initialisation_notes(slices):
     from dataclasses import replace
 
-    from reconstruction.qa import _text
+    from svr.reconstruction.qa import _text
 
     result = replace(
         make_result(slices),

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from models.predict import stack_slice_poses
-from reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.image import Image
+from svr.models.predict import stack_slice_poses
+from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 
 F64 = torch.float64
 

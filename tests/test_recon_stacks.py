@@ -12,10 +12,10 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from models.predict import stack_slice_poses
-from reconstruction.slices import extract_slices, plane_poses
-from reconstruction.stacks import StackConfig, load_stacks, prepare_stacks
 from svr.image import Image, ImageError, load_nifti
+from svr.models.predict import stack_slice_poses
+from svr.reconstruction.slices import extract_slices, plane_poses
+from svr.reconstruction.stacks import StackConfig, load_stacks, prepare_stacks
 
 BRAIN_CENTRE = np.array([2.0, -1.0, 4.0])
 BRAIN_AXES = np.array([18.0, 14.0, 12.0])
@@ -195,7 +195,7 @@ def test_a_mask_on_another_overlapping_grid_is_resampled(oblique_files, tmp_path
 
 def test_thickness_defaults_to_the_slice_spacing_with_a_warning(oblique_files, caplog):
     stack_paths, mask_paths = oblique_files
-    with caplog.at_level(logging.WARNING, logger="reconstruction.stacks"):
+    with caplog.at_level(logging.WARNING, logger="svr.reconstruction.stacks"):
         stacks = load_stacks(stack_paths, mask_paths)
     assert [s.thickness_mm for s in stacks] == pytest.approx([3.0, 2.5, 3.3], abs=1e-5)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -203,7 +203,7 @@ def test_thickness_defaults_to_the_slice_spacing_with_a_warning(oblique_files, c
     for path, message in zip(stack_paths, warnings, strict=True):
         assert message.startswith(str(path)) and "thickness" in message
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="reconstruction.stacks"):
+    with caplog.at_level(logging.WARNING, logger="svr.reconstruction.stacks"):
         assert [s.thickness_mm for s in load_stacks(stack_paths, mask_paths, [4.0])] == [4.0] * 3
     assert not caplog.records
 

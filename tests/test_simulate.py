@@ -11,19 +11,19 @@ import torch
 from oracles import foreground_cc, truth_poses
 from synthetic import ellipsoid_brain
 
-from sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
-from sampling.simulate import (
+from svr.files import OutputExistsError
+from svr.geometry import se3_to_vector
+from svr.image import Image, load_nifti
+from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
+from svr.sampling.simulate import (
     SimulationConfig,
     acquisition_order,
     simulate_case,
     stack_orientations,
     write_case,
 )
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.volume import canonicalize
-from svr.files import OutputExistsError
-from svr.geometry import se3_to_vector
-from svr.image import Image, load_nifti
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import canonicalize
 
 SMALL = {"in_plane_mm": 2.0, "thickness_mm": 4.0, "margin_mm": 2.0}
 

@@ -11,7 +11,9 @@ from oracles import foreground_cc, truth_poses
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
-from sampling.slicer import (
+from svr.geometry import se3_from_vector
+from svr.image import Image, load_nifti
+from svr.sampling.slicer import (
     SliceConfig,
     brain_fraction,
     pose_matrices,
@@ -19,8 +21,6 @@ from sampling.slicer import (
     sample_slices,
     slice_points,
 )
-from svr.geometry import se3_from_vector
-from svr.image import Image, load_nifti
 
 
 def smooth_volume(rng: np.random.Generator, shape=(40, 44, 36), spacing=1.0) -> Image:

@@ -11,11 +11,6 @@ import torch
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from models.network import loss_function
-from sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
-from sampling.slicer import SliceConfig, sample_slices
-from sampling.symmetry import mean_plane, measure_reflection_plane, resolve_symmetry
-from sampling.volume import canonicalize
 from svr.geometry import se3_error, se3_from_vector
 from svr.geometry.symmetry import (
     SAGITTAL,
@@ -29,6 +24,11 @@ from svr.image import Image
 from svr.losses import se3_geodesic_loss
 from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
 from svr.metrics import nearest_orbit_member
+from svr.models.network import loss_function
+from svr.sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.symmetry import mean_plane, measure_reflection_plane, resolve_symmetry
+from svr.sampling.volume import canonicalize
 
 F64 = torch.float64
 S = np.diag([-1.0, 1.0, 1.0])  # the sagittal reflection of the canonical frame

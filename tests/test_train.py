@@ -15,17 +15,17 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-from models.backbones import BackboneConfig
-from models.checkpoint import latest_checkpoint, load_checkpoint
-from models.network import ModelConfig, build_model, loss_function
-from models.train import OptimConfig, TrainConfig, train
-from sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
-from sampling.poses import EulerGridConfig
-from sampling.slicer import SliceConfig
-from sampling.volume import canonicalize
 from svr.cli import main
 from svr.files import OutputExistsError
 from svr.image import Image, save_nifti
+from svr.models.backbones import BackboneConfig
+from svr.models.checkpoint import latest_checkpoint, load_checkpoint
+from svr.models.network import ModelConfig, build_model, loss_function
+from svr.models.train import OptimConfig, TrainConfig, train
+from svr.sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
+from svr.sampling.poses import EulerGridConfig
+from svr.sampling.slicer import SliceConfig
+from svr.sampling.volume import canonicalize
 
 COARSE_GRID = EulerGridConfig(angle_step_deg=45.0, tz_step_mm=10.0, tz_range_mm=20.0)
 REPRESENTATIONS = {
@@ -76,10 +76,10 @@ def logged(out: Path) -> list[float]:
 @pytest.mark.parametrize("loss", sorted(REPRESENTATIONS))
 def test_training_reduces_each_loss(volume, tmp_path, loss, monkeypatch):
     """The loop optimises: trained on one fixed batch, the loss on that batch falls."""
-    import models.train
+    import svr.models.train
 
     monkeypatch.setattr(
-        models.train._StepBatches, "__getitem__", lambda self, i: self.stream.batch(0)
+        svr.models.train._StepBatches, "__getitem__", lambda self, i: self.stream.batch(0)
     )
     config = small_config(tmp_path / loss, REPRESENTATIONS[loss], steps=30)
     result = train(config, [volume], progress=False)
@@ -114,17 +114,17 @@ def test_resume_after_a_kill_reproduces_the_run(volume, tmp_path, pose_sampling)
 
 def test_grid_sampling_trains_on_the_shuffled_grid(volume, tmp_path, monkeypatch):
     """With pose_sampling="grid" step s trains on batch s - 1 of the EulerGridStream."""
-    import models.train
+    import svr.models.train
 
     trained_on = []
-    original = models.train._StepBatches.__getitem__
+    original = svr.models.train._StepBatches.__getitem__
 
     def record(self, i):
         batch = original(self, i)
         trained_on.append((type(self.stream), batch["poses"]))
         return batch
 
-    monkeypatch.setattr(models.train._StepBatches, "__getitem__", record)
+    monkeypatch.setattr(svr.models.train._StepBatches, "__getitem__", record)
     config = small_config(tmp_path / "grid", steps=4, pose_sampling="grid", grid=COARSE_GRID)
     result = train(config, [volume], progress=False)
     assert result.steps_done == 4 and len(logged(tmp_path / "grid")) == 4

@@ -7,7 +7,7 @@ import struct
 
 import pytest
 
-from models.training_log import TrainingLog, crc32c, masked_crc32c
+from svr.models.training_log import TrainingLog, crc32c, masked_crc32c
 
 
 def test_crc32c_standard_check_value():

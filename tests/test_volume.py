@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from sampling.volume import canonicalize, load_canonical_volume
 from svr.image import Image, ImageError, save_nifti
+from svr.sampling.volume import canonicalize, load_canonical_volume
 
 
 def synthetic(rng: np.random.Generator) -> tuple[Image, Image]:

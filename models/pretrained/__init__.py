@@ -1,11 +1,11 @@
 """Slice-pose models shipped with the package, loadable by name.
 
 The shipped model lives in the package-data folder ``models/pretrained/default/``, a checkpoint
-folder in the layout of :mod:`models.checkpoint` (``model.safetensors`` in float16,
+folder in the layout of :mod:`svr.models.checkpoint` (``model.safetensors`` in float16,
 ``config.json`` with the model configuration and its provenance) plus a ``README.md`` with its
 training command, data licence and evaluation. It is written by
-:func:`models.pretrained.export.export_model` (``benchmarks/export_default_model.py``) and read,
-like any checkpoint, by :func:`models.predict.load_pose_model`, which accepts the name
+:func:`svr.models.pretrained.export.export_model` (``benchmarks/export_default_model.py``) and read,
+like any checkpoint, by :func:`svr.models.predict.load_pose_model`, which accepts the name
 :data:`DEFAULT_MODEL` for it: safetensors and JSON only, so loading never executes code, and the
 float16 weights come back in their original float32.
 """
@@ -16,7 +16,7 @@ import os
 from importlib import resources
 from pathlib import Path
 
-from models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, CheckpointError
+from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, CheckpointError
 
 __all__ = ["DEFAULT_MODEL", "MAX_MODEL_BYTES", "default_model_path", "resolve_model_path"]
 

@@ -1,11 +1,11 @@
 """Export a trained checkpoint as a small, self-describing model to ship or share.
 
-An exported model is a checkpoint folder (:mod:`models.checkpoint`) without a training state:
+An exported model is a checkpoint folder (:mod:`svr.models.checkpoint`) without a training state:
 ``model.safetensors`` with the weights in float16 (their float32 dtype recorded, so loading casts
-them back) and ``config.json`` holding exactly what :func:`models.predict.load_pose_model` needs
+them back) and ``config.json`` holding exactly what :func:`svr.models.predict.load_pose_model` needs
 (the ``"model"`` section), the source run's ``"training"`` section, the caller's
 ``"provenance"`` and an ``"export"`` section (source checkpoint, its step and weights hash, library
-versions). It is written atomically and is at most :data:`models.pretrained.MAX_MODEL_BYTES`.
+versions). It is written atomically and is at most :data:`svr.models.pretrained.MAX_MODEL_BYTES`.
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ import numpy as np
 import safetensors
 import torch
 
-from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from models.network import checkpoint_model_config
-from models.predict import pose_model_from_checkpoint
-from models.pretrained import MAX_MODEL_BYTES
 from svr import __version__ as svr_version
+from svr.models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from svr.models.network import checkpoint_model_config
+from svr.models.predict import pose_model_from_checkpoint
+from svr.models.pretrained import MAX_MODEL_BYTES
 
 __all__ = ["REQUIRED_PROVENANCE", "export_model"]
 
@@ -87,8 +87,8 @@ def export_model(
     Raises:
         CheckpointError: Naming the path, if the checkpoint cannot be loaded as a slice-pose
             model, ``provenance`` lacks a required key or is not JSON-serialisable, a weight
-            overflows float16, or the model would exceed :data:`~models.pretrained.MAX_MODEL_BYTES`
-            (checked before anything is written).
+            overflows float16, or the model would exceed
+            :data:`~svr.models.pretrained.MAX_MODEL_BYTES` (checked before anything is written).
         OutputExistsError: If ``out_dir`` exists and ``overwrite`` is false.
         ValueError: If ``out_dir`` is ``checkpoint_dir``.
         FileNotFoundError: If the parent folder of ``out_dir`` does not exist.

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import torch
 
 if TYPE_CHECKING:
-    from sampling.volume import CanonicalVolume
+    from svr.sampling.volume import CanonicalVolume
 
 
 class CliError(Exception):
@@ -156,8 +156,8 @@ def load_input_volume(args: argparse.Namespace) -> tuple[CanonicalVolume, str]:
         CliError: If only one of ``--input-volume`` and ``--input-mask`` is given.
         ImageError: For unusable files (the message names the file).
     """
-    from sampling.phantom import gestational_age_config, make_phantom
-    from sampling.volume import canonicalize, load_canonical_volume
+    from svr.sampling.phantom import gestational_age_config, make_phantom
+    from svr.sampling.volume import canonicalize, load_canonical_volume
 
     if (args.input_volume is None) != (args.input_mask is None):
         raise CliError("--input-volume and --input-mask go together")

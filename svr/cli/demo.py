@@ -24,7 +24,7 @@ from svr.files import atomic_write_text, check_output_path
 from svr.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
 
 if TYPE_CHECKING:
-    from reconstruction.demo import DemoResult
+    from svr.reconstruction.demo import DemoResult
 
 DEFAULT_OUTPUT_DIR = "svr-demo"
 
@@ -196,7 +196,7 @@ def _run_loss_demo(args: argparse.Namespace) -> int:
         device=resolve_device(args.device),
         progress=not args.quiet,
     )
-    from sampling.poses import random_slice_poses
+    from svr.sampling.poses import random_slice_poses
 
     targets = random_slice_poses(config.num_poses, torch.Generator().manual_seed(config.seed))
     results = run_loss_demo(config, targets)
@@ -216,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     _check_mode(args)
     if args.loss_only:
         return _run_loss_demo(args)
-    from reconstruction.demo import TRAIN_MODEL, demo_config, quick_phantom, run_demo
+    from svr.reconstruction.demo import TRAIN_MODEL, demo_config, quick_phantom, run_demo
 
     output_dir = args.output_dir or DEFAULT_OUTPUT_DIR
     check_output_path(output_dir, args.overwrite)

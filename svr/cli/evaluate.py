@@ -26,9 +26,9 @@ from svr.cli.common import (
 from svr.cli.train import _atlas_pairs
 
 if TYPE_CHECKING:
-    from models.network import SlicePoseNet
-    from sampling.slicer import SliceConfig
-    from sampling.volume import CanonicalVolume
+    from svr.models.network import SlicePoseNet
+    from svr.sampling.slicer import SliceConfig
+    from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
 
@@ -160,8 +160,8 @@ def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, str]]:
 
 def _checkpoint_folder(spec: str) -> Path:
     """The checkpoint a DIR names: the shipped model, the folder, or its newest step_*/."""
-    from models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint
-    from models.pretrained import DEFAULT_MODEL, resolve_model_path
+    from svr.models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint
+    from svr.models.pretrained import DEFAULT_MODEL, resolve_model_path
 
     if spec == DEFAULT_MODEL:
         return resolve_model_path(spec)
@@ -182,7 +182,7 @@ def _checkpoint_folder(spec: str) -> Path:
 
 def _load_method(name: str, spec: str, device: str) -> _Method:
     """Load the network of a ``--checkpoints`` DIR onto ``device``, in eval mode."""
-    from models.predict import load_pose_model
+    from svr.models.predict import load_pose_model
 
     folder = _checkpoint_folder(spec)
     model, config = load_pose_model(folder, device)
@@ -211,8 +211,8 @@ def _common_geometry(methods: list[_Method]) -> tuple[tuple[int, int], float]:
 
 def _volumes(args: argparse.Namespace) -> tuple[list[CanonicalVolume], list[str]]:
     """The evaluation volumes named by the options, and a name for each."""
-    from sampling.phantom import gestational_age_config, make_phantom
-    from sampling.volume import canonicalize, load_canonical_volume
+    from svr.sampling.phantom import gestational_age_config, make_phantom
+    from svr.sampling.volume import canonicalize, load_canonical_volume
 
     if len(args.input_volumes) != len(args.input_masks):
         raise CliError(
@@ -251,8 +251,8 @@ def _validation_slices(
     generator: torch.Generator,
 ) -> _VolumeSlices:
     """Random validation poses of one volume that pass the empty-slice rule, and their slices."""
-    from models.evaluation import draw_validation_poses
-    from sampling.slicer import sample_slices
+    from svr.models.evaluation import draw_validation_poses
+    from svr.sampling.slicer import sample_slices
 
     try:
         poses = draw_validation_poses(
@@ -286,7 +286,7 @@ def _examples(
     config: SliceConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth and predicted-pose slices of a method's worst and median cases."""
-    from sampling.slicer import sample_slices
+    from svr.sampling.slicer import sample_slices
 
     volume_of = np.concatenate([np.full(len(d.poses), v) for v, d in enumerate(data)])
     first = np.cumsum([0] + [len(d.poses) for d in data])
@@ -314,9 +314,9 @@ def _poses_csv(data: list[_VolumeSlices], predicted: dict[str, torch.Tensor]) ->
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr evaluate``."""
-    from models.evaluation import EvalConfig, evaluate_poses, write_report
-    from sampling.slicer import SliceConfig
     from svr.files import atomic_write_text, check_output_path
+    from svr.models.evaluation import EvalConfig, evaluate_poses, write_report
+    from svr.sampling.slicer import SliceConfig
 
     if not 0 <= args.min_brain_fraction < 1:
         raise CliError(f"--min-brain-fraction must be in [0, 1), got {args.min_brain_fraction}")

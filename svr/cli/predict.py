@@ -75,8 +75,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr predict``."""
-    from models.predict import load_pose_model, predict_slice_folder, predict_stack_poses
     from svr.image import ImageError, load_nifti
+    from svr.models.predict import load_pose_model, predict_slice_folder, predict_stack_poses
     from svr.pose_io import PoseTable, write_pose_table
 
     if not args.input_stacks and not args.input_slices:

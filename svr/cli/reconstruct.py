@@ -27,8 +27,8 @@ from svr.cli.common import (
 from svr.files import atomic_write_text, check_output_path
 
 if TYPE_CHECKING:
-    from reconstruction.config import ReconstructionConfig, ReconstructionResult
-    from reconstruction.stacks import StackConfig
+    from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
+    from svr.reconstruction.stacks import StackConfig
 
 DESCRIPTION = """\
 Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
@@ -86,7 +86,7 @@ def add_options(
         volume_required: Whether ``--output-volume`` is required.
         iterations: Default of ``--iterations``; ``None`` for the library's default.
     """
-    from reconstruction.config import REGISTRATIONS, ReconstructionConfig
+    from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig
 
     d = ReconstructionConfig()
     inputs = parser.add_argument_group("inputs")
@@ -203,9 +203,9 @@ def run(args: argparse.Namespace) -> int:
         CliError: For inconsistent options or output paths.
         ValueError, OSError: From the library (bad or missing files, checkpoints), naming the file.
     """
-    from models.predict import load_pose_model
-    from reconstruction.pipeline import reconstruct
-    from reconstruction.stacks import load_stacks
+    from svr.models.predict import load_pose_model
+    from svr.reconstruction.pipeline import reconstruct
+    from svr.reconstruction.stacks import load_stacks
 
     stack_config, config = _configs(args)
     _check_outputs(args)
@@ -232,8 +232,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
     """The dataclass configs the options describe, after the checks argparse cannot do."""
-    from reconstruction.config import ReconstructionConfig
-    from reconstruction.stacks import StackConfig
+    from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.stacks import StackConfig
 
     count = len(args.input_stacks)
     if args.stack_masks is not None and len(args.stack_masks) != count:
@@ -267,7 +267,7 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """Check every output path before the computation: suffix, existence, folder, no repeats."""
-    from reconstruction.qa import FIGURE_SUFFIXES
+    from svr.reconstruction.qa import FIGURE_SUFFIXES
 
     outputs = {
         "--output-volume": (args.output_volume, VOLUME_SUFFIXES),
@@ -327,8 +327,8 @@ def _log_result(result: ReconstructionResult) -> None:
 
 def _write_outputs(args: argparse.Namespace, result: ReconstructionResult) -> list[str]:
     """Write the requested outputs (the log aside); returns their paths."""
-    from reconstruction.outputs import write_slices_folder, write_transforms, write_volume
-    from reconstruction.qa import qa_figure
+    from svr.reconstruction.outputs import write_slices_folder, write_transforms, write_volume
+    from svr.reconstruction.qa import qa_figure
 
     written = []
     if args.output_volume is not None:

@@ -76,7 +76,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _draw_poses(kind: str, n: int, generator: torch.Generator) -> torch.Tensor:
-    from sampling.poses import euler_grid_poses, random_slice_poses
+    from svr.sampling.poses import euler_grid_poses, random_slice_poses
 
     if kind == "euler-grid":
         grid = euler_grid_poses()
@@ -104,9 +104,9 @@ def _preview_png(slices: torch.Tensor, path: str, overwrite: bool) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr sample``."""
-    from sampling.slicer import SliceConfig, brain_fraction, sample_slices
     from svr.image import Image, save_nifti
     from svr.pose_io import PoseTable, write_pose_table
+    from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
 
     if args.output_preview is None and args.output_dataset is None:
         raise CliError("nothing to write: give --output-preview and/or --output-dataset")

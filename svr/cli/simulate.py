@@ -33,7 +33,7 @@ examples:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr simulate``."""
-    from sampling.simulate import SimulationConfig
+    from svr.sampling.simulate import SimulationConfig
 
     d = SimulationConfig()
     p = subparsers.add_parser(
@@ -135,7 +135,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr simulate``."""
-    from sampling.simulate import SimulationConfig, simulate_case, write_case
+    from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 
     check_output_path(args.output_dir, args.overwrite)
     check_finite(

@@ -46,8 +46,8 @@ examples:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train``."""
-    from models.heads import SE3_ROTATIONS
-    from sampling.symmetry import SYMMETRY_MODES, SYMMETRY_THRESHOLD
+    from svr.models.heads import SE3_ROTATIONS
+    from svr.sampling.symmetry import SYMMETRY_MODES, SYMMETRY_THRESHOLD
 
     p = subparsers.add_parser(
         "train",
@@ -197,8 +197,8 @@ def _atlas_pairs(folder: str, hold_out: list[float]) -> list[tuple[Path, Path]]:
 
 
 def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
-    from sampling.phantom import gestational_age_config, make_phantom
-    from sampling.volume import canonicalize, load_canonical_volume
+    from svr.sampling.phantom import gestational_age_config, make_phantom
+    from svr.sampling.volume import canonicalize, load_canonical_volume
 
     if len(args.input_volumes) != len(args.input_masks):
         raise CliError(
@@ -239,13 +239,13 @@ def _symmetry_summary(report: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train``."""
-    from models.backbones import BackboneConfig
-    from models.network import ModelConfig, loss_function
-    from models.train import OptimConfig, TrainConfig, train
-    from sampling.augment import SliceAugmentConfig
-    from sampling.dataset import SliceDatasetConfig
-    from sampling.slicer import SliceConfig
-    from sampling.symmetry import resolve_symmetry
+    from svr.models.backbones import BackboneConfig
+    from svr.models.network import ModelConfig, loss_function
+    from svr.models.train import OptimConfig, TrainConfig, train
+    from svr.sampling.augment import SliceAugmentConfig
+    from svr.sampling.dataset import SliceDatasetConfig
+    from svr.sampling.slicer import SliceConfig
+    from svr.sampling.symmetry import resolve_symmetry
 
     check_run_folder(args.output_dir)
     check_finite(args, "--weight-decay", "--metric-weights")

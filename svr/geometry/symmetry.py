@@ -16,7 +16,7 @@ the twin samples ``V`` at ``M T (u, v, w)`` wherever ``T`` samples it at ``T (u,
 
 A single slice cannot tell ``T`` from ``twin(T)``; the *orbit* of a pose under a set of planes is
 ``{T} + {twin_p(T) for each plane p}`` (identity first). A stack of slices, ordered along its
-normal, can tell them apart (:mod:`reconstruction.cnn_init`).
+normal, can tell them apart (:mod:`svr.reconstruction.cnn_init`).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ The orbit loss
     ``L(pred, T) = min_k loss(pred, O_k(T))``,  ``O(T) = {T, twin_p(T) for each plane p}``
 
 asks only for one of the poses the slice is consistent with. Which one is settled later, by a
-stack's slice order (:mod:`reconstruction.cnn_init`).
+stack's slice order (:mod:`svr.reconstruction.cnn_init`).
 
 Gradients: each pose's loss is the loss to its selected orbit member ``k* = argmin_k``, so the
 gradient is that member's loss gradient, exact wherever the minimum is unique. On the switching

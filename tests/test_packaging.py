@@ -1,0 +1,101 @@
+"""One import namespace: the package installs as ``svr`` only, beside users' own packages."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import sysconfig
+import textwrap
+import venv
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(args: list[str], cwd: Path, env: dict[str, str] | None = None) -> str:
+    result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, env=env, check=False)
+    assert result.returncode == 0, f"{args} failed:\n{result.stdout}\n{result.stderr}"
+    return result.stdout
+
+
+def test_subpackages_live_in_the_svr_namespace():
+    import svr
+    import svr.models.predict
+    import svr.reconstruction.pipeline
+    import svr.sampling.dataset
+
+    assert Path(svr.models.predict.__file__).parent == REPO / "models"
+    assert Path(svr.sampling.dataset.__file__).parent == REPO / "sampling"
+    assert Path(svr.reconstruction.pipeline.__file__).parent == REPO / "reconstruction"
+    assert (Path(svr.__file__).parent / "py.typed").is_file()
+
+
+def test_imports_beside_unrelated_models_and_sampling_packages(tmp_path):
+    for name in ("models", "sampling", "reconstruction"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text(f"OWNER = 'user {name}'\n")
+    script = textwrap.dedent(
+        """
+        import models, sampling, reconstruction
+        import svr.models.predict, svr.sampling.dataset, svr.reconstruction.pipeline
+        from svr.models.predict import load_pose_model
+        assert models.OWNER == "user models", models.__file__
+        assert sampling.OWNER == "user sampling", sampling.__file__
+        assert reconstruction.OWNER == "user reconstruction", reconstruction.__file__
+        load_pose_model("default")
+        print(svr.models.predict.__file__)
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = _run([sys.executable, "-c", script], cwd=tmp_path, env=env)
+    assert Path(out.strip()).parent == REPO / "models"
+
+
+@pytest.mark.slow
+def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
+    dist = tmp_path / "dist"
+    build = [sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "-w", str(dist), "-q"]
+    try:  # build offline with this environment's setuptools when it is new enough
+        import setuptools
+
+        if int(setuptools.__version__.split(".")[0]) >= 68:
+            build.append("--no-build-isolation")
+    except ImportError:
+        pass
+    _run(build, cwd=tmp_path)
+    wheels = list(dist.glob("fetal_svr-*.whl"))
+    assert len(wheels) == 1
+    fresh = tmp_path / "fresh"
+    venv.EnvBuilder(with_pip=True).create(fresh)
+    python = fresh / "bin" / "python"
+    _run(
+        [str(python), "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheels[0])],
+        tmp_path,
+    )
+    # The dependencies (torch, ...) come from this environment's site-packages, added as a plain
+    # path: its .pth files (this checkout's editable install among them) are not processed.
+    site = _run(
+        [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp_path
+    ).strip()
+    (Path(site) / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    installed = sorted(p.name for p in Path(site).iterdir())
+    for name in ("models", "sampling", "reconstruction"):
+        assert name not in installed
+    assert (Path(site) / "svr" / "models" / "pretrained" / "default" / "config.json").is_file()
+    assert (Path(site) / "svr" / "py.typed").is_file()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = _run([str(fresh / "bin" / "svr"), "--help"], cwd=tmp_path, env=env)
+    assert "reconstruct" in out
+    where = _run(
+        [
+            str(python),
+            "-c",
+            "import svr.models.predict as p; p.load_pose_model('default'); print(p.__file__)",
+        ],
+        cwd=tmp_path,
+        env=env,
+    )
+    assert Path(where.strip()).is_relative_to(Path(site))
