@@ -32,9 +32,9 @@ from torch import Tensor
 from svr.geometry import (
     pose_to_anchor_points,
     pose_to_quat_translation,
-    pose_to_rotation6d_translation,
+    pose_to_rotation_6d_translation,
 )
-from svr.losses import anchor_point_loss, posenet_loss, rotation6d_loss, se3_geodesic_loss
+from svr.losses import anchor_point_loss, posenet_loss, rotation_6d_loss, se3_geodesic_loss
 
 Loss = Callable[[Tensor, Tensor], Tensor]
 
@@ -56,7 +56,7 @@ CASES: list[tuple[str, Loss, Callable[[Tensor], Tensor]]] = [
     ("se3 adaptive Z", partial(se3_geodesic_loss, weights=ADAPTIVE_Z), _identity),
     ("posenet", posenet_loss, pose_to_quat_translation),
     ("anchor points", anchor_point_loss, pose_to_anchor_points),
-    ("rotation6d", rotation6d_loss, pose_to_rotation6d_translation),
+    ("rotation6d", rotation_6d_loss, pose_to_rotation_6d_translation),
 ]
 BASELINES = ("posenet", "anchor points", "rotation6d")
 

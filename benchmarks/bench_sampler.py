@@ -57,7 +57,7 @@ from bench_common import add_device_options, resolve_devices
 from scipy import ndimage
 from torch import Tensor
 
-from svr.geometry import matrix_from_quat
+from svr.geometry import quat_to_matrix
 from svr.image import Image
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
@@ -107,7 +107,7 @@ def random_poses(n: int, generator: torch.Generator) -> Tensor:
     quat = torch.randn(n, 4, generator=generator, dtype=torch.float64)
     unit = torch.rand(n, 3, generator=generator, dtype=torch.float64)
     poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
-    poses[:, :3, :3] = matrix_from_quat(quat)
+    poses[:, :3, :3] = quat_to_matrix(quat)
     poses[:, :3, 3] = (2 * unit - 1) * TRANSLATION_MM
     return poses
 

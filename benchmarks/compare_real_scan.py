@@ -78,7 +78,7 @@ from torch import Tensor
 
 from svr import image_metrics
 from svr.files import atomic_write_bytes, atomic_write_text, check_output_path
-from svr.geometry import se3_from_vector
+from svr.geometry import vector_to_se3
 from svr.image import Image, load_nifti
 from svr.pose_io import read_pose_table
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
@@ -136,7 +136,7 @@ def read_transforms(path: Path) -> tuple[dict[tuple[str, int], int], Tensor, str
     }
     if len(keys) != len(rows):
         raise ValueError(f"{path}: repeated (file, slice_index) rows")
-    return keys, se3_from_vector(table.poses), table.frame, rows
+    return keys, vector_to_se3(table.poses), table.frame, rows
 
 
 def posed_slices(

@@ -35,12 +35,12 @@ from torch import Tensor, nn
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
-    quat_from_matrix,
+    matrix_to_quat,
+    quat_to_rotvec,
     quat_translation_to_pose,
     regularize_rotvec,
-    rotation6d_translation_to_pose,
     rotation_6d_to_matrix,
-    rotvec_from_quat,
+    rotation_6d_translation_to_pose,
 )
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
 from svr.sampling.poses import REPRESENTATIONS, Representation, pose_labels
@@ -156,7 +156,7 @@ class PoseHead(nn.Module):
         raw = self.linear(features) * self.scale
         if self.rotation == "rotvec":
             return raw
-        rotvec = rotvec_from_quat(quat_from_matrix(rotation_6d_to_matrix(raw[..., :6])))
+        rotvec = quat_to_rotvec(matrix_to_quat(rotation_6d_to_matrix(raw[..., :6])))
         return torch.cat([rotvec, raw[..., 6:]], dim=-1)
 
     def to_pose(self, output: Tensor) -> Tensor:
@@ -180,7 +180,7 @@ class PoseHead(nn.Module):
             return quat_translation_to_pose(output)
         if self.representation == "anchor_points":
             return anchor_points_to_pose(output, self.anchor_half_size_mm)
-        return rotation6d_translation_to_pose(output)
+        return rotation_6d_translation_to_pose(output)
 
     def extra_repr(self) -> str:
         """Hyper-parameters shown by ``repr``."""

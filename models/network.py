@@ -21,14 +21,14 @@ from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
     quat_translation_to_pose,
-    rotation6d_translation_to_pose,
+    rotation_6d_translation_to_pose,
 )
 from svr.geometry.symmetry import ReflectionPlane, check_planes
 from svr.losses import (
     DEFAULT_LENGTH_SCALE_MM,
     anchor_point_loss,
     posenet_loss,
-    rotation6d_loss,
+    rotation_6d_loss,
     se3_geodesic_loss,
     validate_metric_weights,
 )
@@ -253,7 +253,7 @@ def loss_function(
     * ``"se3"``: :func:`svr.losses.se3_geodesic_loss` with metric weights ``weights``;
     * ``"quat_translation"``: :func:`svr.losses.posenet_loss`;
     * ``"anchor_points"``: :func:`svr.losses.anchor_point_loss`;
-    * ``"rotation6d_translation"``: :func:`svr.losses.rotation6d_loss`;
+    * ``"rotation6d_translation"``: :func:`svr.losses.rotation_6d_loss`;
 
     the baselines with their default parameters. With reflection ``planes`` every loss is taken to
     the nearest member of the label's mirror orbit (:mod:`svr.losses.symmetry`): the labels are
@@ -292,7 +292,7 @@ def loss_function(
         base = functools.partial(anchor_point_loss, half_size_mm=anchor_half_size_mm)
         decode = functools.partial(anchor_points_to_pose, half_size_mm=anchor_half_size_mm)
     else:
-        base, decode = rotation6d_loss, rotation6d_translation_to_pose
+        base, decode = rotation_6d_loss, rotation_6d_translation_to_pose
     if not planes:
         return base
     per_slice = functools.partial(base, reduction="none")

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse, se3_to_vector
+from svr.geometry import se3_compose, se3_inverse, se3_to_vector, vector_to_se3
 from svr.image import Image, ImageError, load_nifti, sample_world
 from svr.models.checkpoint import Checkpoint, CheckpointError, load_checkpoint
 from svr.models.network import ModelConfig, SlicePoseNet, build_model
@@ -295,7 +295,7 @@ def _predict(model: SlicePoseNet, prepared: _Prepared, batch_size: int) -> Tenso
         [model.predict_poses(batch.to(device)).cpu() for batch in prepared.slices.split(batch_size)]
     )
     crop_to_plane = se3_compose(se3_inverse(prepared.crop_poses), prepared.plane_poses).cpu()
-    return se3_to_vector(se3_compose(se3_from_vector(predicted.double()), crop_to_plane))
+    return se3_to_vector(se3_compose(vector_to_se3(predicted.double()), crop_to_plane))
 
 
 def predict_stack_poses(

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp, so3_log
+from svr.geometry import se3_compose, se3_inverse, so3_exp, so3_log, vector_to_se3
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import ModelConfig, SlicePoseNet
 from svr.models.predict import predict_stack_poses, stack_slice_poses
@@ -276,7 +276,7 @@ def _stack_scanner_to_canonical(
             f"cnn_slice_poses(): stack {stack.name!r}: slices of 'slices' do not lie on the "
             "k-planes of the stack they name; were the slices cut from 'stacks'?"
         )
-    predicted = se3_from_vector(table.poses[rows].to(torch.float64).cpu())
+    predicted = vector_to_se3(table.poses[rows].to(torch.float64).cpu())
     return se3_compose(predicted, se3_inverse(planes))
 
 

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from svr.files import atomic_directory
 from svr.image import Image, save_nifti
-from svr.pose_io import table_from_matrices, write_pose_table
+from svr.pose_io import matrices_to_table, write_pose_table
 from svr.reconstruction.config import ReconstructionResult
 from svr.reconstruction.slices import SliceSet, plane_poses
 
@@ -82,7 +82,7 @@ def write_transforms(
     else:
         slices, extra = result_or_slices, {}
     names = slices.stack_names
-    table = table_from_matrices(
+    table = matrices_to_table(
         [names[int(sid)] for sid in slices.stack_ids.cpu()],
         slices.slice_indices.cpu(),
         plane_poses(slices).cpu(),

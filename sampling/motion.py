@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svr.geometry import euler_to_matrix, se3_from_vector
+from svr.geometry import euler_to_matrix, vector_to_se3
 
 
 @dataclass(frozen=True)
@@ -141,4 +141,4 @@ def random_walk_motion(
         [math.radians(rotation_deg)] * 3 + [translation_mm] * 3, dtype=torch.float64
     ) / math.sqrt(max(num - 1, 1))
     walk = torch.cat([torch.zeros(1, 6, dtype=torch.float64), (steps * scale).cumsum(0)])
-    return se3_from_vector(walk)
+    return vector_to_se3(walk)

@@ -29,11 +29,11 @@ from torch import Tensor
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     euler_to_matrix,
-    matrix_from_quat,
     pose_to_anchor_points,
     pose_to_quat_translation,
-    pose_to_rotation6d_translation,
-    rotvec_from_quat,
+    pose_to_rotation_6d_translation,
+    quat_to_matrix,
+    quat_to_rotvec,
     so3_log,
 )
 
@@ -175,7 +175,7 @@ def euler_grid(config: EulerGridConfig = DEFAULT_EULER_GRID) -> tuple[Tensor, Te
     return torch.stack([rx, ry, rz], dim=-1).reshape(-1, 3), tz.reshape(-1)
 
 
-def poses_from_euler(angles_rad: Tensor, tz_mm: Tensor) -> Tensor:
+def euler_to_poses(angles_rad: Tensor, tz_mm: Tensor) -> Tensor:
     """Slice poses of Euler angles and offsets: ``R = Euler(angles)``, ``t = R (0, 0, Tz)``.
 
     Args:
@@ -193,7 +193,7 @@ def poses_from_euler(angles_rad: Tensor, tz_mm: Tensor) -> Tensor:
     """
     if not (isinstance(tz_mm, Tensor) and tz_mm.is_floating_point()):
         raise TypeError(
-            "poses_from_euler(): 'tz_mm' must be a floating-point torch.Tensor, got "
+            "euler_to_poses(): 'tz_mm' must be a floating-point torch.Tensor, got "
             f"{tz_mm.dtype if isinstance(tz_mm, Tensor) else type(tz_mm).__name__}"
         )
     rotvec, normal = _rotvec_and_normal(angles_rad)
@@ -271,7 +271,7 @@ def euler_grid_poses(
 ) -> Tensor:
     """All poses of the Euler grid: ``R = Euler(Rx, Ry, Rz)``, ``t = R (0, 0, Tz)``.
 
-    Equal to :func:`poses_from_euler` of :func:`euler_grid` to rounding, and exactly to the
+    Equal to :func:`euler_to_poses` of :func:`euler_grid` to rounding, and exactly to the
     concatenated chunks of :func:`iter_euler_grid_poses`.
 
     Args:
@@ -351,15 +351,15 @@ def random_slice_poses(
         return (2.0 * u - 1.0) * half_width
 
     if rotation == "euler":
-        poses = poses_from_euler(
+        poses = euler_to_poses(
             uniform((n, 3), math.radians(angle_range_deg)), uniform((n,), tz_range_mm)
         )
     else:
         quat = torch.randn(
             (n, 4), generator=generator, dtype=torch.float64, device=generator.device
         )
-        translation = matrix_from_quat(quat)[..., :, 2] * uniform((n,), tz_range_mm).unsqueeze(-1)
-        poses = torch.cat([rotvec_from_quat(quat), translation], dim=-1)
+        translation = quat_to_matrix(quat)[..., :, 2] * uniform((n,), tz_range_mm).unsqueeze(-1)
+        poses = torch.cat([quat_to_rotvec(quat), translation], dim=-1)
     return poses.to(device=device, dtype=dtype)
 
 
@@ -371,7 +371,7 @@ def pose_labels(
     """Training labels of poses in the representation a loss works on.
 
     Each label maps back to the pose with the :mod:`svr.geometry` converters
-    (``quat_translation_to_pose``, ``anchor_points_to_pose``, ``rotation6d_translation_to_pose``).
+    (``quat_translation_to_pose``, ``anchor_points_to_pose``, ``rotation_6d_translation_to_pose``).
 
     Args:
         poses: (..., 6) pose vectors (rad, mm) mapping the slice plane to the canonical frame.
@@ -408,4 +408,4 @@ def pose_labels(
         return pose_to_quat_translation(poses)
     if representation == "anchor_points":
         return pose_to_anchor_points(poses, anchor_half_size_mm)
-    return pose_to_rotation6d_translation(poses)
+    return pose_to_rotation_6d_translation(poses)

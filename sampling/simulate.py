@@ -32,7 +32,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from svr.files import atomic_directory
-from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, so3_exp
+from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti
 from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
 from svr.sampling.slicer import SliceConfig, sample_slices
@@ -170,7 +170,7 @@ class SimulatedCase:
 
 def _random_rotation(generator: torch.Generator) -> Tensor:
     """A rotation uniform on SO(3) (normalised Gaussian quaternion)."""
-    return matrix_from_quat(torch.randn(4, generator=generator, dtype=torch.float64))
+    return quat_to_matrix(torch.randn(4, generator=generator, dtype=torch.float64))
 
 
 def _axis_rotation(axis: Tensor, angle: float) -> Tensor:

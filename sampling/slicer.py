@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_from_vector
+from svr.geometry import vector_to_se3
 from svr.geometry._validation import check_tensor
 from svr.image import Image, sample_channels, sample_grid, world_to_grid
 
@@ -79,7 +79,7 @@ def pose_matrices(poses: Tensor, func: str = "pose_matrices") -> Tensor:
         ValueError: If ``poses`` is not (B, 6), (B, 4, 4) or (B, 3, 4).
     """
     if poses.dim() == 2:
-        return se3_from_vector(check_tensor(poses, func, "poses", (6,)))
+        return vector_to_se3(check_tensor(poses, func, "poses", (6,)))
     if poses.dim() == 3 and tuple(poses.shape[1:]) in ((4, 4), (3, 4)):
         return check_tensor(poses, func, "poses", tuple(poses.shape[1:]))
     raise ValueError(

@@ -23,15 +23,15 @@ from svr.geometry import (
     anchor_points_to_pose,
     pose_to_anchor_points,
     pose_to_quat_translation,
-    pose_to_rotation6d_translation,
+    pose_to_rotation_6d_translation,
     quat_translation_to_pose,
-    rotation6d_translation_to_pose,
+    rotation_6d_translation_to_pose,
 )
 from svr.losses import (
     DEFAULT_LENGTH_SCALE_MM,
     anchor_point_loss,
     posenet_loss,
-    rotation6d_loss,
+    rotation_6d_loss,
     se3_geodesic_loss,
 )
 from svr.metrics import pose_errors
@@ -103,9 +103,9 @@ METHODS = (
     _Method("anchor", pose_to_anchor_points, anchor_points_to_pose, anchor_point_loss, slice(0, 9)),
     _Method(
         "rot6d",
-        pose_to_rotation6d_translation,
-        rotation6d_translation_to_pose,
-        rotation6d_loss,
+        pose_to_rotation_6d_translation,
+        rotation_6d_translation_to_pose,
+        rotation_6d_loss,
         slice(6, 9),
     ),
 )

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from svr.files import atomic_write_text
-from svr.geometry import se3_from_vector, se3_to_vector
+from svr.geometry import se3_to_vector, vector_to_se3
 
 VECTOR_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
 MATRIX_COLUMNS = tuple(f"m{i}{j}" for i in range(3) for j in range(4))
@@ -61,7 +61,7 @@ class PoseTable:
 def _rows(
     table: PoseTable, extra_columns: Mapping[str, Sequence[object]]
 ) -> list[dict[str, object]]:
-    matrices = se3_from_vector(table.poses.to(torch.float64))[:, :3].reshape(-1, 12)
+    matrices = vector_to_se3(table.poses.to(torch.float64))[:, :3].reshape(-1, 12)
     rows = []
     for i, (name, vec, mat) in enumerate(
         zip(table.files, table.poses.tolist(), matrices.tolist(), strict=True)
@@ -153,7 +153,7 @@ def read_pose_table(path: str | os.PathLike[str]) -> PoseTable:
         raise ValueError(f"{p}: {err}") from err
 
 
-def table_from_matrices(
+def matrices_to_table(
     files: list[str], slice_indices: Tensor, matrices: Tensor, frame: str
 ) -> PoseTable:
     """A pose table from (N, 4, 4) or (N, 3, 4) matrices."""

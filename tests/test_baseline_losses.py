@@ -14,9 +14,9 @@ from svr.geometry import (
     anchor_points_to_pose,
     pose_to_anchor_points,
     pose_to_quat_translation,
-    pose_to_rotation6d_translation,
+    pose_to_rotation_6d_translation,
 )
-from svr.losses import PoseNetLoss, anchor_point_loss, posenet_loss, rotation6d_loss
+from svr.losses import PoseNetLoss, anchor_point_loss, posenet_loss, rotation_6d_loss
 
 F64 = torch.float64
 
@@ -102,8 +102,8 @@ def test_anchor_points_recover_the_pose(rng):
 def test_rotation6d_loss_closed_form(rng):
     p = poses(rng, 16)
     q = torch.from_numpy(random_poses(rng, 16))
-    loss = rotation6d_loss(
-        pose_to_rotation6d_translation(p), pose_to_rotation6d_translation(q), reduction="none"
+    loss = rotation_6d_loss(
+        pose_to_rotation_6d_translation(p), pose_to_rotation_6d_translation(q), reduction="none"
     )
     theta = (
         Rotation.from_rotvec(p[:, :3].numpy()).inv() * Rotation.from_rotvec(q[:, :3])
@@ -113,11 +113,11 @@ def test_rotation6d_loss_closed_form(rng):
 
 
 def test_rotation6d_loss_accepts_unnormalised_predictions(rng):
-    target = pose_to_rotation6d_translation(poses(rng, 4))
+    target = pose_to_rotation_6d_translation(poses(rng, 4))
     pred = target.clone()
     pred[:, :3] *= 5.0
     pred[:, 3:6] += 2.0 * target[:, :3]  # still the same Gram-Schmidt frame
-    assert rotation6d_loss(pred, target).item() == pytest.approx(0.0, abs=1e-20)
+    assert rotation_6d_loss(pred, target).item() == pytest.approx(0.0, abs=1e-20)
 
 
 @pytest.mark.parametrize(
@@ -128,9 +128,9 @@ def test_rotation6d_loss_accepts_unnormalised_predictions(rng):
         (posenet_loss, (3, 7), {"log_vars": torch.zeros(3)}, "'log_vars'"),
         (anchor_point_loss, (3, 7), {}, "'pred' must have shape"),
         (anchor_point_loss, (3, 9), {"half_size_mm": -1.0}, "'half_size_mm'"),
-        (rotation6d_loss, (3, 6), {}, "'pred' must have shape"),
-        (rotation6d_loss, (3, 9), {"translation_scale_mm": 0.0}, "'translation_scale_mm'"),
-        (rotation6d_loss, (3, 9), {"reduction": "max"}, "'reduction'"),
+        (rotation_6d_loss, (3, 6), {}, "'pred' must have shape"),
+        (rotation_6d_loss, (3, 9), {"translation_scale_mm": 0.0}, "'translation_scale_mm'"),
+        (rotation_6d_loss, (3, 9), {"reduction": "max"}, "'reduction'"),
     ],
 )
 def test_bad_arguments(func, shape, kwargs, message):

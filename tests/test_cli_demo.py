@@ -14,7 +14,7 @@ import torch
 
 import svr.cli
 import svr.reconstruction.demo as demo
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse
+from svr.geometry import se3_compose, se3_inverse, vector_to_se3
 from svr.image import Image, load_nifti
 from svr.reconstruction.demo import (
     DemoConfig,
@@ -248,14 +248,12 @@ def _slice_set(poses: torch.Tensor, stack_ids: torch.Tensor, ks: torch.Tensor) -
 
 def test_frame_alignment_recovers_the_offset_despite_outliers():
     gen = torch.Generator().manual_seed(3)
-    truth = [se3_from_vector(torch.randn(5, 6, generator=gen, dtype=F64) * 0.3) for _ in range(2)]
-    G = se3_from_vector(torch.tensor([0.1, -0.2, 0.05, 3.0, -1.0, 2.0], dtype=F64))
+    truth = [vector_to_se3(torch.randn(5, 6, generator=gen, dtype=F64) * 0.3) for _ in range(2)]
+    G = vector_to_se3(torch.tensor([0.1, -0.2, 0.05, 3.0, -1.0, 2.0], dtype=F64))
     stack_ids = torch.tensor([0] * 5 + [1] * 5)
     ks = torch.tensor(list(range(5)) * 2)
     final = se3_compose(se3_inverse(G), torch.cat(truth))
-    final[2] = se3_compose(
-        se3_from_vector(torch.tensor([1.0, 0, 0, 20, 0, 0], dtype=F64)), final[2]
-    )
+    final[2] = se3_compose(vector_to_se3(torch.tensor([1.0, 0, 0, 20, 0, 0], dtype=F64)), final[2])
     estimate = frame_alignment(_slice_set(final, stack_ids, ks), truth)
     assert torch.allclose(estimate, G, atol=1e-6)
 

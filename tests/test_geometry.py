@@ -204,7 +204,7 @@ def test_so3_exp_matches_rodrigues_closed_form():
 
 @pytest.mark.parametrize("r", rotvecs_up_to_4pi(seed=2), ids=["random", "to_pi", "beyond_pi"])
 def test_quat_from_rotvec_matches_scipy(r):
-    q = N(g.quat_from_rotvec(T(r)))
+    q = N(g.rotvec_to_quat(T(r)))
     assert q.shape == (*r.shape[:-1], 4)
     assert (q[..., 0] >= 0).all()
     want = sp_quat(sp(r), r.shape[:-1])
@@ -214,7 +214,7 @@ def test_quat_from_rotvec_matches_scipy(r):
 def test_rotvec_from_quat_matches_scipy_random_unnormalised():
     gen = np.random.default_rng(3)
     q = gen.normal(size=(4, 5, 4)) * gen.uniform(0.1, 10.0, size=(4, 5, 1))
-    got = N(g.rotvec_from_quat(T(q)))
+    got = N(g.quat_to_rotvec(T(q)))
     want = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_rotvec().reshape(4, 5, 3)
     np.testing.assert_allclose(got, want, rtol=0, atol=TOL64)
     assert (np.linalg.norm(got, axis=-1) <= PI + 1e-15).all()
@@ -224,21 +224,21 @@ def test_rotvec_from_quat_matches_scipy_adversarial():
     r = rotvecs_at(ANGLES_TO_PI)
     q = sp_quat(sp(r), r.shape[:-1])
     for quat in (q, -q, 3.0 * q):
-        got = N(g.rotvec_from_quat(T(quat)))
+        got = N(g.quat_to_rotvec(T(quat)))
         assert rotvec_distance(got, r).max() <= TOL64
 
 
 def test_rotvec_from_quat_at_w_zero_is_pi_about_the_vector_part():
     v = AXES
     q = np.concatenate([np.zeros((len(v), 1)), v], axis=-1)
-    got = N(g.rotvec_from_quat(T(q)))
+    got = N(g.quat_to_rotvec(T(q)))
     assert rotvec_distance(got, PI * v).max() <= TOL64
 
 
 def test_matrix_from_quat_matches_scipy_unnormalised():
     q = np.random.default_rng(4).normal(size=(4, 5, 4))
     want = Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(4, 5, 3, 3)
-    np.testing.assert_allclose(N(g.matrix_from_quat(T(q))), want, rtol=0, atol=TOL64)
+    np.testing.assert_allclose(N(g.quat_to_matrix(T(q))), want, rtol=0, atol=TOL64)
 
 
 @pytest.mark.parametrize(
@@ -248,7 +248,7 @@ def test_matrix_from_quat_matches_scipy_unnormalised():
 )
 def test_quat_from_matrix_matches_scipy(r):
     m = sp_matrix(r)
-    q = N(g.quat_from_matrix(T(m)))
+    q = N(g.matrix_to_quat(T(m)))
     assert (q[..., 0] >= 0).all()
     want = sp_quat(Rotation.from_matrix(m.reshape(-1, 3, 3)), r.shape[:-1])
     assert quat_distance(q, want).max() <= TOL64
@@ -446,7 +446,7 @@ def _rel(err: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 def test_float32_quat_from_rotvec_accuracy():
     r32 = _f32_rotvecs(20)
-    q = g.quat_from_rotvec(torch.from_numpy(r32))
+    q = g.rotvec_to_quat(torch.from_numpy(r32))
     assert q.dtype == F32
     q = N(q)
     want = Rotation.from_rotvec(r32.astype(np.float64)).as_quat(scalar_first=True, canonical=True)
@@ -459,7 +459,7 @@ def test_float32_quat_from_rotvec_accuracy():
 def test_float32_rotvec_from_quat_accuracy():
     r = _f32_rotvecs(21).astype(np.float64)
     q32 = Rotation.from_rotvec(r).as_quat(scalar_first=True, canonical=True).astype(np.float32)
-    got = g.rotvec_from_quat(torch.from_numpy(q32))
+    got = g.quat_to_rotvec(torch.from_numpy(q32))
     assert got.dtype == F32
     want = Rotation.from_quat(q32.astype(np.float64), scalar_first=True).as_rotvec()
     assert _rel(N(got) - want, want).max() <= 1e-6  # measured <= 1.7e-7
@@ -569,9 +569,9 @@ def test_log_of_exp_is_identity_below_pi():
 def test_quaternion_double_cover():
     q = np.random.default_rng(32).normal(size=(30, 4))
     q = np.concatenate([q, sp_quat(sp(rotvecs_at(ANGLES_TO_PI)), (-1,))])
-    m_pos, m_neg = N(g.matrix_from_quat(T(q))), N(g.matrix_from_quat(T(-q)))
+    m_pos, m_neg = N(g.quat_to_matrix(T(q))), N(g.quat_to_matrix(T(-q)))
     np.testing.assert_allclose(m_pos, m_neg, rtol=0, atol=TOL64)
-    r_pos, r_neg = N(g.rotvec_from_quat(T(q))), N(g.rotvec_from_quat(T(-q)))
+    r_pos, r_neg = N(g.quat_to_rotvec(T(q))), N(g.quat_to_rotvec(T(-q)))
     np.testing.assert_allclose(r_pos, r_neg, rtol=0, atol=TOL64)
     # and both agree with scipy's matrix of the same quaternion
     want = Rotation.from_quat(q, scalar_first=True).as_matrix()
@@ -580,9 +580,9 @@ def test_quaternion_double_cover():
 
 def test_quat_round_trips():
     r = random_rotvecs(np.random.default_rng(33), (40,), PI)
-    q = g.quat_from_rotvec(T(r))
-    np.testing.assert_allclose(N(g.rotvec_from_quat(q)), r, rtol=0, atol=TOL64)
-    np.testing.assert_allclose(N(g.quat_from_matrix(g.matrix_from_quat(q))), N(q), atol=TOL64)
+    q = g.rotvec_to_quat(T(r))
+    np.testing.assert_allclose(N(g.quat_to_rotvec(q)), r, rtol=0, atol=TOL64)
+    np.testing.assert_allclose(N(g.matrix_to_quat(g.quat_to_matrix(q))), N(q), atol=TOL64)
 
 
 @pytest.mark.parametrize("convention", ALL_CONVENTIONS)
@@ -617,7 +617,7 @@ def random_poses(gen: np.random.Generator, shape: tuple[int, ...], max_angle: fl
 
 def test_se3_from_vector_matches_scipy_and_round_trips():
     p = random_poses(np.random.default_rng(40), (4, 5))
-    m = g.se3_from_vector(T(p))
+    m = g.vector_to_se3(T(p))
     assert m.shape == (4, 5, 4, 4)
     np.testing.assert_allclose(N(m), pose_matrix(p), rtol=0, atol=TOL64)
     np.testing.assert_allclose(N(g.se3_to_vector(m)), p, rtol=0, atol=TOL64)
@@ -626,7 +626,7 @@ def test_se3_from_vector_matches_scipy_and_round_trips():
 
 def test_se3_to_vector_regularises_large_rotations():
     p = random_poses(np.random.default_rng(41), (30,), 4 * PI)
-    back = N(g.se3_to_vector(g.se3_from_vector(T(p))))
+    back = N(g.se3_to_vector(g.vector_to_se3(T(p))))
     assert (np.linalg.norm(back[:, :3], axis=-1) <= PI + 1e-15).all()
     np.testing.assert_allclose(pose_matrix(back), pose_matrix(p), rtol=0, atol=1e-12)
 
@@ -708,7 +708,7 @@ def test_group_log_translation_differs_from_pose_vector_translation():
     # For t perpendicular to the axis |V^-1 t| / |t| = (theta/2) / sin(theta/2): 1.1107 at 90 deg.
     for theta in (PI / 2, PI * 179 / 180):
         pose = np.array([0.0, 0.0, theta, 10.0, 0.0, 0.0])
-        twist = N(g.se3_group_log(g.se3_from_vector(T(pose))))
+        twist = N(g.se3_group_log(g.vector_to_se3(T(pose))))
         ratio = np.linalg.norm(twist[3:]) / 10.0
         np.testing.assert_allclose(ratio, (theta / 2) / math.sin(theta / 2), rtol=1e-12)
     np.testing.assert_allclose((PI / 4) / math.sin(PI / 4), 1.1107, atol=1e-4)
@@ -805,17 +805,17 @@ def _error_inputs(theta: float) -> tuple[np.ndarray, np.ndarray]:
 
 GRAD_FUNCTIONS: dict[str, tuple[Callable, Callable[[float], tuple[np.ndarray, ...]]]] = {
     "so3_exp": (g.so3_exp, lambda th: (_rv(th),)),
-    "quat_from_rotvec": (g.quat_from_rotvec, lambda th: (_rv(th),)),
+    "rotvec_to_quat": (g.rotvec_to_quat, lambda th: (_rv(th),)),
     "regularize_rotvec": (g.regularize_rotvec, lambda th: (_rv(th),)),
     "so3_left_jacobian": (g.so3_left_jacobian, lambda th: (_rv(th),)),
     "so3_left_jacobian_inverse": (g.so3_left_jacobian_inverse, lambda th: (_rv(th),)),
     "so3_log": (g.so3_log, lambda th: (_mat(th),)),
-    "quat_from_matrix": (g.quat_from_matrix, lambda th: (_mat(th),)),
-    "rotvec_from_quat": (
-        g.rotvec_from_quat,
+    "matrix_to_quat": (g.matrix_to_quat, lambda th: (_mat(th),)),
+    "quat_to_rotvec": (
+        g.quat_to_rotvec,
         lambda th: (1.7 * sp_quat(sp(_rv(th)), (2,)),),
     ),
-    "se3_from_vector": (g.se3_from_vector, lambda th: (_pose(th),)),
+    "vector_to_se3": (g.vector_to_se3, lambda th: (_pose(th),)),
     "se3_to_vector": (g.se3_to_vector, lambda th: (pose_matrix(_pose(th)),)),
     "se3_group_exp": (g.se3_group_exp, lambda th: (_pose(th),)),
     "se3_group_log": (g.se3_group_log, lambda th: (pose_matrix(_pose(th)),)),
@@ -845,7 +845,7 @@ def test_gradcheck_other_functions():
     cases = [
         (g.rotation_6d_to_matrix, (gen.normal(size=(3, 6)),)),
         (g.matrix_to_rotation_6d, (gen.normal(size=(2, 3, 3)),)),
-        (g.matrix_from_quat, (gen.normal(size=(3, 4)),)),
+        (g.quat_to_matrix, (gen.normal(size=(3, 4)),)),
         (g.quat_multiply, (gen.normal(size=(3, 4)), gen.normal(size=(3, 4)))),
         (g.quat_rotate, (_unit(gen.normal(size=(3, 4))), gen.normal(size=(3, 3)))),
         (g.hat, (gen.normal(size=(3, 3)),)),
@@ -965,8 +965,8 @@ def test_property_quaternion_homomorphism(qa, qb):
     qa, qb = np.asarray(qa), np.asarray(qb)
     prod = g.quat_multiply(T(qa), T(qb))
     want = Rotation.from_quat(qa, scalar_first=True) * Rotation.from_quat(qb, scalar_first=True)
-    np.testing.assert_allclose(N(g.matrix_from_quat(prod)), want.as_matrix(), atol=1e-12)
-    rv = N(g.rotvec_from_quat(prod))
+    np.testing.assert_allclose(N(g.quat_to_matrix(prod)), want.as_matrix(), atol=1e-12)
+    rv = N(g.quat_to_rotvec(prod))
     assert rotvec_distance(rv, want.as_rotvec(), pi_band=1e-9) <= 1e-9
 
 
@@ -1041,10 +1041,10 @@ ARG_CASES: list[tuple[str, str, str, Callable[[object], object]]] = [
     ("hat", "v", "(..., 3)", lambda x: g.hat(x)),
     ("so3_exp", "rotvec", "(..., 3)", lambda x: g.so3_exp(x)),
     ("so3_log", "matrix", "(..., 3, 3)", lambda x: g.so3_log(x)),
-    ("quat_from_rotvec", "rotvec", "(..., 3)", lambda x: g.quat_from_rotvec(x)),
-    ("rotvec_from_quat", "quat", "(..., 4)", lambda x: g.rotvec_from_quat(x)),
-    ("quat_from_matrix", "matrix", "(..., 3, 3)", lambda x: g.quat_from_matrix(x)),
-    ("matrix_from_quat", "quat", "(..., 4)", lambda x: g.matrix_from_quat(x)),
+    ("rotvec_to_quat", "rotvec", "(..., 3)", lambda x: g.rotvec_to_quat(x)),
+    ("quat_to_rotvec", "quat", "(..., 4)", lambda x: g.quat_to_rotvec(x)),
+    ("matrix_to_quat", "matrix", "(..., 3, 3)", lambda x: g.matrix_to_quat(x)),
+    ("quat_to_matrix", "quat", "(..., 4)", lambda x: g.quat_to_matrix(x)),
     ("quat_multiply", "a", "(..., 4)", lambda x: g.quat_multiply(x, _z(4))),
     ("quat_multiply", "b", "(..., 4)", lambda x: g.quat_multiply(_z(4), x)),
     ("quat_rotate", "quat", "(..., 4)", lambda x: g.quat_rotate(x, _z(3))),
@@ -1056,7 +1056,7 @@ ARG_CASES: list[tuple[str, str, str, Callable[[object], object]]] = [
     ("so3_left_jacobian", "rotvec", "(..., 3)", lambda x: g.so3_left_jacobian(x)),
     ("so3_left_jacobian_inverse", "rotvec", "(..., 3)", lambda x: g.so3_left_jacobian_inverse(x)),
     ("regularize_rotvec", "rotvec", "(..., 3)", lambda x: g.regularize_rotvec(x)),
-    ("se3_from_vector", "pose", "(..., 6)", lambda x: g.se3_from_vector(x)),
+    ("vector_to_se3", "pose", "(..., 6)", lambda x: g.vector_to_se3(x)),
     ("se3_group_exp", "twist", "(..., 6)", lambda x: g.se3_group_exp(x)),
     ("se3_error", "pred", "(..., 6)", lambda x: g.se3_error(x, _z(6))),
     ("se3_error", "target", "(..., 6)", lambda x: g.se3_error(_z(6), x)),
@@ -1153,16 +1153,16 @@ def test_cuda_matches_cpu(dtype):
     d6 = T(gen.normal(size=(64, 6)), dtype)
     cases = [
         (g.so3_exp, (r,)),
-        (g.quat_from_rotvec, (r,)),
+        (g.rotvec_to_quat, (r,)),
         (g.regularize_rotvec, (r,)),
         (g.so3_left_jacobian, (r,)),
         (g.so3_log, (m,)),
-        (g.quat_from_matrix, (m,)),
+        (g.matrix_to_quat, (m,)),
         (g.matrix_to_euler, (m,)),
         (g.rotation_6d_to_matrix, (d6,)),
         (g.se3_error, (p, q)),
         (g.se3_group_exp, (p,)),
-        (g.se3_group_log, (g.se3_from_vector(p),)),
+        (g.se3_group_log, (g.vector_to_se3(p),)),
     ]
     tol = 1e-5 if dtype == F32 else 1e-12
     for fn, args in cases:
@@ -1187,5 +1187,5 @@ def test_half_precision_small_angles_are_finite_and_accurate(dtype, theta):
     assert torch.isfinite(R).all() and torch.isfinite(r.grad).all()
     want = Rotation.from_rotvec([theta, 0.0, 0.0]).as_matrix()
     np.testing.assert_allclose(R.detach().double().numpy(), want, atol=4 * torch.finfo(dtype).eps)
-    q = g.quat_from_rotvec(r.detach())
+    q = g.rotvec_to_quat(r.detach())
     assert torch.isfinite(q).all() and torch.isfinite(g.so3_left_jacobian(r.detach())).all()

@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
-from svr.geometry import rotation_6d_to_matrix, se3_from_vector, so3_exp, so3_log
-from svr.losses import anchor_point_loss, posenet_loss, rotation6d_loss, se3_geodesic_loss
+from svr.geometry import rotation_6d_to_matrix, so3_exp, so3_log, vector_to_se3
+from svr.losses import anchor_point_loss, posenet_loss, rotation_6d_loss, se3_geodesic_loss
 from svr.models.backbones import BackboneConfig, build_backbone
 from svr.models.heads import OUTPUT_SIZES, PoseHead
 from svr.models.network import ModelConfig, SlicePoseNet, build_model, loss_function
@@ -79,7 +79,7 @@ def test_to_pose_inverts_the_labels(representation, rotation):
         recovered = head.to_pose(labels)
         assert recovered.shape == (200, 6)
         assert (recovered[:, :3].norm(dim=1) <= torch.pi + 1e-12).all()
-        torch.testing.assert_close(se3_from_vector(recovered), se3_from_vector(poses))
+        torch.testing.assert_close(vector_to_se3(recovered), vector_to_se3(poses))
 
 
 def test_se3_to_pose_regularises_the_rotation_angle():
@@ -319,7 +319,7 @@ def test_loss_function_matches_the_svr_losses():
     baselines = {
         "quat_translation": posenet_loss,
         "anchor_points": anchor_point_loss,
-        "rotation6d_translation": rotation6d_loss,
+        "rotation6d_translation": rotation_6d_loss,
     }
     for rep, loss in baselines.items():
         p, t = pose_labels(pred, rep), pose_labels(poses, rep)

@@ -8,8 +8,8 @@ import torch
 from oracles import random_poses
 
 from svr.files import OutputExistsError
-from svr.geometry import se3_from_vector
-from svr.pose_io import PoseTable, read_pose_table, table_from_matrices, write_pose_table
+from svr.geometry import vector_to_se3
+from svr.pose_io import PoseTable, matrices_to_table, read_pose_table, write_pose_table
 
 
 def table(rng, n=7, frame="canonical") -> PoseTable:
@@ -41,9 +41,9 @@ def test_csv_matrix_columns_match_the_vectors(tmp_path, rng):
     assert header[:8] == ["file", "slice_index", "r_x", "r_y", "r_z", "t_x", "t_y", "t_z"]
     assert header[-1] == "frame" and len(header) == 21
     m = np.array([float(x) for x in lines[1].split(",")[8:20]]).reshape(3, 4)
-    np.testing.assert_allclose(m, se3_from_vector(t.poses[0])[:3].numpy(), atol=1e-15)
+    np.testing.assert_allclose(m, vector_to_se3(t.poses[0])[:3].numpy(), atol=1e-15)
     torch.testing.assert_close(
-        table_from_matrices(t.files, t.slice_indices, se3_from_vector(t.poses), "canonical").poses,
+        matrices_to_table(t.files, t.slice_indices, vector_to_se3(t.poses), "canonical").poses,
         t.poses,
     )
 

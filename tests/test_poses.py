@@ -25,9 +25,9 @@ from svr.sampling.poses import (
     EulerGridConfig,
     euler_grid,
     euler_grid_poses,
+    euler_to_poses,
     iter_euler_grid_poses,
     pose_labels,
-    poses_from_euler,
     random_slice_poses,
 )
 
@@ -114,13 +114,13 @@ def test_grid_translation_is_tz_along_the_slice_normal(default_grid) -> None:
     torch.testing.assert_close(poses[:, 3:].norm(dim=-1), tz.abs(), rtol=0, atol=1e-12)
     # A point (u, v, 0) of the plane maps to R (u, v, 0) + t: its offset along the normal is Tz.
     uv0 = torch.tensor([13.0, -7.0, 0.0], dtype=F64)
-    mapped = (g.se3_from_vector(poses) @ torch.cat([uv0, uv0.new_ones(1)]))[:, :3]
+    mapped = (g.vector_to_se3(poses) @ torch.cat([uv0, uv0.new_ones(1)]))[:, :3]
     torch.testing.assert_close((mapped * R[:, :, 2]).sum(-1), tz, rtol=0, atol=1e-12)
 
 
 def test_grid_poses_equal_poses_from_euler(default_grid) -> None:
     angles, tz, poses = default_grid
-    torch.testing.assert_close(poses_from_euler(angles, tz), poses, rtol=0, atol=1e-14)
+    torch.testing.assert_close(euler_to_poses(angles, tz), poses, rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize("chunk_size", [1000, 4096, 4913, DEFAULT_M, 10**6])
@@ -153,9 +153,9 @@ def test_iteration_is_lazy() -> None:
     index = torch.arange(200, dtype=F64)
     rz = torch.div(index, 81, rounding_mode="floor") - 90
     angles = torch.stack([torch.full_like(rz, -90.0), torch.full_like(rz, -90.0), rz], dim=-1)
-    expected = poses_from_euler(angles.deg2rad(), index % 81 - 40)
+    expected = euler_to_poses(angles.deg2rad(), index % 81 - 40)
     torch.testing.assert_close(
-        g.se3_from_vector(first), g.se3_from_vector(expected), rtol=0, atol=1e-12
+        g.vector_to_se3(first), g.vector_to_se3(expected), rtol=0, atol=1e-12
     )
 
 
@@ -236,15 +236,15 @@ def test_argument_errors() -> None:
     with pytest.raises(TypeError, match="dtype"):
         euler_grid_poses(dtype=torch.int32)
     with pytest.raises(TypeError, match="tz_mm"):
-        poses_from_euler(torch.zeros(2, 3), torch.zeros(2, dtype=torch.int64))
+        euler_to_poses(torch.zeros(2, 3), torch.zeros(2, dtype=torch.int64))
     with pytest.raises(ValueError, match="angles_rad"):
-        poses_from_euler(torch.zeros(2, 2), torch.zeros(2))
+        euler_to_poses(torch.zeros(2, 2), torch.zeros(2))
 
 
 def test_poses_from_euler_broadcasts_and_keeps_dtype() -> None:
     angles = torch.tensor([0.3, -0.2, 1.1], dtype=F32)
     tz = torch.tensor([[1.0], [-2.0]], dtype=F32)
-    poses = poses_from_euler(angles, tz)
+    poses = euler_to_poses(angles, tz)
     assert poses.shape == (2, 1, 6) and poses.dtype == F32
     R = Rotation.from_euler("xyz", N(angles)).as_matrix()
     np.testing.assert_allclose(N(poses[1, 0, 3:]), R[:, 2] * -2.0, atol=1e-6)
@@ -352,7 +352,7 @@ INVERSES = {
     "se3": lambda label, a: label,
     "quat_translation": lambda label, a: g.quat_translation_to_pose(label),
     "anchor_points": lambda label, a: g.anchor_points_to_pose(label, a),
-    "rotation6d_translation": lambda label, a: g.rotation6d_translation_to_pose(label),
+    "rotation6d_translation": lambda label, a: g.rotation_6d_translation_to_pose(label),
 }
 WIDTHS = {"se3": 6, "quat_translation": 7, "anchor_points": 9, "rotation6d_translation": 9}
 
@@ -375,9 +375,7 @@ def test_labels_shapes_and_round_trip(default_grid, representation: str, half_si
     assert labels.shape == (*poses.shape[:-1], WIDTHS[representation]) and labels.dtype == F64
     back = INVERSES[representation](labels, half_size)
     # The same rigid transform ...
-    torch.testing.assert_close(
-        g.se3_from_vector(back), g.se3_from_vector(poses), rtol=0, atol=1e-10
-    )
+    torch.testing.assert_close(g.vector_to_se3(back), g.vector_to_se3(poses), rtol=0, atol=1e-10)
     # ... and the same vector, away from angle π where r and -r are the same rotation.
     regular = poses[..., :3].norm(dim=-1) < math.pi - 1e-6
     torch.testing.assert_close(back[regular], poses[regular], rtol=0, atol=1e-10)
@@ -392,7 +390,7 @@ def test_labels_match_the_geometry_converters() -> None:
         pose_labels(poses, "anchor_points", 30.0), g.pose_to_anchor_points(poses, 30.0)
     )
     assert torch.equal(
-        pose_labels(poses, "rotation6d_translation"), g.pose_to_rotation6d_translation(poses)
+        pose_labels(poses, "rotation6d_translation"), g.pose_to_rotation_6d_translation(poses)
     )
     assert all(pose_labels(poses, r).dtype == F32 for r in REPRESENTATIONS)
 

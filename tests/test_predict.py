@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import svr.cli
-from svr.geometry import se3_compose, se3_from_vector, se3_inverse, so3_exp
+from svr.geometry import se3_compose, se3_inverse, so3_exp, vector_to_se3
 from svr.image import Image, ImageError, save_nifti
 from svr.models.backbones import BackboneConfig
 from svr.models.checkpoint import CheckpointError, save_checkpoint
@@ -166,7 +166,7 @@ def test_prepared_slices_are_cut_where_the_poses_say(untrained):
     model, config = load_pose_model(untrained)
     table = predict_stack_poses(model, config, stack)
     slices = prepare_stack_slices(stack, None, config)[0][:, 0, 7:25, 7:25]  # inside the stack
-    crop = se3_compose(S, se3_inverse(se3_from_vector(table.poses)))
+    crop = se3_compose(S, se3_inverse(vector_to_se3(table.poses)))
     for shift, close in ((0.0, True), (1.0, False)):
         moved = crop.clone()
         moved[:, :3, 3] += shift * crop[:, :3, 0]
@@ -257,8 +257,8 @@ def test_poses_move_with_the_content_and_ignore_the_batch_size(perturbed):
     )
     offset = torch.eye(4, dtype=F64)
     offset[:2, 3] = torch.tensor([-3.0, 2.0], dtype=F64)
-    expected = se3_compose(se3_from_vector(table.poses), offset)
-    torch.testing.assert_close(se3_from_vector(moved.poses), expected, atol=1e-4, rtol=1e-4)
+    expected = se3_compose(vector_to_se3(table.poses), offset)
+    torch.testing.assert_close(vector_to_se3(moved.poses), expected, atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="batch_size must be >= 1"):
         predict_stack_poses(model, config, stack, mask, batch_size=0)
 

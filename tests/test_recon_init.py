@@ -10,7 +10,7 @@ import torch
 from synthetic import ellipsoid_brain
 
 import svr.reconstruction.cnn_init as cnn_init
-from svr.geometry import matrix_from_quat, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
+from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
 from svr.geometry.symmetry import SAGITTAL, mirror_twin_matrix
 from svr.image import Image
 from svr.models.backbones import BackboneConfig
@@ -33,7 +33,7 @@ G[:3, 3] = torch.tensor([10.0, -25.0, 40.0], dtype=F64)
 
 def random_rotations(n: int, generator: torch.Generator) -> torch.Tensor:
     """(n, 3, 3) uniformly random rotations."""
-    return matrix_from_quat(torch.randn(n, 4, generator=generator, dtype=F64))
+    return quat_to_matrix(torch.randn(n, 4, generator=generator, dtype=F64))
 
 
 def rigid(rotations: torch.Tensor, translations: torch.Tensor) -> torch.Tensor:

@@ -12,7 +12,7 @@ import torch
 from synthetic import ellipsoid_brain
 
 from svr.files import OutputExistsError
-from svr.geometry import se3_from_vector, so3_exp
+from svr.geometry import so3_exp, vector_to_se3
 from svr.image import Image, ImageError, load_nifti
 from svr.models.predict import load_slice_folder, stack_slice_poses
 from svr.pose_io import COLUMNS, PoseTable, read_pose_table, write_pose_table
@@ -111,7 +111,7 @@ def test_transforms_are_the_poses_of_the_files_k_planes(stacks, slices, tmp_path
     for row, (name, k) in enumerate(zip(table.files, table.slice_indices.tolist(), strict=True)):
         image = stacks[slices.stack_names.index(name)][0]
         expected = stack_slice_poses(image)[k]  # the file's own k-plane (cropping undone)
-        torch.testing.assert_close(se3_from_vector(table.poses[row]), expected)
+        torch.testing.assert_close(vector_to_se3(table.poses[row]), expected)
     assert set(table.slice_indices.tolist()) == set(range(1, 6))  # empty-mask planes dropped
 
 
@@ -126,7 +126,7 @@ def test_result_transforms_carry_ncc_weight_and_exclusion(stacks, slices, tmp_pa
     G = result.slices.poses[0] @ torch.linalg.inv(slices.poses[0])
     name, k = table.files[0], int(table.slice_indices[0])
     plane = stack_slice_poses(stacks[slices.stack_names.index(name)][0])[k]
-    torch.testing.assert_close(se3_from_vector(table.poses[0]), G @ plane)
+    torch.testing.assert_close(vector_to_se3(table.poses[0]), G @ plane)
     with (write_transforms(result, tmp_path / "t.csv")).open(newline="") as f:
         csv_rows = list(csv.DictReader(f))
     assert [r["excluded"] == "True" for r in csv_rows] == result.excluded.tolist()

@@ -240,7 +240,7 @@ def test_anchor_points_to_pose_returns_a_valid_rotation_for_scaled_points():
 
 def test_pose_to_rotation6d_translation_matches_matrix_columns():
     pose = random_poses(np.random.default_rng(9), (4, 5), 4 * PI)
-    got = N(g.pose_to_rotation6d_translation(T(pose)))
+    got = N(g.pose_to_rotation_6d_translation(T(pose)))
     assert got.shape == (4, 5, 9)
     m = matrices(pose[..., :3])
     want = np.concatenate([m[..., :, 0], m[..., :, 1], pose[..., 3:]], axis=-1)
@@ -250,7 +250,7 @@ def test_pose_to_rotation6d_translation_matches_matrix_columns():
 def test_rotation6d_translation_to_pose_matches_gram_schmidt_and_scipy():
     gen = np.random.default_rng(10)
     d6t = np.concatenate([gen.normal(size=(4, 5, 6)) * 2, gen.normal(size=(4, 5, 3))], axis=-1)
-    got = N(g.rotation6d_translation_to_pose(T(d6t)))
+    got = N(g.rotation_6d_translation_to_pose(T(d6t)))
     m = np_gram_schmidt(d6t[..., :6])
     want_r = Rotation.from_matrix(m.reshape(-1, 3, 3)).as_rotvec().reshape(4, 5, 3)
     np.testing.assert_allclose(got[..., :3], want_r, rtol=0, atol=TOL64)
@@ -259,7 +259,7 @@ def test_rotation6d_translation_to_pose_matches_gram_schmidt_and_scipy():
 
 def test_rotation6d_translation_round_trip():
     pose = np.concatenate([random_poses(np.random.default_rng(11), (40,)), adversarial_poses()])
-    back = N(g.rotation6d_translation_to_pose(g.pose_to_rotation6d_translation(T(pose))))
+    back = N(g.rotation_6d_translation_to_pose(g.pose_to_rotation_6d_translation(T(pose))))
     np.testing.assert_allclose(back, pose, rtol=0, atol=TOL64)
 
 
@@ -270,12 +270,12 @@ def test_rotation6d_translation_round_trip():
 FORWARD: dict[str, Callable] = {
     "quat": g.pose_to_quat_translation,
     "anchor": g.pose_to_anchor_points,
-    "6d": g.pose_to_rotation6d_translation,
+    "6d": g.pose_to_rotation_6d_translation,
 }
 BACKWARD: dict[str, Callable] = {
     "quat": g.quat_translation_to_pose,
     "anchor": g.anchor_points_to_pose,
-    "6d": g.rotation6d_translation_to_pose,
+    "6d": g.rotation_6d_translation_to_pose,
 }
 
 
@@ -360,8 +360,8 @@ ARG_CASES = [
     ("quat_translation_to_pose", "qt", 7),
     ("pose_to_anchor_points", "pose", 6),
     ("anchor_points_to_pose", "points", 9),
-    ("pose_to_rotation6d_translation", "pose", 6),
-    ("rotation6d_translation_to_pose", "d6t", 9),
+    ("pose_to_rotation_6d_translation", "pose", 6),
+    ("rotation_6d_translation_to_pose", "d6t", 9),
 ]
 
 

@@ -13,7 +13,7 @@ from oracles import quadratic_form_np, random_poses, right_jacobian_np, se3_erro
 from scipy.spatial.transform import Rotation
 from torch.autograd import gradcheck, gradgradcheck
 
-from svr.geometry import se3_compose, se3_from_vector, se3_to_vector
+from svr.geometry import se3_compose, se3_to_vector, vector_to_se3
 from svr.losses import SE3GeodesicLoss, default_metric_weights, se3_geodesic_loss
 
 F64 = torch.float64
@@ -27,7 +27,7 @@ def spd_matrix(rng: np.random.Generator) -> torch.Tensor:
 
 
 def compose_vec(g: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    return se3_to_vector(se3_compose(se3_from_vector(g), se3_from_vector(p)))
+    return se3_to_vector(se3_compose(vector_to_se3(g), vector_to_se3(p)))
 
 
 def poses(rng: np.random.Generator, n: int, **kw: float) -> torch.Tensor:
@@ -93,8 +93,8 @@ def test_not_right_invariant_in_translation(rng):
     pred, target, g = poses(rng, 40), poses(rng, 40), poses(rng, 40)
     before = se3_geodesic_loss(pred, target, DIAG_ANISO, reduction="none")
     after = se3_geodesic_loss(
-        se3_to_vector(se3_compose(se3_from_vector(pred), se3_from_vector(g))),
-        se3_to_vector(se3_compose(se3_from_vector(target), se3_from_vector(g))),
+        se3_to_vector(se3_compose(vector_to_se3(pred), vector_to_se3(g))),
+        se3_to_vector(se3_compose(vector_to_se3(target), vector_to_se3(g))),
         DIAG_ANISO,
         reduction="none",
     )

@@ -11,7 +11,7 @@ from oracles import foreground_cc, truth_poses
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
-from svr.geometry import se3_from_vector
+from svr.geometry import vector_to_se3
 from svr.image import Image, load_nifti
 from svr.sampling.slicer import (
     SliceConfig,
@@ -41,7 +41,7 @@ def random_poses(rng: np.random.Generator, n: int, trans: float = 4.0) -> torch.
 def test_slice_points_follow_the_design_convention():
     pose = torch.tensor([[0.3, -0.2, 0.5, 1.0, 2.0, 3.0]], dtype=torch.float64)
     pts = slice_points(pose, (5, 7), 0.5)
-    T = se3_from_vector(pose)[0]
+    T = vector_to_se3(pose)[0]
     # pixel (a, b) sits at (u, v) = ((a - 2) 0.5, (b - 3) 0.5); u along axis 0, v along axis 1
     for a, b in [(0, 0), (2, 3), (4, 6), (1, 5)]:
         uvw = torch.tensor([(a - 2) * 0.5, (b - 3) * 0.5, 0.0, 1.0], dtype=torch.float64)
@@ -87,8 +87,8 @@ def test_poses_as_vectors_and_matrices_agree(rng):
     poses = random_poses(rng, 4)
     config = SliceConfig(size=(16, 16))
     a = sample_slices(vol, poses, config)
-    torch.testing.assert_close(sample_slices(vol, se3_from_vector(poses), config), a)
-    torch.testing.assert_close(sample_slices(vol, se3_from_vector(poses)[:, :3], config), a)
+    torch.testing.assert_close(sample_slices(vol, vector_to_se3(poses), config), a)
+    torch.testing.assert_close(sample_slices(vol, vector_to_se3(poses)[:, :3], config), a)
 
 
 def test_psf_quadrature_weights_and_thickness_integration(rng):

@@ -11,7 +11,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
-from svr.geometry import se3_error, se3_from_vector
+from svr.geometry import se3_error, vector_to_se3
 from svr.geometry.symmetry import (
     SAGITTAL,
     ReflectionPlane,
@@ -78,13 +78,13 @@ def test_twin_is_a_proper_involution_for_any_plane():
     on_plane = 4.0 * n + torch.linalg.cross(n, torch.tensor([0.0, 0.0, 1.0], dtype=F64))
     torch.testing.assert_close(m[:3, :3] @ on_plane + m[:3, 3], on_plane)  # fixed points
     poses = random_poses(50, 1)
-    twins = mirror_twin_matrix(se3_from_vector(poses), plane)
+    twins = mirror_twin_matrix(vector_to_se3(poses), plane)
     torch.testing.assert_close(torch.det(twins[:, :3, :3]), torch.ones(50, dtype=F64))
     # M T D maps every in-plane point (u, v, 0) to the mirror image of where T maps it
     uv = torch.tensor([[7.0, -3.0, 0.0, 1.0]], dtype=F64).T
-    torch.testing.assert_close(twins @ uv, m @ se3_from_vector(poses) @ uv)
+    torch.testing.assert_close(twins @ uv, m @ vector_to_se3(poses) @ uv)
     back = mirror_twin(mirror_twin(poses, plane), plane)
-    torch.testing.assert_close(se3_from_vector(back), se3_from_vector(poses))
+    torch.testing.assert_close(vector_to_se3(back), vector_to_se3(poses))
     assert orbit_matrices(twins, ()).shape == (1, 50, 4, 4)
 
 
@@ -263,7 +263,7 @@ def test_nearest_orbit_member_reports_the_member():
     pred = mirror_twin(target)
     pred[:10] = target[:10]
     member, index = nearest_orbit_member(pred, target)
-    torch.testing.assert_close(se3_from_vector(member), se3_from_vector(pred))
+    torch.testing.assert_close(vector_to_se3(member), vector_to_se3(pred))
     assert index.tolist() == [0] * 10 + [1] * 10
     # by rotation alone, and with no plane (the target itself)
     _, index = nearest_orbit_member(

@@ -52,14 +52,14 @@ def canonical(q: Tensor) -> Tensor:
     return torch.where(q[:1] < 0, -q, q)
 
 
-def quat_from_rotvec(r: Tensor, canonicalize: bool = True) -> Tensor:
+def rotvec_to_quat(r: Tensor, canonicalize: bool = True) -> Tensor:
     """(3, ...) rotation vectors to (4, ...) unit quaternions (``w >= 0`` if ``canonicalize``)."""
     c, s = _series.half_angle(dot(r, r))
     q = torch.cat([c, s * r])
     return canonical(q) if canonicalize else q
 
 
-def rotvec_from_quat(q: Tensor) -> Tensor:
+def quat_to_rotvec(q: Tensor) -> Tensor:
     """(4, ...) non-zero quaternions to (3, ...) rotation vectors with angle in ``[0, pi]``."""
     q = canonical(q)
     v = q[1:]

@@ -19,9 +19,9 @@ from torch import Tensor
 from svr.geometry._validation import check_tensor
 from svr.geometry.so3 import (
     matrix_to_rotation_6d,
-    quat_from_rotvec,
+    quat_to_rotvec,
     rotation_6d_to_matrix,
-    rotvec_from_quat,
+    rotvec_to_quat,
     so3_exp,
     so3_log,
 )
@@ -40,7 +40,7 @@ def pose_to_quat_translation(pose: Tensor) -> Tensor:
         (..., 7) tensors.
     """
     check_tensor(pose, "pose_to_quat_translation", "pose", (6,))
-    return torch.cat([quat_from_rotvec(pose[..., :3]), pose[..., 3:]], dim=-1)
+    return torch.cat([rotvec_to_quat(pose[..., :3]), pose[..., 3:]], dim=-1)
 
 
 def quat_translation_to_pose(qt: Tensor) -> Tensor:
@@ -53,7 +53,7 @@ def quat_translation_to_pose(qt: Tensor) -> Tensor:
         (..., 6) pose vectors.
     """
     check_tensor(qt, "quat_translation_to_pose", "qt", (7,))
-    return torch.cat([rotvec_from_quat(qt[..., :4]), qt[..., 4:]], dim=-1)
+    return torch.cat([quat_to_rotvec(qt[..., :4]), qt[..., 4:]], dim=-1)
 
 
 def _plane_points(half_size_mm: float, like: Tensor) -> Tensor:
@@ -109,7 +109,7 @@ def anchor_points_to_pose(points: Tensor, half_size_mm: float = ANCHOR_HALF_SIZE
     return torch.cat([so3_log(R), t], dim=-1)
 
 
-def pose_to_rotation6d_translation(pose: Tensor) -> Tensor:
+def pose_to_rotation_6d_translation(pose: Tensor) -> Tensor:
     """Pose vectors to 6D rotation + translation.
 
     Args:
@@ -118,11 +118,11 @@ def pose_to_rotation6d_translation(pose: Tensor) -> Tensor:
     Returns:
         (..., 9) tensors ``(R00, R10, R20, R01, R11, R21, t_x, t_y, t_z)``.
     """
-    check_tensor(pose, "pose_to_rotation6d_translation", "pose", (6,))
+    check_tensor(pose, "pose_to_rotation_6d_translation", "pose", (6,))
     return torch.cat([matrix_to_rotation_6d(so3_exp(pose[..., :3])), pose[..., 3:]], dim=-1)
 
 
-def rotation6d_translation_to_pose(d6t: Tensor) -> Tensor:
+def rotation_6d_translation_to_pose(d6t: Tensor) -> Tensor:
     """6D rotation + translation to pose vectors (Gram-Schmidt on the 6D part).
 
     Args:
@@ -131,5 +131,5 @@ def rotation6d_translation_to_pose(d6t: Tensor) -> Tensor:
     Returns:
         (..., 6) pose vectors.
     """
-    check_tensor(d6t, "rotation6d_translation_to_pose", "d6t", (9,))
+    check_tensor(d6t, "rotation_6d_translation_to_pose", "d6t", (9,))
     return torch.cat([so3_log(rotation_6d_to_matrix(d6t[..., :6])), d6t[..., 6:]], dim=-1)

@@ -29,7 +29,7 @@ def _assemble(R: Tensor, t: Tensor) -> Tensor:
     return torch.cat([top, bottom], dim=-2)
 
 
-def se3_from_vector(pose: Tensor) -> Tensor:
+def vector_to_se3(pose: Tensor) -> Tensor:
     """Pose matrix of a pose vector.
 
     Args:
@@ -38,7 +38,7 @@ def se3_from_vector(pose: Tensor) -> Tensor:
     Returns:
         (..., 4, 4) matrices ``[[exp([r]x), t], [0, 1]]``.
     """
-    check_tensor(pose, "se3_from_vector", "pose", (6,))
+    check_tensor(pose, "vector_to_se3", "pose", (6,))
     return _assemble(so3_exp(pose[..., :3]), pose[..., 3:])
 
 
@@ -126,9 +126,9 @@ def error_cf(poses: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         The (6, ...) errors and the (4, ...) quaternions of ``R_pred^-1``.
     """
-    q = _cf.quat_from_rotvec(poses[:3], canonicalize=False)  # the error is sign-invariant
+    q = _cf.rotvec_to_quat(poses[:3], canonicalize=False)  # the error is sign-invariant
     q_pred_inv = _cf.quat_conjugate(q[:, 0])
-    e_rot = _cf.rotvec_from_quat(_cf.quat_multiply(q_pred_inv, q[:, 1]))
+    e_rot = _cf.quat_to_rotvec(_cf.quat_multiply(q_pred_inv, q[:, 1]))
     e_trans = _cf.quat_rotate(q_pred_inv, poses[3:, 1] - poses[3:, 0])
     return torch.cat([e_rot, e_trans]), q_pred_inv
 

@@ -39,7 +39,7 @@ def hat(v: Tensor) -> Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))
 
 
-def quat_from_rotvec(rotvec: Tensor) -> Tensor:
+def rotvec_to_quat(rotvec: Tensor) -> Tensor:
     """Unit quaternion of a rotation vector.
 
     Args:
@@ -48,11 +48,11 @@ def quat_from_rotvec(rotvec: Tensor) -> Tensor:
     Returns:
         (..., 4) quaternions ``(w, x, y, z)`` with ``w >= 0``.
     """
-    check_tensor(rotvec, "quat_from_rotvec", "rotvec", (3,))
-    return _cf.quat_from_rotvec(rotvec.movedim(-1, 0)).movedim(0, -1)
+    check_tensor(rotvec, "rotvec_to_quat", "rotvec", (3,))
+    return _cf.rotvec_to_quat(rotvec.movedim(-1, 0)).movedim(0, -1)
 
 
-def rotvec_from_quat(quat: Tensor) -> Tensor:
+def quat_to_rotvec(quat: Tensor) -> Tensor:
     """Rotation vector of a quaternion, with angle in ``[0, pi]``.
 
     Uses ``angle = 2 atan2(|v|, |w|)`` (no ``acos``, finite at ``pi``). The quaternion need not be
@@ -64,11 +64,11 @@ def rotvec_from_quat(quat: Tensor) -> Tensor:
     Returns:
         (..., 3) rotation vectors in radians.
     """
-    check_tensor(quat, "rotvec_from_quat", "quat", (4,))
-    return _cf.rotvec_from_quat(quat.movedim(-1, 0)).movedim(0, -1)
+    check_tensor(quat, "quat_to_rotvec", "quat", (4,))
+    return _cf.quat_to_rotvec(quat.movedim(-1, 0)).movedim(0, -1)
 
 
-def matrix_from_quat(quat: Tensor) -> Tensor:
+def quat_to_matrix(quat: Tensor) -> Tensor:
     """Rotation matrix of a quaternion (normalised internally, so any non-zero ``q`` is valid).
 
     Args:
@@ -77,7 +77,7 @@ def matrix_from_quat(quat: Tensor) -> Tensor:
     Returns:
         (..., 3, 3) rotation matrices.
     """
-    check_tensor(quat, "matrix_from_quat", "quat", (4,))
+    check_tensor(quat, "quat_to_matrix", "quat", (4,))
     w, x, y, z = quat.unbind(-1)
     s = 2.0 / quat.square().sum(-1)
     xx, yy, zz = s * x * x, s * y * y, s * z * z
@@ -99,7 +99,7 @@ def matrix_from_quat(quat: Tensor) -> Tensor:
     ).unflatten(-1, (3, 3))
 
 
-def quat_from_matrix(matrix: Tensor) -> Tensor:
+def matrix_to_quat(matrix: Tensor) -> Tensor:
     """Unit quaternion of a rotation matrix (Shepperd's method: pivot on the largest component).
 
     Args:
@@ -108,7 +108,7 @@ def quat_from_matrix(matrix: Tensor) -> Tensor:
     Returns:
         (..., 4) quaternions ``(w, x, y, z)`` with ``w >= 0``.
     """
-    check_tensor(matrix, "quat_from_matrix", "matrix", (3, 3))
+    check_tensor(matrix, "matrix_to_quat", "matrix", (3, 3))
     m = matrix.flatten(-2)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = m.unbind(-1)
     # 4 q_i^2 for i = w, x, y, z; the largest is >= 1, so its square root is well conditioned.
@@ -148,7 +148,7 @@ def so3_exp(rotvec: Tensor) -> Tensor:
         (..., 3, 3) rotation matrices.
     """
     check_tensor(rotvec, "so3_exp", "rotvec", (3,))
-    return matrix_from_quat(quat_from_rotvec(rotvec))
+    return quat_to_matrix(rotvec_to_quat(rotvec))
 
 
 def so3_log(matrix: Tensor) -> Tensor:
@@ -165,7 +165,7 @@ def so3_log(matrix: Tensor) -> Tensor:
         (..., 3) rotation vectors in radians.
     """
     check_tensor(matrix, "so3_log", "matrix", (3, 3))
-    return rotvec_from_quat(quat_from_matrix(matrix))
+    return quat_to_rotvec(matrix_to_quat(matrix))
 
 
 def regularize_rotvec(rotvec: Tensor) -> Tensor:
@@ -178,7 +178,7 @@ def regularize_rotvec(rotvec: Tensor) -> Tensor:
         (..., 3) rotation vectors of the same rotations with angle in ``[0, pi]``.
     """
     check_tensor(rotvec, "regularize_rotvec", "rotvec", (3,))
-    return rotvec_from_quat(quat_from_rotvec(rotvec))
+    return quat_to_rotvec(rotvec_to_quat(rotvec))
 
 
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:

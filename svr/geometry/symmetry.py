@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from svr.geometry._validation import check_tensor
-from svr.geometry.se3 import se3_from_vector, se3_to_vector
+from svr.geometry.se3 import se3_to_vector, vector_to_se3
 
 SLICE_FLIP = (1.0, 1.0, -1.0)
 """``D``: the diagonal of the slice-frame reflection that fixes the slice plane."""
@@ -140,7 +140,7 @@ def mirror_twin(poses: Tensor, plane: ReflectionPlane = SAGITTAL) -> Tensor:
         ``2 pi`` ambiguity at angle ``pi``.
     """
     check_tensor(poses, "mirror_twin", "poses", (6,))
-    return se3_to_vector(mirror_twin_matrix(se3_from_vector(poses), plane))
+    return se3_to_vector(mirror_twin_matrix(vector_to_se3(poses), plane))
 
 
 def check_planes(planes: Sequence[ReflectionPlane], func: str) -> tuple[ReflectionPlane, ...]:

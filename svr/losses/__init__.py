@@ -4,7 +4,7 @@ from svr.losses.baselines import (
     PoseNetLoss,
     anchor_point_loss,
     posenet_loss,
-    rotation6d_loss,
+    rotation_6d_loss,
 )
 from svr.losses.metric_weights import (
     DEFAULT_LENGTH_SCALE_MM,
@@ -22,7 +22,7 @@ __all__ = [
     "default_metric_weights",
     "estimate_metric_weights",
     "posenet_loss",
-    "rotation6d_loss",
+    "rotation_6d_loss",
     "se3_geodesic_loss",
     "validate_metric_weights",
 ]

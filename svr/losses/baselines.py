@@ -163,7 +163,7 @@ def anchor_point_loss(
     return reduce_loss(loss, reduction, func)
 
 
-def rotation6d_loss(
+def rotation_6d_loss(
     pred: Tensor,
     target: Tensor,
     reduction: Reduction = "mean",
@@ -184,7 +184,7 @@ def rotation6d_loss(
     Returns:
         The loss: a scalar, or (...) for ``reduction="none"``.
     """
-    func = "rotation6d_loss"
+    func = "rotation_6d_loss"
     check_tensor(pred, func, "pred", (9,))
     check_tensor(target, func, "target", (9,))
     _check_positive(translation_scale_mm, func, "translation_scale_mm")
