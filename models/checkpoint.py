@@ -238,6 +238,57 @@ def latest_checkpoint(folder: str | os.PathLike[str]) -> Path | None:
     return None
 
 
+def resolve_model_path(path_or_name: str | os.PathLike[str]) -> Path:
+    """The checkpoint folder that a model argument (``--model``, ``--checkpoints``) names.
+
+    One meaning everywhere: the name :data:`svr.models.pretrained.DEFAULT_MODEL` (``"default"``)
+    is the shipped model (a folder literally named ``default`` is given as ``./default``); a
+    folder holding ``config.json`` is that checkpoint; a training run folder (``checkpoints/``
+    inside) or a folder of ``step_*`` checkpoints stands for its newest complete checkpoint.
+
+    Args:
+        path_or_name: The name or folder.
+
+    Returns:
+        The checkpoint folder.
+
+    Raises:
+        CheckpointError: Naming the folder, if it does not exist, holds no checkpoint, or is the
+            shipped model's and its files are not installed.
+    """
+    from svr.models.pretrained import DEFAULT_MODEL, default_model_path
+
+    if isinstance(path_or_name, str) and path_or_name == DEFAULT_MODEL:
+        folder = default_model_path()
+        missing = [f for f in (CHECKPOINT_WEIGHTS, CHECKPOINT_CONFIG) if not (folder / f).is_file()]
+        if missing:
+            raise CheckpointError(
+                folder,
+                f"the shipped default model is not installed (missing {', '.join(missing)}); "
+                "export one with benchmarks/export_default_model.py or give a checkpoint folder",
+            )
+        return folder
+    path = Path(path_or_name)
+    if not path.is_dir():
+        problem = (
+            "not a checkpoint folder (a file)"
+            if path.exists()
+            else "checkpoint folder does not exist"
+        )
+        raise CheckpointError(path, problem)
+    if (path / CHECKPOINT_CONFIG).is_file():
+        return path
+    for folder in (path / "checkpoints", path):
+        latest = latest_checkpoint(folder) if folder.is_dir() else None
+        if latest is not None:
+            return latest
+    raise CheckpointError(
+        path,
+        f"missing {CHECKPOINT_CONFIG}, and no step_*/ or checkpoints/step_*/ inside: not a "
+        "checkpoint or training run folder",
+    )
+
+
 def prune_checkpoints(folder: str | os.PathLike[str], keep: int) -> None:
     """Delete the checkpoints older than the newest ``keep`` complete ones.
 

@@ -1,15 +1,19 @@
 """Pose heads: a linear layer from backbone features to the labels of one pose representation.
 
-A head's output is in the units of :func:`svr.sampling.poses.pose_labels` (rad, mm), so that it goes
-straight into the representation's loss and :meth:`PoseHead.to_pose` recovers pose vectors with
-the :mod:`svr.geometry` converters. The linear layer's raw outputs are kept O(1): its millimetre
-outputs are multiplied by ``translation_scale_mm`` (by ``anchor_half_size_mm`` for the anchor
-points), the others (rotation vector, quaternion, 6D columns) are used as they are.
+Everything a head needs to know about its representation comes from the registry
+:data:`svr.representations.REPRESENTATIONS`: the output size, the scale of the raw outputs, the
+identity label and the decoder. A head's output is in the units of
+:func:`svr.sampling.poses.pose_labels` (rad, mm), so that it goes straight into the
+representation's loss and :meth:`PoseHead.to_pose` recovers pose vectors with the entry's
+``decode``. The linear layer's raw outputs are kept O(1) by the entry's ``output_scale``: the
+millimetre outputs are multiplied by ``translation_scale_mm`` (by ``anchor_half_size_mm`` for the
+anchor points), the others (rotation vector, quaternion, 6D columns) are used as they are.
 
-Initialisation: zero weights and a bias equal to the scaled label of the identity pose, so that an
-untrained network predicts the identity pose at the origin for every input: ``0`` for ``"se3"``,
-``(1, 0, 0, 0, 0, 0, 0)`` for ``"quat_translation"``, ``(-1, -1, 0, 0, 0, 0, 1, -1, 0)`` for
-``"anchor_points"`` and ``(1, 0, 0, 0, 1, 0, 0, 0, 0)`` for ``"rotation6d_translation"``.
+Initialisation: zero weights and a bias equal to the scaled label of the identity pose (the entry's
+``encode`` of the zero pose vector), so that an untrained network predicts the identity pose at the
+origin for every input: ``0`` for ``"se3"``, ``(1, 0, 0, 0, 0, 0, 0)`` for ``"quat_translation"``,
+``(-1, -1, 0, 0, 0, 0, 1, -1, 0)`` for ``"anchor_points"`` and ``(1, 0, 0, 0, 1, 0, 0, 0, 0)`` for
+``"rotation6d_translation"``.
 
 ``"se3"`` heads have two rotation parameterisations (``rotation=``): ``"rotvec"``, the rotation
 vector itself, and ``"6d"``, two 3-vectors turned into a rotation by Gram-Schmidt (Zhou et al.
@@ -32,42 +36,16 @@ import math
 import torch
 from torch import Tensor, nn
 
-from svr.geometry import (
-    ANCHOR_HALF_SIZE_MM,
-    anchor_points_to_pose,
-    matrix_to_quat,
-    quat_to_rotvec,
-    quat_translation_to_pose,
-    regularize_rotvec,
-    rotation_6d_to_matrix,
-    rotation_6d_translation_to_pose,
-)
+from svr.geometry import ANCHOR_HALF_SIZE_MM, matrix_to_quat, quat_to_rotvec, rotation_6d_to_matrix
+from svr.geometry._validation import check_tensor
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
-from svr.sampling.poses import REPRESENTATIONS, Representation, pose_labels
-
-OUTPUT_SIZES: dict[str, int] = {
-    "se3": 6,
-    "quat_translation": 7,
-    "anchor_points": 9,
-    "rotation6d_translation": 9,
-}
-"""Number of outputs of each representation (the last dimension of its labels)."""
+from svr.representations import REPRESENTATIONS, Representation, get_representation
 
 SE3_ROTATIONS = ("rotvec", "6d")
 """Rotation parameterisations of the ``"se3"`` head's linear layer."""
 
-
-def check_representation(representation: object, owner: str) -> None:
-    """Check that ``representation`` is one of :data:`svr.sampling.poses.REPRESENTATIONS`.
-
-    Raises:
-        ValueError: Naming ``owner`` and listing the valid names.
-    """
-    if representation not in REPRESENTATIONS:
-        raise ValueError(
-            f"{owner}: 'representation' must be one of {', '.join(REPRESENTATIONS)}, "
-            f"got {representation!r}"
-        )
+_SE3_6D_LAYER = "rotation6d_translation"
+"""The representation whose layout the ``"6d"`` rotation of an ``"se3"`` head's layer takes."""
 
 
 def check_length(value: object, owner: str, name: str) -> None:
@@ -86,7 +64,7 @@ class PoseHead(nn.Module):
 
     Args:
         in_features: Number of input features, >= 1.
-        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
+        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
         translation_scale_mm: Millimetres per unit of the raw translation outputs, > 0.
         anchor_half_size_mm: Half-size ``a`` (mm) of the anchor-point triangle and millimetres per
             unit of the raw anchor-point outputs, > 0 (``"anchor_points"`` only).
@@ -94,8 +72,9 @@ class PoseHead(nn.Module):
             ``"6d"`` (it gives two 3-vectors, turned into the rotation vector; module docstring).
 
     Attributes:
-        linear: The ``(in_features -> OUTPUT_SIZES[representation])`` layer of raw outputs.
-        scale: (D,) buffer multiplying the raw outputs.
+        linear: The ``(in_features -> D)`` layer of raw outputs, ``D`` the registry entry's
+            ``size`` (that of ``"rotation6d_translation"``, 9, for the ``"6d"`` rotation).
+        scale: (D,) buffer multiplying the raw outputs (the entry's ``output_scale``).
 
     Raises:
         ValueError: For an unknown representation or a bad size or length.
@@ -114,7 +93,7 @@ class PoseHead(nn.Module):
             raise ValueError(
                 f"PoseHead: 'in_features' must be an integer >= 1, got {in_features!r}"
             )
-        check_representation(representation, "PoseHead")
+        entry = get_representation(representation, "PoseHead")
         check_length(translation_scale_mm, "PoseHead", "translation_scale_mm")
         check_length(anchor_half_size_mm, "PoseHead", "anchor_half_size_mm")
         if rotation not in SE3_ROTATIONS or (rotation != "rotvec" and representation != "se3"):
@@ -126,19 +105,11 @@ class PoseHead(nn.Module):
         self.representation = representation
         self.translation_scale_mm = float(translation_scale_mm)
         self.anchor_half_size_mm = float(anchor_half_size_mm)
-        size = OUTPUT_SIZES[representation] + (3 if rotation == "6d" else 0)
-        self.linear = nn.Linear(in_features, size)
-        if representation == "anchor_points":
-            scale = torch.full((size,), self.anchor_half_size_mm)
-        else:
-            scale = torch.ones(size)
-            scale[-3:] = self.translation_scale_mm
+        layer = REPRESENTATIONS[_SE3_6D_LAYER] if rotation == "6d" else entry
+        self.linear = nn.Linear(in_features, layer.size)
+        scale = layer.output_scale(self.translation_scale_mm, self.anchor_half_size_mm)
         self.register_buffer("scale", scale, persistent=False)
-        identity = pose_labels(
-            torch.zeros(6, dtype=torch.float64),
-            "rotation6d_translation" if rotation == "6d" else representation,
-            anchor_half_size_mm,
-        )
+        identity = layer.encode(torch.zeros(6, dtype=torch.float64), self.anchor_half_size_mm)
         with torch.no_grad():
             nn.init.zeros_(self.linear.weight)
             self.linear.bias.copy_(identity / scale.double())
@@ -150,8 +121,8 @@ class PoseHead(nn.Module):
             features: (B, in_features) features.
 
         Returns:
-            (B, OUTPUT_SIZES[representation]) outputs in the label units of
-            :func:`svr.sampling.poses.pose_labels` (rad, mm).
+            (B, D) outputs in the label units of :func:`svr.sampling.poses.pose_labels` (rad, mm),
+            ``D = REPRESENTATIONS[representation].size``.
         """
         raw = self.linear(features) * self.scale
         if self.rotation == "rotvec":
@@ -160,27 +131,22 @@ class PoseHead(nn.Module):
         return torch.cat([rotvec, raw[..., 6:]], dim=-1)
 
     def to_pose(self, output: Tensor) -> Tensor:
-        """Pose vectors of outputs (or labels) of this head's representation.
+        """Pose vectors of outputs (or labels) of this head's representation (its ``decode``).
 
         Args:
-            output: (..., OUTPUT_SIZES[representation]) outputs in label units.
+            output: (..., D) outputs in label units, ``D = REPRESENTATIONS[representation].size``.
 
         Returns:
             (..., 6) pose vectors ``(r, t)``: rotation vector with angle in ``[0, pi]`` (rad),
             translation (mm).
+
+        Raises:
+            TypeError: If ``output`` is not a floating-point tensor.
+            ValueError: If ``output`` does not have shape (..., D).
         """
-        if self.representation == "se3":
-            if output.shape[-1:] != (6,):
-                raise ValueError(
-                    f"PoseHead.to_pose(): 'output' must have shape (..., 6), got "
-                    f"{tuple(output.shape)}"
-                )
-            return torch.cat([regularize_rotvec(output[..., :3]), output[..., 3:]], dim=-1)
-        if self.representation == "quat_translation":
-            return quat_translation_to_pose(output)
-        if self.representation == "anchor_points":
-            return anchor_points_to_pose(output, self.anchor_half_size_mm)
-        return rotation_6d_translation_to_pose(output)
+        entry = get_representation(self.representation, "PoseHead.to_pose()")
+        check_tensor(output, "PoseHead.to_pose", "output", (entry.size,))
+        return entry.decode(output, self.anchor_half_size_mm)
 
     def extra_repr(self) -> str:
         """Hyper-parameters shown by ``repr``."""

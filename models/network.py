@@ -3,7 +3,8 @@
 A :class:`SlicePoseNet` maps ``(B, 1, H, W)`` slices (in-plane spacing ``spacing_mm``, normally
 ``input_size`` pixels) to the labels of its representation (:func:`svr.sampling.poses.pose_labels`,
 rad and mm); :meth:`SlicePoseNet.predict_poses` turns them into pose vectors in the canonical
-frame. :func:`loss_function` gives the loss that trains each representation.
+frame. :func:`loss_function` gives the loss that trains each representation (the registry
+:data:`svr.representations.REPRESENTATIONS` says which).
 """
 
 from __future__ import annotations
@@ -17,25 +18,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from svr.geometry import (
-    ANCHOR_HALF_SIZE_MM,
-    anchor_points_to_pose,
-    quat_translation_to_pose,
-    rotation_6d_translation_to_pose,
-)
+from svr.geometry import ANCHOR_HALF_SIZE_MM
 from svr.geometry.symmetry import ReflectionPlane, check_planes
-from svr.losses import (
-    DEFAULT_LENGTH_SCALE_MM,
-    anchor_point_loss,
-    posenet_loss,
-    rotation_6d_loss,
-    se3_geodesic_loss,
-    validate_metric_weights,
-)
-from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
+from svr.losses import DEFAULT_LENGTH_SCALE_MM, validate_metric_weights
+from svr.losses.symmetry import orbit_min_loss
 from svr.models.backbones import BackboneConfig, build_backbone
-from svr.models.heads import SE3_ROTATIONS, PoseHead, check_length, check_representation
-from svr.sampling.poses import Representation, pose_labels
+from svr.models.heads import SE3_ROTATIONS, PoseHead, check_length
+from svr.representations import REPRESENTATIONS, Representation, get_representation
 
 MIN_INPUT_SIZE = 32
 """Smallest height and width (pixels) of ``ModelConfig.input_size``."""
@@ -47,7 +36,7 @@ class ModelConfig:
 
     Attributes:
         backbone: The backbone's architecture.
-        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
+        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
         input_size: ``(H, W)`` in pixels (each >= 32) of the slices the model is trained on; the
             network itself accepts any size.
         spacing_mm: In-plane pixel spacing (mm) of the slices the model expects, > 0.
@@ -80,7 +69,7 @@ class ModelConfig:
                 "ModelConfig: 'backbone' must be a BackboneConfig, got "
                 f"{type(self.backbone).__name__}"
             )
-        check_representation(self.representation, "ModelConfig")
+        get_representation(self.representation, "ModelConfig")
         size = self.input_size
         ok = isinstance(size, tuple | list) and len(size) == 2
         if not (ok and all(type(n) is int and n >= MIN_INPUT_SIZE for n in size)):
@@ -197,7 +186,7 @@ class SlicePoseNet(nn.Module):
 
         Returns:
             (B, D) outputs in the label units of the representation (rad, mm), ``D =
-            OUTPUT_SIZES[config.representation]``.
+            REPRESENTATIONS[config.representation].size``.
 
         Raises:
             ValueError: If ``slices`` is not a (B, 1, H, W) floating-point tensor.
@@ -250,20 +239,21 @@ def loss_function(
 ) -> Callable[[Tensor, Tensor], Tensor]:
     """The loss that trains a representation, reduced by the mean over the batch.
 
-    * ``"se3"``: :func:`svr.losses.se3_geodesic_loss` with metric weights ``weights``;
-    * ``"quat_translation"``: :func:`svr.losses.posenet_loss`;
-    * ``"anchor_points"``: :func:`svr.losses.anchor_point_loss`;
-    * ``"rotation6d_translation"``: :func:`svr.losses.rotation_6d_loss`;
-
-    the baselines with their default parameters. With reflection ``planes`` every loss is taken to
-    the nearest member of the label's mirror orbit (:mod:`svr.losses.symmetry`): the labels are
-    decoded to poses, their twins encoded back, and the smallest per-slice loss kept, so that the
-    SE(3) loss and the baselines meet the symmetry on the same terms.
+    The registry entry's ``loss`` (:data:`svr.representations.REPRESENTATIONS`):
+    :func:`svr.losses.se3_geodesic_loss` with metric weights ``weights`` for ``"se3"``, and the
+    baselines :func:`svr.losses.posenet_loss` (``"quat_translation"``),
+    :func:`svr.losses.anchor_point_loss` (``"anchor_points"``) and
+    :func:`svr.losses.rotation_6d_loss` (``"rotation6d_translation"``) with their default
+    parameters. With reflection ``planes`` every loss is taken to the nearest member of the
+    label's mirror orbit (:mod:`svr.losses.symmetry`): the entry's fused ``orbit_loss`` where it
+    has one (``"se3"``), else the labels are decoded to poses, their twins encoded back, and the
+    smallest per-slice loss kept, so that the SE(3) loss and the baselines meet the symmetry on the
+    same terms.
 
     Args:
-        representation: One of :data:`svr.sampling.poses.REPRESENTATIONS`.
+        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
         weights: Z as a (6,) diagonal or (6, 6) SPD matrix (rad, mm), or ``None`` for the
-            default; ``"se3"`` only.
+            default; only for representations whose entry has ``metric_weights`` (``"se3"``).
         planes: Canonical-frame mirror planes of the training anatomy (empty: plain losses).
         anchor_half_size_mm: Half-size of the anchor-point triangle (``"anchor_points"``).
 
@@ -272,38 +262,34 @@ def loss_function(
         representation, returning a scalar.
 
     Raises:
-        ValueError: For an unknown representation, or weights given for a baseline or invalid.
+        ValueError: For an unknown representation, or weights given for a loss that takes none
+            or invalid.
     """
-    check_representation(representation, "loss_function()")
+    entry = get_representation(representation, "loss_function()")
     planes = check_planes(planes, "loss_function")
-    if representation == "se3":
-        if weights is not None:
-            validate_metric_weights(weights, "loss_function")
-        if planes:
-            return functools.partial(symmetric_se3_geodesic_loss, planes=planes, weights=weights)
-        return functools.partial(se3_geodesic_loss, weights=weights)
     if weights is not None:
-        raise ValueError(
-            f"loss_function(): 'weights' apply to the 'se3' loss only, not {representation!r}"
-        )
-    if representation == "quat_translation":
-        base, decode = posenet_loss, quat_translation_to_pose
-    elif representation == "anchor_points":
-        base = functools.partial(anchor_point_loss, half_size_mm=anchor_half_size_mm)
-        decode = functools.partial(anchor_points_to_pose, half_size_mm=anchor_half_size_mm)
-    else:
-        base, decode = rotation_6d_loss, rotation_6d_translation_to_pose
+        if not entry.metric_weights:
+            takes = [name for name, e in REPRESENTATIONS.items() if e.metric_weights]
+            raise ValueError(
+                f"loss_function(): 'weights' apply to the {', '.join(map(repr, takes))} loss "
+                f"only, not {representation!r}"
+            )
+        validate_metric_weights(weights, "loss_function")
+    base = entry.loss(weights, anchor_half_size_mm)
     if not planes:
         return base
+    if entry.orbit_loss is not None:
+        return entry.orbit_loss(weights, planes)
     per_slice = functools.partial(base, reduction="none")
-    encode = functools.partial(
-        pose_labels, representation=representation, anchor_half_size_mm=anchor_half_size_mm
-    )
 
     def orbit_loss(outputs: Tensor, labels: Tensor) -> Tensor:
-        poses = decode(labels.detach().double())
+        poses = entry.decode(labels.detach().double(), anchor_half_size_mm)
         return orbit_min_loss(
-            per_slice, outputs, poses, planes, encode=lambda p: encode(p).to(outputs.dtype)
+            per_slice,
+            outputs,
+            poses,
+            planes,
+            encode=lambda p: entry.encode(p, anchor_half_size_mm).to(outputs.dtype),
         )
 
     return orbit_loss

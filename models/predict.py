@@ -40,9 +40,13 @@ from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, vector_to_se3
 from svr.image import Image, ImageError, load_nifti, sample_world
-from svr.models.checkpoint import Checkpoint, CheckpointError, load_checkpoint
+from svr.models.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    load_checkpoint,
+    resolve_model_path,
+)
 from svr.models.network import ModelConfig, SlicePoseNet, build_model
-from svr.models.pretrained import resolve_model_path
 from svr.pose_io import PoseTable
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import DEFAULT_PERCENTILE

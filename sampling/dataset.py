@@ -39,14 +39,13 @@ from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from svr.image import Image
+from svr.representations import Representation, get_representation
 from svr.sampling._validation import check_positive_range, is_finite_number
 from svr.sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
 from svr.sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
 from svr.sampling.poses import (
     DEFAULT_EULER_GRID,
-    REPRESENTATIONS,
     EulerGridConfig,
-    Representation,
     RotationSampling,
     iter_euler_grid_poses,
     pose_labels,
@@ -66,13 +65,6 @@ most of its off-centre slices."""
 def _check_fraction(value: float, owner: str) -> None:
     if not (is_finite_number(value) and 0.0 <= value <= 1.0):
         raise ValueError(f"{owner}: 'min_brain_fraction' must be in [0, 1], got {value!r}")
-
-
-def _check_representation(value: str, owner: str) -> None:
-    if value not in REPRESENTATIONS:
-        raise ValueError(
-            f"{owner}: 'representation' must be one of {', '.join(REPRESENTATIONS)}, got {value!r}"
-        )
 
 
 def _check_int(value: int | None, name: str, minimum: int, allow_none: bool = False) -> None:
@@ -107,7 +99,8 @@ class SliceDatasetConfig:
         max_resample_rounds: How many times rejected poses are redrawn before giving up, >= 1.
         mix_volumes: ``False``: each batch comes from one volume drawn uniformly; ``True``: each
             slice draws its own volume.
-        representation: Label representation, one of :data:`svr.sampling.poses.REPRESENTATIONS`.
+        representation: Label representation, a registered name
+            (:data:`svr.representations.REPRESENTATIONS`).
         augment: Intensity augmentation, or ``None`` for none.
         scale_range: ``None`` for none, else ``(low, high)``, ``0 < low <= high``: each batch
             scales its volume about the canonical origin by a factor drawn log-uniformly per
@@ -167,7 +160,7 @@ class SliceDatasetConfig:
         _check_int(self.deform_control_points, "deform_control_points", 2)
         if not isinstance(self.mix_volumes, bool):
             raise ValueError(f"{owner}: 'mix_volumes' must be a bool, got {self.mix_volumes!r}")
-        _check_representation(self.representation, owner)
+        get_representation(self.representation, owner)
         if self.augment is not None and not isinstance(self.augment, SliceAugmentConfig):
             raise ValueError(
                 f"{owner}: 'augment' must be a SliceAugmentConfig or None, "
@@ -212,7 +205,8 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
 
     * ``"slices"``: (B, 1, H, W) float32 slices (after augmentation).
     * ``"labels"``: (B, D) float32 :func:`~svr.sampling.poses.pose_labels` of ``"poses"`` in
-      ``config.representation`` (D = 6, 7, 9 or 9).
+      ``config.representation`` (D: the ``size`` of its entry in
+      :data:`svr.representations.REPRESENTATIONS`).
     * ``"poses"``: (B, 6) float64 pose vectors (rad, mm), slice plane -> canonical frame.
     * ``"volume_index"``: (B,) int64 index of each slice's volume in ``volumes``.
     * ``"spacing_mm"``: (B,) float64 in-plane spacing the slices were sampled with, mm.
@@ -515,7 +509,8 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
         grid_config: The Euler grid (default: the paper's, 54,571 poses).
         slice_config: Slice size, spacing, PSF and interpolation.
         min_brain_fraction: The empty-slice rule (module docstring), in [0, 1].
-        representation: Label representation, one of :data:`svr.sampling.poses.REPRESENTATIONS`.
+        representation: Label representation, a registered name
+            (:data:`svr.representations.REPRESENTATIONS`).
         chunk_size: Poses per chunk of the sweep, >= 1.
 
     Attributes:
@@ -540,7 +535,7 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
     ) -> None:
         super().__init__()
         _check_fraction(min_brain_fraction, "EulerGridDataset")
-        _check_representation(representation, "EulerGridDataset")
+        get_representation(representation, "EulerGridDataset")
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
             raise ValueError(
                 f"EulerGridDataset: 'chunk_size' must be an integer >= 1, got {chunk_size!r}"

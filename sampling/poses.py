@@ -29,19 +29,11 @@ from torch import Tensor
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     euler_to_matrix,
-    pose_to_anchor_points,
-    pose_to_quat_translation,
-    pose_to_rotation_6d_translation,
     quat_to_matrix,
     quat_to_rotvec,
     so3_log,
 )
-
-Representation = Literal["se3", "quat_translation", "anchor_points", "rotation6d_translation"]
-"""Names of the pose representations that the losses are trained on."""
-
-REPRESENTATIONS: tuple[str, ...] = get_args(Representation)
-"""The valid values of :data:`Representation`, in order."""
+from svr.representations import Representation, get_representation
 
 RotationSampling = Literal["euler", "uniform"]
 """How :func:`random_slice_poses` draws rotations."""
@@ -370,42 +362,31 @@ def pose_labels(
 ) -> Tensor:
     """Training labels of poses in the representation a loss works on.
 
-    Each label maps back to the pose with the :mod:`svr.geometry` converters
-    (``quat_translation_to_pose``, ``anchor_points_to_pose``, ``rotation_6d_translation_to_pose``).
+    The registry entry's ``encode`` (:data:`svr.representations.REPRESENTATIONS`, where the label
+    layouts are listed); its ``decode`` maps each label back to the pose.
 
     Args:
         poses: (..., 6) pose vectors (rad, mm) mapping the slice plane to the canonical frame.
-        representation: One of :data:`REPRESENTATIONS`:
-            ``"se3"``: the pose vectors themselves (the same tensor), (..., 6);
-            ``"quat_translation"``: ``(w, x, y, z, t)`` with ``w >= 0``, (..., 7);
-            ``"anchor_points"``: the points ``(P1, P2, P3)`` in the canonical frame, mm, (..., 9);
-            ``"rotation6d_translation"``: the first two columns of ``R`` then ``t``, (..., 9).
-        anchor_half_size_mm: Half-size of the anchor-point triangle in mm (``"anchor_points"``
+        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`), e.g.
+            ``"se3"`` (the pose vectors themselves, the same tensor), ``"quat_translation"``,
+            ``"anchor_points"`` or ``"rotation6d_translation"``.
+        anchor_half_size_mm: Half-size of the anchor-point triangle in mm, > 0 (``"anchor_points"``
             only).
 
     Returns:
-        (..., 6), (..., 7), (..., 9) or (..., 9) labels, in the dtype and device of ``poses``.
+        (..., D) labels, ``D = REPRESENTATIONS[representation].size`` (6, 7, 9 and 9 for the names
+        above), in the dtype and device of ``poses``.
 
     Raises:
-        ValueError: If ``representation`` is unknown (the message lists the valid names) or
-            ``poses`` does not have shape (..., 6).
+        ValueError: If ``representation`` is not registered (the message lists the valid names),
+            ``poses`` does not have shape (..., 6) or ``anchor_half_size_mm`` is not > 0.
         TypeError: If ``poses`` is not a floating-point tensor.
     """
-    if representation not in REPRESENTATIONS:
-        raise ValueError(
-            f"pose_labels(): unknown representation {representation!r}; "
-            f"valid names are {', '.join(REPRESENTATIONS)}"
-        )
+    entry = get_representation(representation, "pose_labels()")
     if not (isinstance(poses, Tensor) and poses.is_floating_point()):
         raise TypeError("pose_labels(): 'poses' must be a floating-point torch.Tensor (..., 6)")
     if poses.dim() == 0 or poses.shape[-1] != 6:
         raise ValueError(
             f"pose_labels(): 'poses' must have shape (..., 6), got {tuple(poses.shape)}"
         )
-    if representation == "se3":
-        return poses
-    if representation == "quat_translation":
-        return pose_to_quat_translation(poses)
-    if representation == "anchor_points":
-        return pose_to_anchor_points(poses, anchor_half_size_mm)
-    return pose_to_rotation_6d_translation(poses)
+    return entry.encode(poses, anchor_half_size_mm)

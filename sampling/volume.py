@@ -13,7 +13,9 @@ bright end is ~1 whatever the scanner's scale; values are not clipped.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -129,3 +131,98 @@ def load_canonical_volume(
         return canonicalize(volume, mask, percentile, name=f"{volume_path} (mask {mask_path})")
     except ValueError as err:
         raise ImageError(str(err)) from err
+
+
+class VolumeSourceError(ValueError):
+    """The volumes asked for cannot be found (the message names the folder or files).
+
+    Attributes:
+        missing_ages: Gestational ages (weeks) asked for that have no volume; empty otherwise.
+    """
+
+    def __init__(self, message: str, missing_ages: Sequence[float] = ()) -> None:
+        super().__init__(message)
+        self.missing_ages = tuple(missing_ages)
+
+
+def atlas_volume_paths(
+    folder: str | os.PathLike[str],
+    hold_out: Sequence[float] = (),
+    only: Sequence[float] | None = None,
+) -> list[tuple[Path, Path]]:
+    """The ``(srr.nii.gz, mask.nii.gz)`` pairs of an atlas folder of ``GA<weeks>*`` subfolders.
+
+    The layout is that of the sb-fidon2021 atlas (``GA28_operated/srr.nii.gz`` with its
+    ``mask.nii.gz``); the gestational age is read from the two digits after ``GA``. Subfolders
+    without ``srr.nii.gz`` are skipped.
+
+    Args:
+        folder: The atlas folder.
+        hold_out: Gestational ages (weeks) to leave out.
+        only: ``None`` for every age, else the gestational ages (weeks) to keep.
+
+    Returns:
+        The pairs, sorted by subfolder name.
+
+    Raises:
+        VolumeSourceError: If ``folder`` is not a folder, a ``GA*`` subfolder is not named
+            ``GA<weeks>``, no volume is left, or an age in ``only`` has no volume.
+    """
+    root = Path(folder)
+    if not root.is_dir():
+        raise VolumeSourceError(f"{root} is not a folder")
+    found: list[tuple[float, Path, Path]] = []
+    for sub in sorted(root.glob("GA*")):
+        try:
+            weeks = float(sub.name[2:4])
+        except ValueError:
+            raise VolumeSourceError(
+                f"{sub} is not named GA<weeks> (e.g. GA28); move it out of {root}"
+            ) from None
+        if (sub / "srr.nii.gz").exists():
+            found.append((weeks, sub / "srr.nii.gz", sub / "mask.nii.gz"))
+    if only is not None:
+        missing = sorted(set(only) - {weeks for weeks, _, _ in found})
+        if missing:
+            ages = " ".join(f"{ga:g}" for ga in missing)
+            raise VolumeSourceError(f"GA {ages}: no such GA*/srr.nii.gz in {root}", missing)
+    pairs = [
+        (volume, mask)
+        for weeks, volume, mask in found
+        if weeks not in hold_out and (only is None or weeks in only)
+    ]
+    if not pairs:
+        raise VolumeSourceError(f"no GA*/srr.nii.gz volumes left in {root}")
+    return pairs
+
+
+def load_volumes(
+    pairs: Sequence[tuple[str | os.PathLike[str], str | os.PathLike[str]]] = (),
+    phantom_ages: Sequence[float] = (28.0,),
+    percentile: float = DEFAULT_PERCENTILE,
+) -> tuple[list[CanonicalVolume], list[str]]:
+    """Canonical volumes from ``(volume, mask)`` NIfTI pairs, else the built-in phantom.
+
+    Args:
+        pairs: ``(volume, mask)`` paths (e.g. from :func:`atlas_volume_paths`); when empty, one
+            procedural phantom per age in ``phantom_ages`` (:mod:`svr.sampling.phantom`).
+        phantom_ages: Gestational ages (weeks) of the phantoms, used only without ``pairs``.
+        percentile: In-mask intensity percentile mapped to 1.
+
+    Returns:
+        The volumes (CPU, float32) and a name for each: the volume's path, or ``"phantom GA
+        <weeks>"``.
+
+    Raises:
+        ImageError: For an unusable file (the message names it).
+    """
+    if pairs:
+        volumes = [load_canonical_volume(v, m, percentile) for v, m in pairs]
+        return volumes, [str(v) for v, _ in pairs]
+    from svr.sampling.phantom import gestational_age_config, make_phantom
+
+    volumes = [
+        canonicalize(*make_phantom(gestational_age_config(ga)), percentile, name="phantom")
+        for ga in phantom_ages
+    ]
+    return volumes, [f"phantom GA {ga:g}" for ga in phantom_ages]

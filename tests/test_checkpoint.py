@@ -31,6 +31,7 @@ from svr.models.checkpoint import (
     latest_checkpoint,
     load_checkpoint,
     prune_checkpoints,
+    resolve_model_path,
     save_checkpoint,
 )
 
@@ -542,3 +543,22 @@ def test_checkpoint_error_pickles() -> None:
     copy_ = pickle.loads(pickle.dumps(error))
     assert (copy_.path, copy_.problem, str(copy_)) == (error.path, error.problem, str(error))
     assert isinstance(copy_, ValueError)
+
+
+def test_resolve_model_path_has_one_meaning(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    _save_steps(run / "checkpoints", [3, 12])
+    newest = run / "checkpoints" / checkpoint_name(12)
+    assert resolve_model_path(run) == newest  # a training run: its newest checkpoint
+    assert resolve_model_path(run / "checkpoints") == newest  # a folder of step_*/
+    assert resolve_model_path(str(newest)) == newest  # a checkpoint itself
+    with pytest.raises(CheckpointError, match="checkpoint folder does not exist") as info:
+        resolve_model_path(tmp_path / "missing")
+    assert info.value.path == tmp_path / "missing"
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(CheckpointError, match="not a checkpoint folder"):
+        resolve_model_path(tmp_path / "file")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match=r"missing config\.json, and no step_"):
+        resolve_model_path(tmp_path / "empty")

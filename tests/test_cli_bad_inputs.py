@@ -340,9 +340,9 @@ CHECKPOINT_OPTIONS = {
 
 # bad checkpoint -> (message for predict/register/reconstruct, message for evaluate)
 BAD_CHECKPOINTS = {
-    "ckpt_missing": ("checkpoint folder does not exist", "is not a folder"),
-    "ckpt_empty": ("missing config.json", "holds no checkpoint"),
-    "ckpt_pickle_file": ("not a checkpoint folder (a file)", "is not a folder"),
+    "ckpt_missing": ("checkpoint folder does not exist", "checkpoint folder does not exist"),
+    "ckpt_empty": ("missing config.json", "missing config.json"),
+    "ckpt_pickle_file": ("not a checkpoint folder (a file)", "not a checkpoint folder (a file)"),
     "ckpt_pickle_weights": ("corrupted safetensors file", "corrupted safetensors file"),
     "ckpt_pth_only": ("missing model.safetensors", "missing model.safetensors"),
     "ckpt_truncated": ("corrupted safetensors file", "corrupted safetensors file"),

@@ -141,7 +141,7 @@ def test_thickness_changes_the_slices(files, tmp_path):
     ("checkpoints", "extra", "message"),
     [
         (["run_se3", "big"], [], "must share input size and spacing"),
-        (["run_se3", "missing"], [], "missing is not a folder"),
+        (["run_se3", "missing"], [], "missing: checkpoint folder does not exist"),
         (["run_se3", "x=anchor", "x=big"], [], "method names must differ"),
         (["run_se3"], ["--min-brain-fraction", "1.5"], "--min-brain-fraction must be in [0, 1)"),
         (["run_se3"], ["--only-ga", "24"], "--only-ga needs --atlas-dir"),

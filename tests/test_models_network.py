@@ -10,9 +10,10 @@ import torch
 from svr.geometry import rotation_6d_to_matrix, so3_exp, so3_log, vector_to_se3
 from svr.losses import anchor_point_loss, posenet_loss, rotation_6d_loss, se3_geodesic_loss
 from svr.models.backbones import BackboneConfig, build_backbone
-from svr.models.heads import OUTPUT_SIZES, PoseHead
+from svr.models.heads import PoseHead
 from svr.models.network import ModelConfig, SlicePoseNet, build_model, loss_function
-from svr.sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
+from svr.representations import REPRESENTATIONS
+from svr.sampling.poses import pose_labels, random_slice_poses
 
 BACKBONES = ("resnet", "inception")
 
@@ -31,9 +32,9 @@ def random_poses(n: int, seed: int = 1, rotation: str = "euler") -> torch.Tensor
 
 
 def test_output_sizes_match_the_labels():
-    assert tuple(OUTPUT_SIZES) == REPRESENTATIONS
-    for rep, size in OUTPUT_SIZES.items():
-        assert pose_labels(torch.zeros(6, dtype=torch.float64), rep).shape == (size,)
+    for rep, entry in REPRESENTATIONS.items():
+        assert pose_labels(torch.zeros(6, dtype=torch.float64), rep).shape == (entry.size,)
+        assert PoseHead(4, rep).linear.out_features == entry.size
 
 
 @pytest.mark.parametrize("name", BACKBONES)
@@ -43,7 +44,7 @@ def test_output_shapes(name, representation):
     assert isinstance(model, SlicePoseNet)
     for size in ((32, 32), (64, 48)):
         x = torch.randn(3, 1, *size)
-        assert model(x).shape == (3, OUTPUT_SIZES[representation])
+        assert model(x).shape == (3, REPRESENTATIONS[representation].size)
         assert model.predict_poses(x).shape == (3, 6)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -56,8 +57,17 @@ def test_imports_beside_unrelated_models_and_sampling_packages(tmp_path):
 
 @pytest.mark.slow
 def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
+    # Build from a copy of the working tree (git-ignored files left out), so that nothing
+    # (build/, *.egg-info) lands in the checkout.
+    listed = ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"]
+    tracked = _run(listed, cwd=REPO).split("\0")
+    source = tmp_path / "source"
+    for name in filter(None, tracked):
+        if (REPO / name).is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, source / name)
     dist = tmp_path / "dist"
-    build = [sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps", "-w", str(dist), "-q"]
+    build = [sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "-w", str(dist), "-q"]
     try:  # build offline with this environment's setuptools when it is new enough
         import setuptools
 

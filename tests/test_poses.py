@@ -20,8 +20,8 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import svr.geometry as g
+from svr.representations import REPRESENTATIONS
 from svr.sampling.poses import (
-    REPRESENTATIONS,
     EulerGridConfig,
     euler_grid,
     euler_grid_poses,
@@ -358,7 +358,12 @@ WIDTHS = {"se3": 6, "quat_translation": 7, "anchor_points": 9, "rotation6d_trans
 
 
 def test_representation_names() -> None:
-    assert REPRESENTATIONS == ("se3", "quat_translation", "anchor_points", "rotation6d_translation")
+    assert tuple(REPRESENTATIONS) == (
+        "se3",
+        "quat_translation",
+        "anchor_points",
+        "rotation6d_translation",
+    )
 
 
 @pytest.mark.parametrize("representation", REPRESENTATIONS)

@@ -24,16 +24,12 @@ from svr.models.checkpoint import (
     CHECKPOINT_WEIGHTS,
     TRAINING_STATE,
     CheckpointError,
+    resolve_model_path,
     save_checkpoint,
 )
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.models.predict import load_pose_model
-from svr.models.pretrained import (
-    DEFAULT_MODEL,
-    MAX_MODEL_BYTES,
-    default_model_path,
-    resolve_model_path,
-)
+from svr.models.pretrained import DEFAULT_MODEL, MAX_MODEL_BYTES, default_model_path
 from svr.models.pretrained.export import export_model
 
 CONFIG = ModelConfig(backbone=BackboneConfig(width=8, depth=2), input_size=(32, 32), spacing_mm=2.0)
@@ -172,10 +168,14 @@ def test_a_pickle_in_the_weights_file_is_refused_without_running_it(exported, tm
     assert not marker.exists()
 
 
-def test_default_names_the_shipped_folder_and_paths_stay_paths():
+def test_default_names_the_shipped_folder_and_paths_stay_paths(tmp_path, monkeypatch):
     folder = default_model_path()
     assert folder.parent == Path(svr.models.pretrained.__file__).parent
     assert folder.name == DEFAULT_MODEL
+    assert resolve_model_path(DEFAULT_MODEL) == folder
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "default").mkdir()
+    (tmp_path / "default" / "config.json").write_text("{}")
     assert resolve_model_path("./default") == Path("default")
     assert resolve_model_path(Path("default")) == Path("default")
 

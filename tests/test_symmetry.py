@@ -25,7 +25,8 @@ from svr.losses import se3_geodesic_loss
 from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
 from svr.metrics import nearest_orbit_member
 from svr.models.network import loss_function
-from svr.sampling.poses import REPRESENTATIONS, pose_labels, random_slice_poses
+from svr.representations import REPRESENTATIONS
+from svr.sampling.poses import pose_labels, random_slice_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.symmetry import mean_plane, measure_reflection_plane, resolve_symmetry
 from svr.sampling.volume import canonicalize

@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from svr.image import Image, ImageError, save_nifti
-from svr.sampling.volume import canonicalize, load_canonical_volume
+from svr.sampling.volume import (
+    VolumeSourceError,
+    atlas_volume_paths,
+    canonicalize,
+    load_canonical_volume,
+    load_volumes,
+)
 
 
 def synthetic(rng: np.random.Generator) -> tuple[Image, Image]:
@@ -96,3 +102,46 @@ def test_atlas_centre_matches_the_bench_cases(shared_data):
     case = json.loads((shared_data / "bench" / "sb28-moderate" / "case.json").read_text())
     np.testing.assert_allclose(cv.centre_mm.numpy(), case["atlas_centre_mm"], atol=1e-6)
     assert 0.9 < float(cv.image.data.max()) < 2.0
+
+
+def _atlas(tmp_path, rng, names=("GA24_a", "GA28_b", "GA30_c")):
+    volume, mask = synthetic(rng)
+    for name in names:
+        (tmp_path / name).mkdir()
+        save_nifti(volume, tmp_path / name / "srr.nii.gz")
+        save_nifti(mask, tmp_path / name / "mask.nii.gz")
+    (tmp_path / "GA26_empty").mkdir()  # no srr.nii.gz: skipped
+    return tmp_path
+
+
+def test_atlas_volume_paths_hold_out_and_only(tmp_path, rng):
+    root = _atlas(tmp_path, rng)
+    names = lambda pairs: [v.parent.name for v, _ in pairs]  # noqa: E731
+    assert names(atlas_volume_paths(root)) == ["GA24_a", "GA28_b", "GA30_c"]
+    assert names(atlas_volume_paths(root, hold_out=[24, 30])) == ["GA28_b"]
+    assert names(atlas_volume_paths(root, only=[30, 24])) == ["GA24_a", "GA30_c"]
+    pairs = atlas_volume_paths(root, only=[28])
+    assert pairs == [(root / "GA28_b" / "srr.nii.gz", root / "GA28_b" / "mask.nii.gz")]
+    volumes, sources = load_volumes(pairs)
+    assert sources == [str(root / "GA28_b" / "srr.nii.gz")] and len(volumes) == 1
+
+
+def test_atlas_volume_paths_errors(tmp_path, rng):
+    with pytest.raises(VolumeSourceError, match="is not a folder"):
+        atlas_volume_paths(tmp_path / "missing")
+    root = _atlas(tmp_path, rng)
+    with pytest.raises(VolumeSourceError, match=r"no GA.*volumes left") as info:
+        atlas_volume_paths(root, hold_out=[24, 28, 30])
+    assert info.value.missing_ages == ()
+    with pytest.raises(VolumeSourceError, match="GA 32: no such") as info:
+        atlas_volume_paths(root, only=[28, 32])
+    assert info.value.missing_ages == (32,)
+    (root / "GAxx").mkdir()
+    with pytest.raises(VolumeSourceError, match="not named GA<weeks>"):
+        atlas_volume_paths(root)
+
+
+def test_load_volumes_defaults_to_phantoms():
+    volumes, sources = load_volumes(phantom_ages=(22.0,))
+    assert sources == ["phantom GA 22"] and len(volumes) == 1
+    assert bool(volumes[0].mask.any())

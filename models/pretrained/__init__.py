@@ -4,21 +4,21 @@ The shipped model lives in the package-data folder ``models/pretrained/default/`
 folder in the layout of :mod:`svr.models.checkpoint` (``model.safetensors`` in float16,
 ``config.json`` with the model configuration and its provenance) plus a ``README.md`` with its
 training command, data licence and evaluation. It is written by
-:func:`svr.models.pretrained.export.export_model` (``benchmarks/export_default_model.py``) and read,
-like any checkpoint, by :func:`svr.models.predict.load_pose_model`, which accepts the name
-:data:`DEFAULT_MODEL` for it: safetensors and JSON only, so loading never executes code, and the
-float16 weights come back in their original float32.
+:func:`svr.models.pretrained.export.export_model` (``benchmarks/export_default_model.py``) and
+read, like any checkpoint, by :func:`svr.models.predict.load_pose_model`, which accepts the name
+:data:`DEFAULT_MODEL` for it (:func:`svr.models.checkpoint.resolve_model_path`): safetensors and
+JSON only, so loading never executes code, and the float16 weights come back in their original
+float32.
 """
 
 from __future__ import annotations
 
-import os
 from importlib import resources
 from pathlib import Path
 
-from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, CheckpointError
+from svr.models.checkpoint import CheckpointError
 
-__all__ = ["DEFAULT_MODEL", "MAX_MODEL_BYTES", "default_model_path", "resolve_model_path"]
+__all__ = ["DEFAULT_MODEL", "MAX_MODEL_BYTES", "default_model_path"]
 
 DEFAULT_MODEL = "default"
 """The name that stands for the shipped model wherever a checkpoint folder is accepted."""
@@ -38,32 +38,5 @@ def default_model_path() -> Path:
     if not isinstance(folder, Path):
         raise CheckpointError(
             str(folder), "the package is not installed as files; cannot open the shipped model"
-        )
-    return folder
-
-
-def resolve_model_path(path_or_name: str | os.PathLike[str]) -> Path:
-    """The checkpoint folder that a model argument names.
-
-    Args:
-        path_or_name: :data:`DEFAULT_MODEL` (the string ``"default"``) for the shipped model, or a
-            checkpoint folder (a folder literally named ``default`` is given as ``./default``).
-
-    Returns:
-        The folder; for the shipped model, after checking that its files are installed.
-
-    Raises:
-        CheckpointError: Naming the shipped model's folder, if ``"default"`` is asked for but its
-            weights or config are not there.
-    """
-    if not (isinstance(path_or_name, str) and path_or_name == DEFAULT_MODEL):
-        return Path(path_or_name)
-    folder = default_model_path()
-    missing = [f for f in (CHECKPOINT_WEIGHTS, CHECKPOINT_CONFIG) if not (folder / f).is_file()]
-    if missing:
-        raise CheckpointError(
-            folder,
-            f"the shipped default model is not installed (missing {', '.join(missing)}); export "
-            "one with benchmarks/export_default_model.py or pass a checkpoint folder",
         )
     return folder

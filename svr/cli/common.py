@@ -27,6 +27,13 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescript
         return super()._get_help_string(action)
 
 
+MODEL_HELP = (
+    "'default' (the model shipped with the package), a checkpoint folder, or a training run "
+    "folder from svr train (its newest checkpoint); write ./default for a folder of that name"
+)
+"""A model argument's one meaning (:func:`svr.models.checkpoint.resolve_model_path`)."""
+
+
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """Add ``--device``, ``--seed``, ``--verbose`` and ``--quiet``."""
     parser.add_argument(
@@ -156,12 +163,12 @@ def load_input_volume(args: argparse.Namespace) -> tuple[CanonicalVolume, str]:
         CliError: If only one of ``--input-volume`` and ``--input-mask`` is given.
         ImageError: For unusable files (the message names the file).
     """
-    from svr.sampling.phantom import gestational_age_config, make_phantom
-    from svr.sampling.volume import canonicalize, load_canonical_volume
+    from svr.sampling.volume import load_volumes
 
     if (args.input_volume is None) != (args.input_mask is None):
         raise CliError("--input-volume and --input-mask go together")
-    if args.input_volume is not None:
-        return load_canonical_volume(args.input_volume, args.input_mask), str(args.input_volume)
-    volume, mask = make_phantom(gestational_age_config(args.phantom_ga))
-    return canonicalize(volume, mask, name="phantom"), f"phantom (GA {args.phantom_ga:g} weeks)"
+    pairs = [] if args.input_volume is None else [(args.input_volume, args.input_mask)]
+    volumes, names = load_volumes(pairs, phantom_ages=(args.phantom_ga,))
+    if args.input_volume is None:
+        return volumes[0], f"phantom (GA {args.phantom_ga:g} weeks)"
+    return volumes[0], names[0]

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from svr.cli.common import (
+    MODEL_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -81,7 +82,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--model",
         metavar="train|default|CHECKPOINT_DIR",
         help="slice-pose model for --registration cnn: 'train' one on the volume (default), "
-        "'default' (shipped with the package) or a checkpoint folder",
+        f"or {MODEL_HELP}",
     )
     parser.add_argument(
         "--registration",

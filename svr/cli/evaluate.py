@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from svr.cli.common import (
+    MODEL_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -23,7 +24,6 @@ from svr.cli.common import (
     positive_int,
     resolve_device,
 )
-from svr.cli.train import _atlas_pairs
 
 if TYPE_CHECKING:
     from svr.models.network import SlicePoseNet
@@ -94,8 +94,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         nargs="+",
         required=True,
         metavar="[NAME=]DIR",
-        help="checkpoints to compare, each labelled NAME (default: the folder name); DIR "
-        "'default' is the model shipped with the package",
+        help="models to compare, each labelled NAME (default: the folder name); DIR is "
+        f"{MODEL_HELP}",
     )
     p.add_argument("--output-dir", required=True, help="the report folder to create")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --output-dir")
@@ -158,33 +158,15 @@ def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, str]]:
     return named
 
 
-def _checkpoint_folder(spec: str) -> Path:
-    """The checkpoint a DIR names: the shipped model, the folder, or its newest step_*/."""
-    from svr.models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint
-    from svr.models.pretrained import DEFAULT_MODEL, resolve_model_path
-
-    if spec == DEFAULT_MODEL:
-        return resolve_model_path(spec)
-    path = Path(spec)
-    if not path.is_dir():
-        raise CliError(f"--checkpoints: {path} is not a folder")
-    if (path / CHECKPOINT_CONFIG).is_file():
-        return path
-    for folder in (path / "checkpoints", path):
-        latest = latest_checkpoint(folder)
-        if latest is not None:
-            return latest
-    raise CliError(
-        f"--checkpoints: {path} holds no checkpoint ({CHECKPOINT_CONFIG}, step_*/ or "
-        "checkpoints/step_*/)"
-    )
-
-
 def _load_method(name: str, spec: str, device: str) -> _Method:
     """Load the network of a ``--checkpoints`` DIR onto ``device``, in eval mode."""
+    from svr.models.checkpoint import CheckpointError, resolve_model_path
     from svr.models.predict import load_pose_model
 
-    folder = _checkpoint_folder(spec)
+    try:
+        folder = resolve_model_path(spec)
+    except CheckpointError as err:
+        raise CliError(f"--checkpoints: {err}") from err
     model, config = load_pose_model(folder, device)
     log.info("%s: %s (%s)", name, folder, config.representation)
     return _Method(name, folder, model)
@@ -211,8 +193,7 @@ def _common_geometry(methods: list[_Method]) -> tuple[tuple[int, int], float]:
 
 def _volumes(args: argparse.Namespace) -> tuple[list[CanonicalVolume], list[str]]:
     """The evaluation volumes named by the options, and a name for each."""
-    from svr.sampling.phantom import gestational_age_config, make_phantom
-    from svr.sampling.volume import canonicalize, load_canonical_volume
+    from svr.sampling.volume import VolumeSourceError, atlas_volume_paths, load_volumes
 
     if len(args.input_volumes) != len(args.input_masks):
         raise CliError(
@@ -223,24 +204,16 @@ def _volumes(args: argparse.Namespace) -> tuple[list[CanonicalVolume], list[str]
         raise CliError("--only-ga needs --atlas-dir")
     pairs = [(Path(v), Path(m)) for v, m in zip(args.input_volumes, args.input_masks, strict=True)]
     if args.atlas_dir:
-        atlas = _atlas_pairs(args.atlas_dir, [])
-        if args.only_ga is not None:
-            try:
-                others = set(_atlas_pairs(args.atlas_dir, args.only_ga))
-            except CliError:  # --only-ga names every volume of the folder
-                others = set()
-            atlas = [pair for pair in atlas if pair not in others]
-            if not atlas:
-                ages = " ".join(f"{ga:g}" for ga in args.only_ga)
-                raise CliError(f"--only-ga {ages}: no such GA*/srr.nii.gz in {args.atlas_dir}")
-        pairs += atlas
-    if pairs:
-        return [load_canonical_volume(v, m) for v, m in pairs], [str(v) for v, _ in pairs]
-    volumes = [
-        canonicalize(*make_phantom(gestational_age_config(ga)), name="phantom")
-        for ga in args.phantom_ga
-    ]
-    return volumes, [f"phantom GA {ga:g}" for ga in args.phantom_ga]
+        try:
+            pairs += atlas_volume_paths(args.atlas_dir, only=args.only_ga)
+        except VolumeSourceError as err:
+            if err.missing_ages:
+                ages = " ".join(f"{ga:g}" for ga in err.missing_ages)
+                raise CliError(
+                    f"--only-ga {ages}: no such GA*/srr.nii.gz in {args.atlas_dir}"
+                ) from err
+            raise CliError(f"--atlas-dir: {err}") from err
+    return load_volumes(pairs, phantom_ages=args.phantom_ga)
 
 
 def _validation_slices(

@@ -8,7 +8,14 @@ import logging
 import torch
 from tqdm import tqdm
 
-from svr.cli.common import CliError, HelpFormatter, add_common_options, positive_int, resolve_device
+from svr.cli.common import (
+    MODEL_HELP,
+    CliError,
+    HelpFormatter,
+    add_common_options,
+    positive_int,
+    resolve_device,
+)
 from svr.files import check_output_path
 
 DESCRIPTION = """\
@@ -47,8 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--model",
         required=True,
         metavar="CHECKPOINT_DIR",
-        help="checkpoint folder from svr train, or 'default': the model shipped with the package "
-        "(write ./default for a folder of that name)",
+        help=f"slice-pose model: {MODEL_HELP}",
     )
     p.add_argument("--input-stacks", nargs="+", default=[], metavar="STACK", help="stacks (NIfTI)")
     p.add_argument(

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from svr.cli.common import (
+    MODEL_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -150,8 +151,7 @@ def add_options(
         "--model",
         default="default",
         metavar="CHECKPOINT_DIR",
-        help="slice-pose model for --registration cnn: 'default' (shipped with the package) or a "
-        "checkpoint folder (write ./default for a folder of that name)",
+        help=f"slice-pose model for --registration cnn: {MODEL_HELP}",
     )
     settings.add_argument(
         "--template",

@@ -20,13 +20,6 @@ from svr.cli.common import (
     resolve_device,
 )
 
-LOSSES = {
-    "se3": "se3",
-    "posenet": "quat_translation",
-    "anchor": "anchor_points",
-    "rot6d": "rotation6d_translation",
-}
-
 DESCRIPTION = """\
 Train a CNN that predicts each 2D slice's pose in canonical (atlas) space, on slices cut on the
 fly from brain volumes (an atlas folder, volume/mask pairs, or the built-in phantom) at random
@@ -47,6 +40,7 @@ examples:
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train``."""
     from svr.models.heads import SE3_ROTATIONS
+    from svr.representations import representations_by_cli_name
     from svr.sampling.symmetry import SYMMETRY_MODES, SYMMETRY_THRESHOLD
 
     p = subparsers.add_parser(
@@ -75,8 +69,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="gestational ages of built-in phantoms, without other volumes",
     )
     model = p.add_argument_group("model")
+    losses = representations_by_cli_name()
     model.add_argument(
-        "--loss", choices=sorted(LOSSES), default="se3", help="loss and output representation"
+        "--loss",
+        choices=sorted(losses),
+        default="se3",
+        help="loss and output representation: "
+        + ", ".join(f"{cli} ({entry.name})" for cli, entry in losses.items()),
     )
     model.add_argument("--backbone", choices=["resnet", "inception"], default="resnet")
     model.add_argument("--width", type=positive_int, default=32, help="channels of the first stage")
@@ -177,28 +176,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
-def _atlas_pairs(folder: str, hold_out: list[float]) -> list[tuple[Path, Path]]:
-    root = Path(folder)
-    if not root.is_dir():
-        raise CliError(f"--atlas-dir: {root} is not a folder")
-    pairs = []
-    for sub in sorted(root.glob("GA*")):
-        try:
-            weeks = float(sub.name[2:4])
-        except ValueError:
-            raise CliError(
-                f"--atlas-dir: {sub} is not named GA<weeks> (e.g. GA28); move it out of {root}"
-            ) from None
-        if weeks not in hold_out and (sub / "srr.nii.gz").exists():
-            pairs.append((sub / "srr.nii.gz", sub / "mask.nii.gz"))
-    if not pairs:
-        raise CliError(f"--atlas-dir: no GA*/srr.nii.gz volumes left in {root}")
-    return pairs
-
-
 def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
-    from svr.sampling.phantom import gestational_age_config, make_phantom
-    from svr.sampling.volume import canonicalize, load_canonical_volume
+    """The training volumes named by the options, and a name for each."""
+    from svr.sampling.volume import VolumeSourceError, atlas_volume_paths, load_volumes
 
     if len(args.input_volumes) != len(args.input_masks):
         raise CliError(
@@ -207,14 +187,11 @@ def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
         )
     pairs = [(Path(v), Path(m)) for v, m in zip(args.input_volumes, args.input_masks, strict=True)]
     if args.atlas_dir:
-        pairs += _atlas_pairs(args.atlas_dir, args.hold_out)
-    if pairs:
-        return [load_canonical_volume(v, m) for v, m in pairs], [str(v) for v, _ in pairs]
-    volumes = [
-        canonicalize(*make_phantom(gestational_age_config(ga)), name="phantom")
-        for ga in args.phantom_ga
-    ]
-    return volumes, [f"phantom GA {ga:g}" for ga in args.phantom_ga]
+        try:
+            pairs += atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)
+        except VolumeSourceError as err:
+            raise CliError(f"--atlas-dir: {err}") from err
+    return load_volumes(pairs, phantom_ages=args.phantom_ga)
 
 
 def _symmetry_summary(report: dict) -> str:
@@ -242,6 +219,7 @@ def run(args: argparse.Namespace) -> int:
     from svr.models.backbones import BackboneConfig
     from svr.models.network import ModelConfig, loss_function
     from svr.models.train import OptimConfig, TrainConfig, train
+    from svr.representations import representations_by_cli_name
     from svr.sampling.augment import SliceAugmentConfig
     from svr.sampling.dataset import SliceDatasetConfig
     from svr.sampling.slicer import SliceConfig
@@ -249,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_run_folder(args.output_dir)
     check_finite(args, "--weight-decay", "--metric-weights")
-    representation = LOSSES[args.loss]
+    representation = representations_by_cli_name()[args.loss].name
     size = (args.size, args.size)
     config = TrainConfig(
         output_dir=args.output_dir,
