@@ -16,7 +16,7 @@ Steps:
          (``--phantom-ga``): ``--num-slices`` slices per volume, ``--thickness`` mm thick, at
          random poses (a) in the paper's Euler box (angles in +-90 deg, offsets in +-40 mm) and
          (b) with uniform rotations on SO(3) (offsets in +-40 mm), that pass the empty-slice rule
-         (:func:`svr.models.evaluation.draw_validation_poses`);
+         (:func:`svr.sampling.poses.draw_validation_poses`);
        * the same on the atlas volumes training held out (``--num-slices`` each) and, for
          reference, on the training atlas volumes (seen anatomy, ``--atlas-slices`` each), when
          ``--atlas-dir`` exists;
@@ -57,17 +57,12 @@ from svr.image import load_nifti
 from svr.image_metrics import ncc
 from svr.metrics import pose_errors
 from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
-from svr.models.evaluation import (
-    VALIDATION_BRAIN_FRACTION,
-    EvalConfig,
-    draw_validation_poses,
-    evaluate_poses,
-    summarize,
-)
+from svr.models.evaluation import EvalConfig, evaluate_poses, summarize
 from svr.models.network import ModelConfig, SlicePoseNet
 from svr.models.predict import load_pose_model, predict_stack_poses
 from svr.models.pretrained.export import export_model
 from svr.sampling.phantom import gestational_age_config, make_phantom
+from svr.sampling.poses import VALIDATION_BRAIN_FRACTION, draw_validation_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume, canonicalize, load_canonical_volume
 

@@ -42,11 +42,9 @@ from torch import Tensor
 from svr.files import atomic_directory
 from svr.geometry._validation import check_tensor
 from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
-from svr.image import Image
 from svr.image_metrics import mse, ncc, psnr, ssim
 from svr.metrics import nearest_orbit_member, pose_errors
-from svr.sampling.poses import RotationSampling, random_slice_poses
-from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
@@ -54,8 +52,6 @@ log = logging.getLogger(__name__)
 DEFAULT_RANGE_PERCENTILE = 99.9
 HIGHER_IS_BETTER = frozenset({"cc", "psnr", "ssim"})
 DEFAULT_TEST_METRICS = ("geodesic", "geodesic_twin", "cc")
-VALIDATION_BRAIN_FRACTION = 0.1
-"""Default empty-slice rule of validation slices: at least 10 % of the pixels in the brain."""
 _HISTOGRAM_METRICS = ("geodesic", "rotation_deg", "rotation_twin_deg", "translation_mm", "cc")
 _CONSTANT_RTOL = 1e-12  # differences that vary less than this (relative) count as constant
 _EXAMPLE_GAP = 2  # pixels between the example slices in a montage
@@ -195,65 +191,6 @@ def evaluate_poses(
         out["rotation_twin_deg"] = twin_errors["rotation_deg"]
         out["translation_twin_mm"] = twin_errors["translation_mm"]
     return {key: value.detach().cpu().numpy().astype(np.float64) for key, value in out.items()}
-
-
-def draw_validation_poses(
-    volume: CanonicalVolume,
-    num_slices: int,
-    config: SliceConfig,
-    generator: torch.Generator,
-    rotation: RotationSampling = "euler",
-    min_brain_fraction: float = VALIDATION_BRAIN_FRACTION,
-    max_rounds: int = 100,
-) -> Tensor:
-    """Random validation poses of a volume whose slices show enough brain.
-
-    Poses are drawn :func:`~svr.sampling.poses.random_slice_poses` (Euler angles in +-90 deg and
-    offsets in +-40 mm, the paper's validation poses, or uniform rotations) in rounds of
-    ``2 * num_slices``, keeping those whose slice has at least ``min_brain_fraction`` of its
-    pixels in the brain mask (:func:`~svr.sampling.slicer.brain_fraction`), in the order drawn.
-
-    Args:
-        volume: The canonical volume (poses are in its frame).
-        num_slices: How many poses to return, >= 1.
-        config: Slice size and spacing (as the slices will be cut).
-        generator: The random stream (advanced by the draws).
-        rotation: ``"euler"`` or ``"uniform"`` (on SO(3)).
-        min_brain_fraction: The empty-slice rule, in [0, 1).
-        max_rounds: Rounds of drawing before giving up, >= 1.
-
-    Returns:
-        (num_slices, 6) float64 poses (rad, mm), slice plane -> canonical frame, on the volume's
-        device.
-
-    Raises:
-        ValueError: Naming the argument, for a bad ``num_slices``, ``min_brain_fraction`` or
-            ``max_rounds``; or if ``max_rounds`` rounds give fewer than ``num_slices`` poses.
-    """
-    if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
-        raise ValueError(f"draw_validation_poses(): 'num_slices' must be >= 1, got {num_slices!r}")
-    if not 0 <= min_brain_fraction < 1:
-        raise ValueError(
-            "draw_validation_poses(): 'min_brain_fraction' must be in [0, 1), "
-            f"got {min_brain_fraction!r}"
-        )
-    if max_rounds < 1:
-        raise ValueError(f"draw_validation_poses(): 'max_rounds' must be >= 1, got {max_rounds}")
-    device = volume.image.data.device
-    mask = Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
-    kept: list[Tensor] = []
-    count = 0
-    for _ in range(max_rounds):
-        poses = random_slice_poses(2 * num_slices, generator, rotation=rotation)
-        keep = brain_fraction(mask, poses.to(device), config).cpu() >= min_brain_fraction
-        kept.append(poses[keep])
-        count += int(keep.sum())
-        if count >= num_slices:
-            return torch.cat(kept)[:num_slices].to(device)
-    raise ValueError(
-        f"only {count} of {num_slices} slices reach a brain fraction of {min_brain_fraction} "
-        f"in {max_rounds} rounds; lower it or check the mask"
-    )
 
 
 def _check_per_slice(per_slice: Mapping[str, np.ndarray], owner: str) -> dict[str, np.ndarray]:

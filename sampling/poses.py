@@ -33,7 +33,10 @@ from svr.geometry import (
     quat_to_rotvec,
     so3_log,
 )
+from svr.image import Image
 from svr.representations import Representation, get_representation
+from svr.sampling.slicer import SliceConfig, brain_fraction
+from svr.sampling.volume import CanonicalVolume
 
 RotationSampling = Literal["euler", "uniform"]
 """How :func:`random_slice_poses` draws rotations."""
@@ -353,6 +356,102 @@ def random_slice_poses(
         translation = quat_to_matrix(quat)[..., :, 2] * uniform((n,), tz_range_mm).unsqueeze(-1)
         poses = torch.cat([quat_to_rotvec(quat), translation], dim=-1)
     return poses.to(device=device, dtype=dtype)
+
+
+PoseDraw = Literal["euler", "uniform", "euler-grid"]
+"""Where candidate slice poses come from: :func:`random_slice_poses` with Euler angles in
++-90 deg (``"euler"``, the paper's validation poses) or uniform rotations (``"uniform"``), or a
+random subset of the paper's Euler grid (``"euler-grid"``, :func:`euler_grid_poses`)."""
+
+POSE_DRAWS: tuple[str, ...] = get_args(PoseDraw)
+
+VALIDATION_BRAIN_FRACTION = 0.1
+"""Default empty-slice rule of validation slices: at least 10 % of the pixels in the brain."""
+
+
+def draw_pose_candidates(kind: PoseDraw, n: int, generator: torch.Generator) -> Tensor:
+    """``n`` candidate slice poses of one :data:`PoseDraw` kind, drawn from ``generator`` only.
+
+    Args:
+        kind: ``"euler"``, ``"uniform"`` (offsets in +-40 mm along the normal) or
+            ``"euler-grid"`` (``n`` distinct grid poses in random order).
+        n: Number of poses, >= 0.
+        generator: The source of randomness.
+
+    Returns:
+        (n, 6) float64 poses (rad, mm), slice plane -> canonical frame, on the CPU.
+
+    Raises:
+        ValueError: If ``kind`` is not one of :data:`POSE_DRAWS`.
+    """
+    if kind == "euler-grid":
+        grid = euler_grid_poses()
+        return grid[torch.randperm(len(grid), generator=generator)[:n]]
+    if kind not in POSE_DRAWS:
+        raise ValueError(
+            f"draw_pose_candidates(): 'kind' must be one of {', '.join(POSE_DRAWS)}, got {kind!r}"
+        )
+    return random_slice_poses(n, generator, rotation=kind)
+
+
+def draw_validation_poses(
+    volume: CanonicalVolume,
+    num_slices: int,
+    config: SliceConfig,
+    generator: torch.Generator,
+    rotation: PoseDraw = "euler",
+    min_brain_fraction: float = VALIDATION_BRAIN_FRACTION,
+    max_rounds: int = 100,
+) -> Tensor:
+    """Random poses of a volume whose slices show enough brain (validation and test slices).
+
+    Candidates are drawn by :func:`draw_pose_candidates` in rounds of ``2 * num_slices``, keeping
+    those whose slice has at least ``min_brain_fraction`` of its pixels in the brain mask
+    (:func:`~svr.sampling.slicer.brain_fraction`), in the order drawn.
+
+    Args:
+        volume: The canonical volume (poses are in its frame).
+        num_slices: How many poses to return, >= 1.
+        config: Slice size and spacing (as the slices will be cut).
+        generator: The random stream (advanced by the draws).
+        rotation: A :data:`PoseDraw` kind: ``"euler"`` (the paper's +-90 deg box),
+            ``"uniform"`` (on SO(3)) or ``"euler-grid"``.
+        min_brain_fraction: The empty-slice rule, in [0, 1).
+        max_rounds: Rounds of drawing before giving up, >= 1.
+
+    Returns:
+        (num_slices, 6) float64 poses (rad, mm), slice plane -> canonical frame, on the volume's
+        device.
+
+    Raises:
+        ValueError: Naming the argument, for a bad ``num_slices``, ``min_brain_fraction`` or
+            ``max_rounds``; or if ``max_rounds`` rounds give fewer than ``num_slices`` poses
+            (the message starts with ``"only <count> of <num_slices> slices"``).
+    """
+    if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
+        raise ValueError(f"draw_validation_poses(): 'num_slices' must be >= 1, got {num_slices!r}")
+    if not 0 <= min_brain_fraction < 1:
+        raise ValueError(
+            "draw_validation_poses(): 'min_brain_fraction' must be in [0, 1), "
+            f"got {min_brain_fraction!r}"
+        )
+    if max_rounds < 1:
+        raise ValueError(f"draw_validation_poses(): 'max_rounds' must be >= 1, got {max_rounds}")
+    device = volume.image.data.device
+    mask = Image(volume.mask.to(volume.image.data.dtype), volume.image.affine)
+    kept: list[Tensor] = []
+    count = 0
+    for _ in range(max_rounds):
+        poses = draw_pose_candidates(rotation, 2 * num_slices, generator)
+        keep = brain_fraction(mask, poses.to(device), config).cpu() >= min_brain_fraction
+        kept.append(poses[keep])
+        count += int(keep.sum())
+        if count >= num_slices:
+            return torch.cat(kept)[:num_slices].to(device)
+    raise ValueError(
+        f"only {count} of {num_slices} slices reach a brain fraction of {min_brain_fraction} "
+        f"in {max_rounds} rounds; lower it or check the mask"
+    )
 
 
 def pose_labels(

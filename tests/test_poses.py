@@ -410,3 +410,61 @@ def test_label_errors() -> None:
         pose_labels(torch.zeros(3, 6, dtype=torch.int64), "quat_translation")
     with pytest.raises(ValueError, match="half_size"):
         pose_labels(poses, "anchor_points", anchor_half_size_mm=0.0)
+
+
+def _ball_volume(radius_mm: float = 20.0):
+    from svr.image import Image
+    from svr.sampling.volume import CanonicalVolume
+
+    x = torch.arange(64, dtype=torch.float64) - 31.5
+    r = (x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2).sqrt()
+    affine = torch.eye(4, dtype=torch.float64)
+    affine[:3, 3] = -31.5
+    brain = r < radius_mm
+    image = Image(brain.float(), affine)
+    return CanonicalVolume(image, brain, torch.zeros(3, dtype=torch.float64), 1.0)
+
+
+def test_draw_pose_candidates_kinds():
+    from svr.sampling.poses import POSE_DRAWS, draw_pose_candidates
+
+    assert POSE_DRAWS == ("euler", "uniform", "euler-grid")
+    for kind in ("euler", "uniform"):
+        got = draw_pose_candidates(kind, 5, torch.Generator().manual_seed(1))
+        want = random_slice_poses(5, torch.Generator().manual_seed(1), rotation=kind)
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
+    grid = draw_pose_candidates("euler-grid", 7, torch.Generator().manual_seed(2))
+    order = torch.randperm(len(euler_grid_poses()), generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(grid, euler_grid_poses()[order[:7]], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="'kind' must be one of euler, uniform, euler-grid"):
+        draw_pose_candidates("grid", 3, torch.Generator())
+
+
+def test_draw_validation_poses_keep_brain_slices_in_order():
+    from svr.sampling.poses import draw_pose_candidates, draw_validation_poses
+    from svr.sampling.slicer import SliceConfig, brain_fraction
+
+    volume = _ball_volume()
+    config = SliceConfig(size=(16, 16), spacing_mm=2.0)
+    poses = draw_validation_poses(volume, 12, config, torch.Generator().manual_seed(3), "uniform")
+    assert poses.shape == (12, 6) and poses.dtype == torch.float64
+    mask = volume.image  # the ball's intensities are its mask
+    assert bool((brain_fraction(mask, poses, config) >= 0.1).all())
+    # the kept poses are the first passing candidates, in the order drawn
+    candidates = draw_pose_candidates("uniform", 24, torch.Generator().manual_seed(3))
+    passing = candidates[brain_fraction(mask, candidates, config) >= 0.1]
+    n = min(len(passing), 12)
+    torch.testing.assert_close(poses[:n], passing[:n], rtol=0, atol=0)
+
+
+def test_draw_validation_poses_errors():
+    from svr.sampling.poses import draw_validation_poses
+    from svr.sampling.slicer import SliceConfig
+
+    volume, config = _ball_volume(radius_mm=1.0), SliceConfig(size=(16, 16), spacing_mm=2.0)
+    with pytest.raises(ValueError, match=r"only 0 of 5 slices reach a brain fraction of 0\.9"):
+        draw_validation_poses(volume, 5, config, torch.Generator(), min_brain_fraction=0.9)
+    with pytest.raises(ValueError, match="'num_slices'"):
+        draw_validation_poses(volume, 0, config, torch.Generator())
+    with pytest.raises(ValueError, match="'min_brain_fraction'"):
+        draw_validation_poses(volume, 1, config, torch.Generator(), min_brain_fraction=1.0)

@@ -224,7 +224,7 @@ def _validation_slices(
     generator: torch.Generator,
 ) -> _VolumeSlices:
     """Random validation poses of one volume that pass the empty-slice rule, and their slices."""
-    from svr.models.evaluation import draw_validation_poses
+    from svr.sampling.poses import draw_validation_poses
     from svr.sampling.slicer import sample_slices
 
     try:

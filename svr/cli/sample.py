@@ -39,6 +39,10 @@ examples:
 SAMPLE_CHUNK = 256  # slices sampled at once (bounds the memory of the sampling grid)
 
 
+_POSE_DRAWS = {"random": "euler", "uniform": "uniform", "euler-grid": "euler-grid"}
+"""``--poses`` choices and the :data:`svr.sampling.poses.PoseDraw` kinds they stand for."""
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr sample``."""
     p = subparsers.add_parser(
@@ -50,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_volume_options(p)
     p.add_argument(
         "--poses",
-        choices=["random", "uniform", "euler-grid"],
+        choices=list(_POSE_DRAWS),
         default="random",
         help="pose distribution",
     )
@@ -75,15 +79,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
-def _draw_poses(kind: str, n: int, generator: torch.Generator) -> torch.Tensor:
-    from svr.sampling.poses import euler_grid_poses, random_slice_poses
-
-    if kind == "euler-grid":
-        grid = euler_grid_poses()
-        return grid[torch.randperm(len(grid), generator=generator)[:n]]
-    return random_slice_poses(n, generator, rotation="euler" if kind == "random" else "uniform")
-
-
 def _preview_png(slices: torch.Tensor, path: str, overwrite: bool) -> None:
     import imageio.v3 as iio
 
@@ -106,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr sample``."""
     from svr.image import Image, save_nifti
     from svr.pose_io import PoseTable, write_pose_table
-    from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
+    from svr.sampling.poses import draw_validation_poses
+    from svr.sampling.slicer import SliceConfig, sample_slices
 
     if args.output_preview is None and args.output_dataset is None:
         raise CliError("nothing to write: give --output-preview and/or --output-dataset")
@@ -118,24 +114,17 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     volume, source = load_input_volume(args)
     volume = volume.to(device)
-    mask = Image(volume.mask.float(), volume.image.affine)
     config = SliceConfig(
         size=(args.size, args.size), spacing_mm=args.spacing, thickness_mm=args.thickness
     )
     generator = torch.Generator().manual_seed(args.seed)
-    kept: list[torch.Tensor] = []
-    for _ in range(100):
-        poses = _draw_poses(args.poses, 2 * args.num_slices, generator)
-        keep = brain_fraction(mask, poses.to(device), config).cpu() >= args.min_brain_fraction
-        kept.append(poses[keep])
-        if sum(len(k) for k in kept) >= args.num_slices:
-            break
-    poses = torch.cat(kept)[: args.num_slices]
-    if len(poses) < args.num_slices:
-        raise CliError(
-            f"only {len(poses)} of {args.num_slices} slices reach --min-brain-fraction "
-            f"{args.min_brain_fraction}; lower it or check the mask"
-        )
+    kind = _POSE_DRAWS[args.poses]
+    try:
+        poses = draw_validation_poses(
+            volume, args.num_slices, config, generator, kind, args.min_brain_fraction
+        ).cpu()
+    except ValueError as err:
+        raise CliError(f"--min-brain-fraction {args.min_brain_fraction:g}: {err}") from err
     chunks = torch.split(poses, SAMPLE_CHUNK)
     slices = torch.cat(
         [
