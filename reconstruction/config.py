@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.image import Image
 from svr.reconstruction.slices import SliceSet
 
@@ -17,6 +19,8 @@ REGISTRATIONS = ("cnn", "stack", "none")
 @dataclass(frozen=True)
 class ReconstructionConfig:
     """How a reconstruction runs (defaults follow NeSVoR's ``svr`` where the meaning is the same).
+
+    The configuration checks itself on construction.
 
     Attributes:
         output_resolution_mm: Isotropic voxel size of the output volume (mm).
@@ -50,6 +54,9 @@ class ReconstructionConfig:
         cnn_min_support: ``"cnn"``: a stack whose fraction of supporting slices is below this
             keeps stack registration (the model is unsure of it), in [0, 1].
         seed: Random seed.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field and what it accepts.
     """
 
     output_resolution_mm: float = 0.8
@@ -70,6 +77,62 @@ class ReconstructionConfig:
     cnn_max_deviation_mm: float = 20.0
     cnn_min_support: float = 0.5
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        def fail(name: str, expected: str) -> None:
+            raise ConfigFieldError("ReconstructionConfig", name, expected, getattr(self, name))
+
+        def is_int(value: object, minimum: int) -> bool:
+            return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
+
+        def is_number(value: object) -> bool:
+            return (
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+            )
+
+        for name in ("output_resolution_mm", "edge_delta", "cnn_max_deviation_deg"):
+            if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
+                fail(name, "a finite number > 0")
+        if not (is_number(self.cnn_max_deviation_mm) and self.cnn_max_deviation_mm > 0):
+            fail("cnn_max_deviation_mm", "a finite number > 0")
+        if self.registration not in REGISTRATIONS:
+            fail("registration", f"one of {', '.join(REGISTRATIONS)}")
+        if self.template is not None and not is_int(self.template, 0):
+            fail("template", "None or a stack index >= 0")
+        for name, minimum in (
+            ("outer_iterations", 1),
+            ("svr_levels", 1),
+            ("svr_iterations", 1),
+            ("packets", 1),
+            ("min_slice_pixels", 0),
+            ("seed", 0),
+        ):
+            if not is_int(getattr(self, name), minimum):
+                fail(name, f"an integer >= {minimum}")
+        if not (
+            isinstance(self.sr_iterations, tuple)
+            and self.sr_iterations
+            and all(is_int(v, 1) for v in self.sr_iterations)
+        ):
+            fail("sr_iterations", "a non-empty tuple of integers >= 1")
+        if not (
+            isinstance(self.group_sizes, tuple) and all(is_int(v, 1) for v in self.group_sizes)
+        ):
+            fail("group_sizes", "a tuple of integers >= 1")
+        if not (
+            isinstance(self.regularization, tuple)
+            and self.regularization
+            and all(is_number(v) and v >= 0 for v in self.regularization)
+        ):
+            fail("regularization", "a non-empty tuple of finite numbers >= 0")
+        if not isinstance(self.robust, bool):
+            fail("robust", "a bool")
+        if not (is_number(self.ncc_threshold) and -1 <= self.ncc_threshold <= 1):
+            fail("ncc_threshold", "in [-1, 1]")
+        if not (is_number(self.cnn_min_support) and 0 <= self.cnn_min_support <= 1):
+            fail("cnn_min_support", "in [0, 1]")
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,20 @@ from pathlib import Path
 
 
 class OutputExistsError(FileExistsError):
-    """An output file exists and overwriting was not allowed."""
+    """An output exists and overwriting was not allowed (the caller words how to allow it).
+
+    Attributes:
+        path: The output file or folder.
+        problem: What is in the way, e.g. ``"output exists"``.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], problem: str = "output exists") -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self) -> tuple[type[OutputExistsError], tuple[Path, str]]:
+        return type(self), (self.path, self.problem)
 
 
 def check_output_path(path: str | os.PathLike[str], overwrite: bool) -> Path:
@@ -31,7 +44,7 @@ def check_output_path(path: str | os.PathLike[str], overwrite: bool) -> Path:
     """
     p = Path(path)
     if p.exists() and not overwrite:
-        raise OutputExistsError(f"{p}: output exists; pass --overwrite to replace it")
+        raise OutputExistsError(p)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise FileNotFoundError(f"{p}: output folder {parent} does not exist")

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from svr import __version__
 from svr.cli import demo, evaluate, predict, reconstruct, register, sample, simulate, train
 from svr.cli.common import CliError
+from svr.files import OutputExistsError
 
 SUBCOMMANDS = {
     "simulate": simulate,
@@ -65,6 +66,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return SUBCOMMANDS[args.command].run(args)
+    except OutputExistsError as err:
+        if args.verbose:
+            traceback.print_exc(file=sys.stderr)
+        print(
+            f"svr {args.command}: error: {_one_line(err)}; pass --overwrite to replace it",
+            file=sys.stderr,
+        )
+        return 1
     except (CliError, OSError, ValueError) as err:
         if args.verbose:  # straight to stderr: logging may be configured elsewhere (in-process use)
             traceback.print_exc(file=sys.stderr)

@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import io
 import logging
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
@@ -25,6 +24,7 @@ from svr.cli.common import (
     positive_int,
     resolve_device,
 )
+from svr.errors import ConfigFieldError
 from svr.files import atomic_write_text, check_output_path
 
 if TYPE_CHECKING:
@@ -230,6 +230,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_OPTIONS = {
+    "output_resolution_mm": "--output-resolution",
+    "registration": "--registration",
+    "template": "--template",
+    "outer_iterations": "--iterations",
+    "sr_iterations": "--sr-iterations",
+    "svr_iterations": "--svr-iterations",
+    "ncc_threshold": "--ncc-threshold",
+    "seed": "--seed",
+}
+"""The option behind each ReconstructionConfig field that the command sets."""
+
+
 def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
     """The dataclass configs the options describe, after the checks argparse cannot do."""
     from svr.reconstruction.config import ReconstructionConfig
@@ -248,20 +261,22 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
         )
     if args.template is not None and not 0 <= args.template < count:
         raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
-    if not (math.isfinite(args.ncc_threshold) and -1 <= args.ncc_threshold <= 1):
-        raise CliError(f"--ncc-threshold must be in [-1, 1], got {args.ncc_threshold}")
     stack_config = StackConfig(bias_correction=args.bias_correction)
-    config = ReconstructionConfig(
-        output_resolution_mm=args.output_resolution,
-        registration=args.registration,
-        template=args.template,
-        outer_iterations=args.iterations,
-        sr_iterations=tuple(args.sr_iterations),
-        svr_iterations=args.svr_iterations,
-        robust=not args.no_robust,
-        ncc_threshold=args.ncc_threshold,
-        seed=args.seed,
-    )
+    try:
+        config = ReconstructionConfig(
+            output_resolution_mm=args.output_resolution,
+            registration=args.registration,
+            template=args.template,
+            outer_iterations=args.iterations,
+            sr_iterations=tuple(args.sr_iterations),
+            svr_iterations=args.svr_iterations,
+            robust=not args.no_robust,
+            ncc_threshold=args.ncc_threshold,
+            seed=args.seed,
+        )
+    except ConfigFieldError as err:
+        option = _OPTIONS.get(err.field, err.field)
+        raise CliError(f"{option} must be {err.expected}, got {err.value}") from err
     return stack_config, config
 
 

@@ -1,0 +1,63 @@
+"""ReconstructionConfig checks itself: every bad field is named, with what it accepts."""
+
+from __future__ import annotations
+
+import pickle
+
+import pytest
+
+from svr.errors import ConfigFieldError
+from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig
+
+BAD = [
+    ("output_resolution_mm", 0.0, "a finite number > 0"),
+    ("output_resolution_mm", float("nan"), "a finite number > 0"),
+    ("registration", "learned", f"one of {', '.join(REGISTRATIONS)}"),
+    ("template", -1, "None or a stack index >= 0"),
+    ("template", 1.5, "None or a stack index >= 0"),
+    ("outer_iterations", 0, "an integer >= 1"),
+    ("outer_iterations", True, "an integer >= 1"),
+    ("svr_levels", 0, "an integer >= 1"),
+    ("svr_iterations", 0, "an integer >= 1"),
+    ("packets", 0, "an integer >= 1"),
+    ("min_slice_pixels", -1, "an integer >= 0"),
+    ("seed", -1, "an integer >= 0"),
+    ("sr_iterations", (), "a non-empty tuple of integers >= 1"),
+    ("sr_iterations", (7, 0), "a non-empty tuple of integers >= 1"),
+    ("sr_iterations", [7], "a non-empty tuple of integers >= 1"),
+    ("group_sizes", (4, 0), "a tuple of integers >= 1"),
+    ("regularization", (0.1, -0.1), "a non-empty tuple of finite numbers >= 0"),
+    ("regularization", (), "a non-empty tuple of finite numbers >= 0"),
+    ("edge_delta", 0.0, "a finite number > 0"),
+    ("robust", 1, "a bool"),
+    ("ncc_threshold", 1.5, "in [-1, 1]"),
+    ("ncc_threshold", float("nan"), "in [-1, 1]"),
+    ("cnn_max_deviation_deg", 0.0, "a finite number > 0"),
+    ("cnn_max_deviation_mm", float("inf"), "a finite number > 0"),
+    ("cnn_min_support", 1.2, "in [0, 1]"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "expected"), BAD)
+def test_bad_fields_are_named(field, value, expected):
+    with pytest.raises(ConfigFieldError) as info:
+        ReconstructionConfig(**{field: value})
+    err = info.value
+    assert (err.owner, err.field, err.expected) == ("ReconstructionConfig", field, expected)
+    assert str(err).startswith(f"ReconstructionConfig: '{field}' must be {expected}, got ")
+    assert isinstance(err, ValueError)
+    again = pickle.loads(pickle.dumps(err))
+    assert str(again) == str(err) and again.field == field
+
+
+def test_defaults_and_edges_are_accepted():
+    ReconstructionConfig()
+    ReconstructionConfig(
+        template=0,
+        group_sizes=(),
+        regularization=(0.0,),
+        ncc_threshold=-1.0,
+        cnn_min_support=0.0,
+        min_slice_pixels=0,
+        registration="cnn",
+    )
