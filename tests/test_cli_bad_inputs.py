@@ -38,7 +38,7 @@ from synthetic import ellipsoid_brain
 
 import svr.files
 import svr.image
-import svr.reconstruction.demo as recon_demo
+import svr.apps.demo as recon_demo
 import svr.reconstruction.pipeline as pipeline
 from svr.cli import SUBCOMMANDS, main
 from svr.image import save_nifti

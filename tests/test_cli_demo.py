@@ -13,10 +13,10 @@ import pytest
 import torch
 
 import svr.cli
-import svr.reconstruction.demo as demo
+import svr.apps.demo as demo
 from svr.geometry import se3_compose, se3_inverse, vector_to_se3
 from svr.image import Image, load_nifti
-from svr.reconstruction.demo import (
+from svr.apps.demo import (
     DemoConfig,
     DemoResult,
     MethodResult,

@@ -109,3 +109,46 @@ def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
         env=env,
     )
     assert Path(where.strip()).is_relative_to(Path(site))
+
+
+# Which subpackages each layer may import (module-level and function-level imports alike).
+LAYERS = {
+    "core": ("svr",),
+    "sampling": ("svr", "svr.sampling"),
+    "models": ("svr", "svr.sampling", "svr.models"),
+    "reconstruction": ("svr", "svr.sampling", "svr.models", "svr.reconstruction"),
+}
+UPPER = ("svr.sampling", "svr.models", "svr.reconstruction", "svr.apps", "svr.cli")
+
+
+def _layer(path: Path) -> str | None:
+    rel = path.relative_to(REPO).parts
+    if rel[0] in ("sampling", "models", "reconstruction"):
+        return rel[0]
+    if rel[0] == "svr" and rel[1] not in ("apps", "cli", "__main__.py"):
+        return "core"
+    return None
+
+
+def test_layers_import_only_downwards():
+    import ast
+
+    bad = []
+    for path in sorted(REPO.glob("*/**/*.py")):
+        layer = _layer(path) if path.parts[len(REPO.parts)] != ".venv" else None
+        if layer is None:
+            continue
+        allowed = LAYERS[layer]
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            for name in names:
+                upper = [u for u in UPPER if name == u or name.startswith(u + ".")]
+                if upper and not any(name == a or name.startswith(a + ".") for a in allowed[1:]):
+                    bad.append(f"{path.relative_to(REPO)}:{node.lineno} imports {name}")
+                if name.split(".")[0] in ("models", "sampling", "reconstruction"):
+                    bad.append(f"{path.relative_to(REPO)}:{node.lineno} imports top-level {name}")
+    assert not bad, "\n".join(bad)

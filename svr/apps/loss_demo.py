@@ -19,22 +19,10 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from svr.geometry import (
-    anchor_points_to_pose,
-    pose_to_anchor_points,
-    pose_to_quat_translation,
-    pose_to_rotation_6d_translation,
-    quat_translation_to_pose,
-    rotation_6d_translation_to_pose,
-)
-from svr.losses import (
-    DEFAULT_LENGTH_SCALE_MM,
-    anchor_point_loss,
-    posenet_loss,
-    rotation_6d_loss,
-    se3_geodesic_loss,
-)
+from svr.geometry import ANCHOR_HALF_SIZE_MM
+from svr.losses import DEFAULT_LENGTH_SCALE_MM
 from svr.metrics import pose_errors
+from svr.representations import REPRESENTATIONS, PoseRepresentation
 
 log = logging.getLogger(__name__)
 
@@ -79,36 +67,36 @@ class LossDemoResult:
 
 @dataclass(frozen=True)
 class _Method:
+    """One loss of the demo: a registered representation with its demo output scale."""
+
     name: str
     to_params: Callable[[Tensor], Tensor]
     to_pose: Callable[[Tensor], Tensor]
     loss: Callable[[Tensor, Tensor], Tensor]
-    mm_outputs: slice  # which outputs are in mm
+    scale: Tensor  # (D,) label units per optimised parameter
 
     def output_scale(self, like: Tensor) -> Tensor:
-        scale = torch.ones(like.shape[-1], dtype=like.dtype, device=like.device)
-        scale[self.mm_outputs] = DEFAULT_LENGTH_SCALE_MM
-        return scale
+        return self.scale.to(dtype=like.dtype, device=like.device)
 
 
-def _identity(x: Tensor) -> Tensor:
-    return x
+def _method(entry: PoseRepresentation) -> _Method:
+    """The demo's method for a registry entry (named by its ``svr train --loss`` name).
+
+    Every output in mm (translations, and all anchor-point coordinates) is optimised in units of
+    :data:`~svr.losses.DEFAULT_LENGTH_SCALE_MM`.
+    """
+    a = ANCHOR_HALF_SIZE_MM
+    return _Method(
+        entry.cli_name,
+        lambda poses: entry.encode(poses, a),
+        lambda labels: entry.decode(labels, a),
+        entry.loss(None, a),
+        entry.output_scale(DEFAULT_LENGTH_SCALE_MM, DEFAULT_LENGTH_SCALE_MM),
+    )
 
 
-METHODS = (
-    _Method("se3", _identity, _identity, se3_geodesic_loss, slice(3, 6)),
-    _Method(
-        "posenet", pose_to_quat_translation, quat_translation_to_pose, posenet_loss, slice(4, 7)
-    ),
-    _Method("anchor", pose_to_anchor_points, anchor_points_to_pose, anchor_point_loss, slice(0, 9)),
-    _Method(
-        "rot6d",
-        pose_to_rotation_6d_translation,
-        rotation_6d_translation_to_pose,
-        rotation_6d_loss,
-        slice(6, 9),
-    ),
-)
+METHODS = tuple(_method(entry) for entry in REPRESENTATIONS.values())
+"""One method per registered representation (:data:`svr.representations.REPRESENTATIONS`)."""
 
 
 def run_loss_demo(config: LossDemoConfig, targets: Tensor) -> list[LossDemoResult]:
@@ -119,7 +107,7 @@ def run_loss_demo(config: LossDemoConfig, targets: Tensor) -> list[LossDemoResul
         targets: (N, 6) float32 target poses, e.g. ``svr.sampling.poses.random_slice_poses``.
 
     Returns:
-        One result per method, in the order se3, posenet, anchor, rot6d.
+        One result per method (:data:`METHODS`), in registry order: se3, posenet, anchor, rot6d.
     """
     targets = targets.to(device=config.device, dtype=torch.float32)
     start = torch.zeros_like(targets)

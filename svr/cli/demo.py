@@ -22,10 +22,10 @@ from svr.cli.common import (
     resolve_device,
 )
 from svr.files import atomic_write_text, check_output_path
-from svr.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
+from svr.apps.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
 
 if TYPE_CHECKING:
-    from svr.reconstruction.demo import DemoResult
+    from svr.apps.demo import DemoResult
 
 DEFAULT_OUTPUT_DIR = "svr-demo"
 
@@ -217,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
     _check_mode(args)
     if args.loss_only:
         return _run_loss_demo(args)
-    from svr.reconstruction.demo import TRAIN_MODEL, demo_config, quick_phantom, run_demo
+    from svr.apps.demo import TRAIN_MODEL, demo_config, quick_phantom, run_demo
 
     output_dir = args.output_dir or DEFAULT_OUTPUT_DIR
     check_output_path(output_dir, args.overwrite)
