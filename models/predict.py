@@ -34,12 +34,19 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, vector_to_se3
-from svr.image import Image, ImageError, load_nifti, sample_world
+from svr.image import (
+    Image,
+    ImageError,
+    intensity_scale,
+    load_nifti,
+    mask_on_grid,
+    stack_slice_poses,
+    voxel_to_world,
+)
 from svr.models.checkpoint import (
     Checkpoint,
     CheckpointError,
@@ -49,7 +56,6 @@ from svr.models.checkpoint import (
 from svr.models.network import ModelConfig, SlicePoseNet, build_model
 from svr.pose_io import PoseTable
 from svr.sampling.slicer import SliceConfig, sample_slices
-from svr.sampling.volume import DEFAULT_PERCENTILE
 
 __all__ = [
     "SliceFile",
@@ -59,14 +65,12 @@ __all__ = [
     "predict_slice_folder",
     "predict_stack_poses",
     "prepare_stack_slices",
-    "stack_slice_poses",
 ]
 
 log = logging.getLogger(__name__)
 
 _SLICE_FILE = re.compile(r"(\d+)\.nii(\.gz)?")
 _MASK_FILE = re.compile(r"mask_(\d+)\.nii(\.gz)?")
-_GRID_ATOL_MM = 1e-3  # affines closer than this (mm) are the same grid
 
 
 @dataclass(frozen=True)
@@ -156,69 +160,9 @@ def pose_model_from_checkpoint(
     return model.eval(), config
 
 
-def stack_slice_poses(stack: Image) -> Tensor:
-    """Poses of a stack's k-planes in its world frame (``DESIGN.md`` slice convention).
-
-    The rotation's columns are the unit in-plane directions ``u`` (array axis 0) and ``v`` (array
-    axis 1, orthogonalised against ``u`` if the affine is sheared) and the normal ``u x v``; the
-    translation is the world position of the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)``.
-
-    Args:
-        stack: An ``(I, J, K)`` image.
-
-    Returns:
-        (K, 4, 4) float64 poses (slice plane, mm -> world, mm) on the affine's device.
-    """
-    affine = stack.affine.to(torch.float64)
-    e_u = affine[:3, 0] / affine[:3, 0].norm()
-    e_v = affine[:3, 1] - (e_u @ affine[:3, 1]) * e_u
-    e_v = e_v / e_v.norm()
-    i, j, k = stack.shape
-    centres = torch.zeros(k, 3, dtype=torch.float64, device=affine.device)
-    centres[:, 0], centres[:, 1] = (i - 1) / 2, (j - 1) / 2
-    centres[:, 2] = torch.arange(k, dtype=torch.float64, device=affine.device)
-    poses = torch.eye(4, dtype=torch.float64, device=affine.device).repeat(k, 1, 1)
-    poses[:, :3, :3] = torch.stack([e_u, e_v, torch.linalg.cross(e_u, e_v)], dim=1)
-    poses[:, :3, 3] = _voxel_to_world(affine, centres)
-    return poses
-
-
-def _voxel_to_world(affine: Tensor, voxels: Tensor) -> Tensor:
-    """(..., 3) world mm of (..., 3) continuous voxel indices under a (4, 4) float64 affine."""
-    return voxels @ affine[:3, :3].T + affine[:3, 3]
-
-
-def _mask_on_grid(stack: Image, mask: Image, name: str) -> Tensor:
-    """The mask as an (I, J, K) bool tensor on the stack's grid (resampled if its grid differs)."""
-    same_grid = mask.shape == stack.shape and torch.allclose(
-        mask.affine.to(stack.affine), stack.affine, atol=_GRID_ATOL_MM, rtol=0
-    )
-    if same_grid:
-        return (mask.data > 0.5).to(stack.data.device)
-    log.debug("%s: the mask's grid differs from the stack's; resampling it", name)
-    axes = [torch.arange(n, dtype=torch.float64, device=stack.data.device) for n in stack.shape]
-    voxels = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-    points = _voxel_to_world(stack.affine.to(voxels), voxels)
-    on_device = mask.to(stack.data.device, torch.float32)
-    return sample_world(on_device, points.float(), mode="nearest") > 0.5
-
-
 def _foreground(stack: Image, mask: Tensor | None) -> Tensor:
     """Voxel values that set the intensity scale: in-mask, or nonzero without a mask."""
     return stack.data[mask] if mask is not None else stack.data[stack.data != 0]
-
-
-def _intensity_scale(values: Tensor, name: str) -> float:
-    """The 99th percentile of ``values``, checked to be positive."""
-    if values.numel() == 0:
-        raise ValueError(f"{name}: all voxels are zero")
-    scale = float(np.percentile(values.detach().cpu().double().numpy(), DEFAULT_PERCENTILE))
-    if not scale > 0:
-        raise ValueError(
-            f"{name}: the {DEFAULT_PERCENTILE:g}th percentile of the intensities is {scale}; "
-            "expected a positive value"
-        )
-    return scale
 
 
 def _prepare(stack: Image, mask: Tensor | None, config: ModelConfig, scale: float) -> _Prepared:
@@ -246,7 +190,7 @@ def _prepare(stack: Image, mask: Tensor | None, config: ModelConfig, scale: floa
         centroid_sums.index_add_(0, voxels[:, 2].long(), voxels)
         centroids = centroid_sums[indices] / per_slice[indices, None].to(torch.float64)
         crop_poses = crop_poses[indices]
-        crop_poses[:, :3, 3] = _voxel_to_world(stack.affine.to(centroids), centroids)
+        crop_poses[:, :3, 3] = voxel_to_world(stack.affine.to(centroids), centroids)
         plane_poses = plane_poses[indices]
     slice_config = SliceConfig(size=config.input_size, spacing_mm=config.spacing_mm)
     slices = sample_slices(Image(data, stack.affine), crop_poses.to(data.device), slice_config)
@@ -257,12 +201,12 @@ def _prepare_stack(
     stack: Image, mask: Image | None, config: ModelConfig, name: str, mask_name: str | None = None
 ) -> _Prepared:
     """:func:`_prepare` with the mask brought onto the stack's grid and the stack's own scale."""
-    on_grid = None if mask is None else _mask_on_grid(stack, mask, name)
+    on_grid = None if mask is None else mask_on_grid(mask, stack)
     if on_grid is not None and not bool(on_grid.any()):
         if mask_name is None:
             raise ValueError(f"{name}: the mask is empty")
         raise ValueError(f"{mask_name}: the mask does not overlap its stack {name}")
-    scale = _intensity_scale(_foreground(stack, on_grid), name)
+    scale = intensity_scale(_foreground(stack, on_grid), name)
     return _prepare(stack, on_grid, config, scale)
 
 
@@ -404,11 +348,11 @@ def predict_slice_folder(
     """
     name = str(folder)
     items = load_slice_folder(folder)
-    masks = [None if s.mask is None else _mask_on_grid(s.image, s.mask, name) for s in items]
+    masks = [None if s.mask is None else mask_on_grid(s.mask, s.image) for s in items]
     kept = [(s, m) for s, m in zip(items, masks, strict=True) if m is None or bool(m.any())]
     if not kept:
         raise ValueError(f"{name}: every slice's mask is empty")
-    scale = _intensity_scale(torch.cat([_foreground(s.image, m) for s, m in kept]), name)
+    scale = intensity_scale(torch.cat([_foreground(s.image, m) for s, m in kept]), name)
     parts = [_prepare(s.image, m, config, scale) for s, m in kept]
     prepared = _Prepared(
         torch.cat([p.slices for p in parts]),

@@ -19,7 +19,7 @@ the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, 
 stack's (cropped) array, indexed by that array's ``k``. A
 :class:`~svr.reconstruction.slices.SliceSet` slice has its origin at the centre of its zero-padded
 array and is indexed by the file's ``k`` (``Stack.k_indices``). With ``C_k`` the k-plane's scanner
-pose (:func:`svr.models.predict.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the
+pose (:func:`svr.image.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the
 slice's predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
 between the two origins; hence ``A_i = T_k o C_k^-1``.
 """
@@ -35,8 +35,9 @@ from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse, so3_exp, so3_log, vector_to_se3
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
+from svr.image import stack_slice_poses
 from svr.models.network import ModelConfig, SlicePoseNet
-from svr.models.predict import predict_stack_poses, stack_slice_poses
+from svr.models.predict import predict_stack_poses
 from svr.reconstruction.slices import SliceSet, Stack
 
 __all__ = [

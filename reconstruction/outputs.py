@@ -97,7 +97,7 @@ def slice_affines(slices: SliceSet) -> Tensor:
     Column 0 is ``R[:, 0] * spacing_u``, column 1 ``R[:, 1] * spacing_v``, column 2
     ``R[:, 2] * thickness``, and the translation places voxel ``(0, 0, 0)`` at
     ``T (-(H - 1) / 2 * spacing_u, -(W - 1) / 2 * spacing_v, 0)``, so that pixel ``(a, b)`` sits
-    at its world position and :func:`svr.models.predict.stack_slice_poses` gives back the pose.
+    at its world position and :func:`svr.image.stack_slice_poses` gives back the pose.
 
     Args:
         slices: The slices, posed in their frame.

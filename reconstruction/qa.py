@@ -23,32 +23,13 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from svr.files import atomic_write_bytes, check_output_path
-from svr.image import Image, sample_world
+from svr.image import Image, resample_to_grid
 from svr.reconstruction.config import ReconstructionResult
 
-__all__ = ["FIGURE_SUFFIXES", "qa_figure", "resample_to_grid"]
+__all__ = ["FIGURE_SUFFIXES", "qa_figure"]
 
 FIGURE_SUFFIXES = (".png", ".pdf")
 _AXES = ("x", "y", "z")
-
-
-def resample_to_grid(image: Image, like: Image) -> Image:
-    """Resample ``image`` (trilinear, by world position) onto the grid of ``like``; 0 outside.
-
-    Args:
-        image: The image to resample; its world frame must be ``like``'s.
-        like: The image whose grid (shape and affine) the result has.
-
-    Returns:
-        A float32 image on ``like``'s grid and device.
-    """
-    device = like.data.device
-    axes = [torch.arange(n, dtype=torch.float64, device=device) for n in like.shape]
-    voxels = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-    affine = like.affine.to(device, torch.float64)
-    points = voxels @ affine[:3, :3].T + affine[:3, 3]
-    data = sample_world(image.to(device, torch.float32), points.float())
-    return Image(data, affine.clone())
 
 
 def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:

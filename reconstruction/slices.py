@@ -15,8 +15,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from svr.image import Image
-from svr.models.predict import stack_slice_poses
+from svr.image import Image, stack_slice_poses
 
 __all__ = ["SliceSet", "Stack", "array_poses", "extract_slices", "plane_poses"]
 

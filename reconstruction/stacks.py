@@ -42,8 +42,7 @@ from scipy import ndimage
 from skimage.filters import threshold_otsu
 from torch import Tensor
 
-from svr.image import Image, ImageError, load_nifti
-from svr.models.predict import _intensity_scale, _mask_on_grid
+from svr.image import Image, ImageError, intensity_scale, load_nifti, mask_on_grid
 from svr.reconstruction.slices import Stack
 
 __all__ = ["StackConfig", "load_stacks", "prepare_stacks"]
@@ -243,7 +242,7 @@ def _given_mask(image: Image, mask: Image, name: str, mask_name: str) -> Tensor:
     """The mask as an (I, J, K) bool tensor on the stack's grid, checked to be nonempty there."""
     if not bool((mask.data > 0.5).any()):
         raise ImageError(f"{mask_name}: the mask is empty")
-    brain = _mask_on_grid(image, mask, mask_name)
+    brain = mask_on_grid(mask, image)
     if not bool(brain.any()):
         raise ImageError(
             f"{mask_name}: the mask does not overlap its stack {name} (mask shape {mask.shape}, "
@@ -351,7 +350,7 @@ def _prepare(
     if config.bias_correction:
         data = _n4_correct(data, mask, image.spacing, config, name)
     try:
-        scale = _intensity_scale(data[mask], name)
+        scale = intensity_scale(data[mask], name)
     except ValueError as err:
         raise ImageError(str(err)) from err
     data = torch.where(mask, data / scale, torch.zeros_like(data)).float()

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from svr.image import Image
+from svr.image import Image, voxel_to_world
 from svr.sampling._validation import is_finite_number
 
 DEFAULT_CONTROL_POINTS = 5
@@ -39,8 +39,7 @@ def control_point_positions(image: Image, control_points: int) -> Tensor:
         torch.linspace(0.0, float(n - 1), control_points, dtype=torch.float64, device=affine.device)
         for n in image.shape
     ]
-    index = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
-    return index @ affine[:3, :3].T + affine[:3, 3]
+    return voxel_to_world(affine, torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1))
 
 
 def remove_rigid_part(displacement_mm: Tensor, positions_mm: Tensor) -> Tensor:

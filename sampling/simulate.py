@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from svr.files import atomic_directory
 from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
-from svr.image import Image, save_nifti
+from svr.image import Image, save_nifti, voxel_to_world
 from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
@@ -297,7 +297,7 @@ def simulate_case(
         load_trajectories(config.motion_path) if config.motion == "trajectories" else None
     )
     brain_idx = torch.nonzero(volume.mask).to(torch.float64)
-    brain_pts = brain_idx @ volume.image.affine[:3, :3].T + volume.image.affine[:3, 3]
+    brain_pts = voxel_to_world(volume.image.affine, brain_idx)
     radius = float(brain_pts.norm(dim=1).max())
 
     # Placement: x_s = P x_c + s, with x_c canonical coordinates.

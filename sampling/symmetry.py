@@ -24,7 +24,7 @@ from scipy.optimize import minimize
 from torch import Tensor
 
 from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
-from svr.image import sample_world
+from svr.image import sample_world, voxel_to_world
 from svr.sampling.volume import CanonicalVolume
 
 log = logging.getLogger(__name__)
@@ -69,8 +69,7 @@ def _brain_points(volume: CanonicalVolume, max_points: int, seed: int) -> Tensor
     if idx.shape[0] > max_points:
         g = torch.Generator().manual_seed(seed)
         idx = idx[torch.randperm(idx.shape[0], generator=g)[:max_points]]
-    affine = volume.image.affine.to(torch.float64).cpu()
-    return idx @ affine[:3, :3].T + affine[:3, 3]
+    return voxel_to_world(volume.image.affine.cpu(), idx)
 
 
 def _plane(params: np.ndarray) -> ReflectionPlane:

@@ -21,9 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from svr.image import Image, ImageError, load_nifti
-
-DEFAULT_PERCENTILE = 99.0
+from svr.image import DEFAULT_PERCENTILE, Image, ImageError, load_nifti, voxel_to_world
 
 
 @dataclass(frozen=True)
@@ -100,7 +98,7 @@ def canonicalize(
         )
     idx = torch.nonzero(brain).to(torch.float64)
     affine = volume.affine.to(torch.float64)
-    centre = (idx @ affine[:3, :3].T + affine[:3, 3]).mean(0)
+    centre = voxel_to_world(affine, idx).mean(0)
     canonical_affine = affine.clone()
     canonical_affine[:3, 3] -= centre
     data = torch.where(brain, volume.data / scale, torch.zeros_like(volume.data)).float()

@@ -27,6 +27,10 @@ from torch import Tensor
 from svr.files import check_output_path
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
+DEFAULT_PERCENTILE = 99.0
+"""Intensities are divided by this percentile of the brain's (the bright end to ~1)."""
+GRID_ATOL_MM = 1e-3
+"""Affines closer than this (mm, every entry) describe the same grid."""
 _MIN_POINTS_PER_PART = 16384  # below this, splitting grid_sample over threads does not pay
 
 
@@ -199,6 +203,62 @@ def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = Fal
     return p
 
 
+def voxel_to_world(affine: Tensor, voxels: Tensor) -> Tensor:
+    """Map continuous voxel indices to world points (mm) of an image with ``affine``.
+
+    Args:
+        affine: (4, 4) voxel -> world affine.
+        voxels: (..., 3) voxel indices ``(i, j, k)`` (voxel centres at integers).
+
+    Returns:
+        (..., 3) world points in mm, in ``voxels``' dtype and device.
+    """
+    a = affine.to(device=voxels.device, dtype=voxels.dtype)
+    return voxels @ a[:3, :3].T + a[:3, 3]
+
+
+def voxel_centres(image: Image, dtype: torch.dtype = torch.float64) -> Tensor:
+    """World positions of every voxel centre of ``image``.
+
+    Args:
+        image: The image (its grid: shape and affine).
+        dtype: dtype of the result (computed in it).
+
+    Returns:
+        (I, J, K, 3) world points in mm, on the image's device.
+    """
+    device = image.data.device
+    axes = [torch.arange(n, dtype=dtype, device=device) for n in image.shape]
+    return voxel_to_world(image.affine, torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1))
+
+
+def stack_slice_poses(stack: Image) -> Tensor:
+    """Poses of a stack's k-planes in its world frame (``DESIGN.md`` slice convention).
+
+    The rotation's columns are the unit in-plane directions ``u`` (array axis 0) and ``v`` (array
+    axis 1, orthogonalised against ``u`` if the affine is sheared) and the normal ``u x v``; the
+    translation is the world position of the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)``.
+
+    Args:
+        stack: An ``(I, J, K)`` image.
+
+    Returns:
+        (K, 4, 4) float64 poses (slice plane, mm -> world, mm) on the affine's device.
+    """
+    affine = stack.affine.to(torch.float64)
+    e_u = affine[:3, 0] / affine[:3, 0].norm()
+    e_v = affine[:3, 1] - (e_u @ affine[:3, 1]) * e_u
+    e_v = e_v / e_v.norm()
+    i, j, k = stack.shape
+    centres = torch.zeros(k, 3, dtype=torch.float64, device=affine.device)
+    centres[:, 0], centres[:, 1] = (i - 1) / 2, (j - 1) / 2
+    centres[:, 2] = torch.arange(k, dtype=torch.float64, device=affine.device)
+    poses = torch.eye(4, dtype=torch.float64, device=affine.device).repeat(k, 1, 1)
+    poses[:, :3, :3] = torch.stack([e_u, e_v, torch.linalg.cross(e_u, e_v)], dim=1)
+    poses[:, :3, 3] = voxel_to_world(affine, centres)
+    return poses
+
+
 def world_to_voxel(affine: Tensor, points: Tensor) -> Tensor:
     """Map world points (mm) to continuous voxel indices of an image with ``affine``.
 
@@ -298,3 +358,70 @@ def sample_world(image: Image, points: Tensor, mode: str = "bilinear") -> Tensor
     return sample_grid(image, torch.addmm(m[:, 3], flat, m[:, :3].T), mode).reshape(
         points.shape[:-1]
     )
+
+
+def resample_to_grid(image: Image, like: Image, mode: str = "bilinear") -> Image:
+    """Resample ``image`` by world position onto the grid of ``like``; 0 outside ``image``.
+
+    Args:
+        image: The image to resample; its world frame must be ``like``'s.
+        like: The image whose grid (shape and affine) the result has.
+        mode: ``"bilinear"`` (trilinear) or ``"nearest"``.
+
+    Returns:
+        A float32 image on ``like``'s grid and device (affine in float64).
+    """
+    device = like.data.device
+    points = voxel_centres(like.to(device))
+    data = sample_world(image.to(device, torch.float32), points.float(), mode)
+    return Image(data, like.affine.to(device, torch.float64).clone())
+
+
+def same_grid(a: Image, b: Image, atol_mm: float = GRID_ATOL_MM) -> bool:
+    """Whether two images share a grid: the same shape and affines within ``atol_mm``."""
+    return a.shape == b.shape and torch.allclose(
+        a.affine.to(b.affine), b.affine, atol=atol_mm, rtol=0
+    )
+
+
+def mask_on_grid(mask: Image, like: Image) -> Tensor:
+    """A mask (voxels > 0.5) as a bool tensor on ``like``'s grid, resampled (nearest) if needed.
+
+    Args:
+        mask: The mask, on any grid in ``like``'s world frame.
+        like: The image whose grid the result is on.
+
+    Returns:
+        (I, J, K) bool tensor on ``like``'s device.
+    """
+    if same_grid(mask, like):
+        return (mask.data > 0.5).to(like.data.device)
+    log.debug("the mask's grid differs from the image's; resampling it")
+    return resample_to_grid(mask, like, mode="nearest").data > 0.5
+
+
+def intensity_scale(values: Tensor, name: str, percentile: float = DEFAULT_PERCENTILE) -> float:
+    """The ``percentile``-th percentile of ``values`` (in float64), checked to be positive.
+
+    The divisor that normalises a stack's intensities (the brain's bright end to ~1).
+
+    Args:
+        values: Voxel values (any shape), e.g. those inside the brain mask.
+        name: What they come from, for the error message.
+        percentile: In (0, 100].
+
+    Returns:
+        The percentile.
+
+    Raises:
+        ValueError: Naming ``name``, if ``values`` is empty or the percentile is not positive.
+    """
+    if values.numel() == 0:
+        raise ValueError(f"{name}: all voxels are zero")
+    scale = float(np.percentile(values.detach().cpu().double().numpy(), percentile))
+    if not scale > 0:
+        raise ValueError(
+            f"{name}: the {percentile:g}th percentile of the intensities is {scale}; "
+            "expected a positive value"
+        )
+    return scale

@@ -36,9 +36,9 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
+import svr.apps.demo as recon_demo
 import svr.files
 import svr.image
-import svr.apps.demo as recon_demo
 import svr.reconstruction.pipeline as pipeline
 from svr.cli import SUBCOMMANDS, main
 from svr.image import save_nifti

@@ -12,10 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-import svr.cli
 import svr.apps.demo as demo
-from svr.geometry import se3_compose, se3_inverse, vector_to_se3
-from svr.image import Image, load_nifti
+import svr.cli
 from svr.apps.demo import (
     DemoConfig,
     DemoResult,
@@ -26,6 +24,8 @@ from svr.apps.demo import (
     quick_phantom,
     score_volume,
 )
+from svr.geometry import se3_compose, se3_inverse, vector_to_se3
+from svr.image import Image, load_nifti
 from svr.reconstruction.slices import SliceSet
 
 F64 = torch.float64

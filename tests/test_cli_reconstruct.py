@@ -13,14 +13,13 @@ import torch
 import svr.cli
 import svr.files
 import svr.reconstruction.pipeline as pipeline
-from svr.image import Image, load_nifti, save_nifti
+from svr.image import Image, load_nifti, resample_to_grid, save_nifti, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.checkpoint import save_checkpoint
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
-from svr.models.predict import load_slice_folder, stack_slice_poses
+from svr.models.predict import load_slice_folder
 from svr.pose_io import read_pose_table
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.qa import resample_to_grid
 from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.volume import canonicalize

@@ -54,7 +54,7 @@ def test_save_load_round_trip_and_affine_agrees_with_simpleitk(tmp_path, rng):
 def test_save_refuses_to_overwrite_and_leaves_no_temporary_files(tmp_path):
     img = Image(torch.zeros(2, 2, 2), torch.eye(4, dtype=torch.float64))
     path = save_nifti(img, tmp_path / "x.nii")
-    with pytest.raises(OutputExistsError, match="--overwrite"):
+    with pytest.raises(OutputExistsError, match="output exists"):
         save_nifti(img, path)
     save_nifti(Image(torch.ones(2, 2, 2), img.affine), path, overwrite=True)
     assert load_nifti(path).data.sum() == 8
@@ -145,3 +145,52 @@ def test_real_atlas_affine_matches_simpleitk(shared_data):
     img = load_nifti(path)
     assert img.shape == (135, 189, 155)
     np.testing.assert_allclose(img.affine.numpy(), sitk_affine(path), atol=1e-4)
+
+
+def test_voxel_to_world_matches_nibabel_and_inverts_world_to_voxel():
+    from nibabel.affines import apply_affine
+
+    from svr.image import voxel_centres, voxel_to_world, world_to_voxel
+
+    rng = np.random.default_rng(4)
+    affine = np.eye(4)
+    affine[:3, :3] = rng.normal(size=(3, 3))
+    affine[:3, 3] = rng.normal(scale=20, size=3)
+    voxels = rng.uniform(-2, 30, size=(17, 3))
+    got = voxel_to_world(torch.from_numpy(affine), torch.from_numpy(voxels))
+    np.testing.assert_allclose(got.numpy(), apply_affine(affine, voxels), atol=1e-10)
+    back = world_to_voxel(torch.from_numpy(affine), got)
+    np.testing.assert_allclose(back.numpy(), voxels, atol=1e-9)
+    image = Image(torch.zeros(3, 4, 5), torch.from_numpy(affine))
+    centres = voxel_centres(image)
+    assert centres.shape == (3, 4, 5, 3)
+    np.testing.assert_allclose(centres[2, 1, 4].numpy(), apply_affine(affine, [2, 1, 4]))
+
+
+def test_mask_on_grid_same_grid_and_resampled():
+    from svr.image import mask_on_grid, resample_to_grid
+
+    affine = torch.eye(4, dtype=torch.float64)
+    data = torch.zeros(8, 8, 8)
+    data[2:6, 3:5, 1:7] = 1.0
+    mask = Image(data, affine)
+    torch.testing.assert_close(mask_on_grid(mask, mask), data > 0.5)
+    # a grid of half the spacing over the same field: nearest neighbour by world position
+    fine_affine = torch.diag(torch.tensor([0.5, 0.5, 0.5, 1.0], dtype=torch.float64))
+    fine = Image(torch.zeros(16, 16, 16), fine_affine)
+    on_fine = mask_on_grid(mask, fine)
+    want = resample_to_grid(mask, fine, mode="nearest").data > 0.5
+    torch.testing.assert_close(on_fine, want)
+    assert on_fine[4, 6, 2] and not on_fine[0, 0, 0]
+    assert int(on_fine.sum()) > 8 * int((data > 0.5).sum()) * 0.5
+
+
+def test_intensity_scale_percentile_and_errors():
+    from svr.image import intensity_scale
+
+    values = torch.arange(1, 101, dtype=torch.float32)
+    assert intensity_scale(values, "x") == pytest.approx(np.percentile(np.arange(1, 101), 99))
+    with pytest.raises(ValueError, match=r"stack\.nii: all voxels are zero"):
+        intensity_scale(torch.zeros(0), "stack.nii")
+    with pytest.raises(ValueError, match=r"stack\.nii: the 99th percentile .* is 0\.0"):
+        intensity_scale(torch.zeros(10), "stack.nii")

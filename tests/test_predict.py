@@ -11,7 +11,7 @@ import torch
 
 import svr.cli
 from svr.geometry import se3_compose, se3_inverse, so3_exp, vector_to_se3
-from svr.image import Image, ImageError, save_nifti
+from svr.image import Image, ImageError, save_nifti, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.checkpoint import CheckpointError, save_checkpoint
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
@@ -21,7 +21,6 @@ from svr.models.predict import (
     predict_slice_folder,
     predict_stack_poses,
     prepare_stack_slices,
-    stack_slice_poses,
 )
 from svr.pose_io import read_pose_table
 from svr.sampling.slicer import SliceConfig, sample_slices

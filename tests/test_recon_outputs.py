@@ -13,8 +13,8 @@ from synthetic import ellipsoid_brain
 
 from svr.files import OutputExistsError
 from svr.geometry import so3_exp, vector_to_se3
-from svr.image import Image, ImageError, load_nifti
-from svr.models.predict import load_slice_folder, stack_slice_poses
+from svr.image import Image, ImageError, load_nifti, resample_to_grid, stack_slice_poses
+from svr.models.predict import load_slice_folder
 from svr.pose_io import COLUMNS, PoseTable, read_pose_table, write_pose_table
 from svr.reconstruction.config import ReconstructionResult
 from svr.reconstruction.outputs import (
@@ -23,7 +23,7 @@ from svr.reconstruction.outputs import (
     write_transforms,
     write_volume,
 )
-from svr.reconstruction.qa import qa_figure, resample_to_grid
+from svr.reconstruction.qa import qa_figure
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 

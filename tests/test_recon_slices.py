@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from svr.image import Image
-from svr.models.predict import stack_slice_poses
+from svr.image import Image, stack_slice_poses
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 
 F64 = torch.float64

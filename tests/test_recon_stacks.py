@@ -12,8 +12,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from svr.image import Image, ImageError, load_nifti
-from svr.models.predict import stack_slice_poses
+from svr.image import Image, ImageError, load_nifti, stack_slice_poses
 from svr.reconstruction.slices import extract_slices, plane_poses
 from svr.reconstruction.stacks import StackConfig, load_stacks, prepare_stacks
 

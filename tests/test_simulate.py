@@ -207,7 +207,7 @@ def test_write_case_refuses_to_overwrite(brain, tmp_path):
     ]
     info = json.loads((out / "case.json").read_text())
     assert info["source"] == "synthetic" and info["thickness"] == [4.0]
-    with pytest.raises(OutputExistsError, match="--overwrite"):
+    with pytest.raises(OutputExistsError, match="output exists"):
         write_case(case, out)
     write_case(case, out, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c"]

@@ -73,7 +73,7 @@ from torch import Tensor
 
 from svr.files import atomic_directory
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
-from svr.image import Image
+from svr.image import Image, resample_to_grid
 from svr.image_metrics import ncc, psnr, ssim
 from svr.metrics import pose_errors
 from svr.models.backbones import BackboneConfig
@@ -84,7 +84,7 @@ from svr.reconstruction.cnn_init import robust_mean_pose
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.outputs import write_transforms, write_volume
 from svr.reconstruction.pipeline import reconstruct
-from svr.reconstruction.qa import orthogonal_planes, resample_to_grid
+from svr.reconstruction.qa import orthogonal_planes
 from svr.reconstruction.slices import SliceSet, plane_poses
 from svr.reconstruction.stacks import prepare_stacks
 from svr.sampling.augment import SliceAugmentConfig

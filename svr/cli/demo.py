@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from svr.apps.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
 from svr.cli.common import (
     MODEL_HELP,
     CliError,
@@ -22,7 +23,6 @@ from svr.cli.common import (
     resolve_device,
 )
 from svr.files import atomic_write_text, check_output_path
-from svr.apps.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
 
 if TYPE_CHECKING:
     from svr.apps.demo import DemoResult
