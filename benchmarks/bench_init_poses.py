@@ -19,7 +19,7 @@ transform, since the yardstick's own search misses the atlas orientation on sb28
 Errors are the geodesic rotation angle and the distance between slice centres. A reconstruction
 in the scanner frame is defined only up to one rigid transform (the template stack's), so
 "relative" errors are measured after the robust mean
-(:func:`svr.reconstruction.cnn_init.robust_mean_pose`) of ``truth o estimate^-1`` has been applied;
+(:func:`svr.geometry.averaging.robust_mean_pose`) of ``truth o estimate^-1`` has been applied;
 canonical-frame estimates also get "absolute" errors.
 
 Run from the repository root::
@@ -41,10 +41,11 @@ import torch
 from bench_common import load_case_stacks, run_scorer, true_slice_poses
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_exp
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, save_nifti
 from svr.metrics import rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.pipeline import learned_initialisation, reconstruct, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses

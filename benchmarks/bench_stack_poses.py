@@ -38,10 +38,11 @@ import torch
 from bench_common import load_case_stacks, run_scorer, true_slice_poses
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import save_nifti
 from svr.metrics import nearest_orbit_member, rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.pipeline import reconstruct
 from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses

@@ -11,8 +11,9 @@ loss, at a batch of ``--batch-size`` 1 x ``--size`` x ``--size`` slices (``--spa
 (batch size over the median wall time of ``--repeats`` steps, after ``--warmup`` untimed ones) and
 the peak memory of:
 
-* ``model step``: forward, the ``se3`` loss, backward and an AdamW step, as in
-  ``svr.models.train.train``, on one fixed batch (thin slices of the phantom); on CUDA also ``model
+* ``model step``: forward, the ``se3`` loss, backward and an AdamW step
+  (``svr.models.train.train_step``, the step ``svr.models.train.train`` takes, without a
+  learning-rate schedule), on one fixed batch (thin slices of the phantom); on CUDA also ``model
   step amp``: float16 autocast with a ``GradScaler``;
 * ``data thin`` and ``data thick 3 mm + aug``: ``svr.sampling.dataset.SliceStream`` making batches
   of that size (random poses with the empty-slice rule, sampling, labels) from the phantom on the
@@ -60,7 +61,7 @@ from bench_sampler import status_kib
 from svr.image import Image
 from svr.models.backbones import BACKBONE_NAMES, BackboneConfig
 from svr.models.network import ModelConfig, build_model, loss_function
-from svr.models.train import TrainConfig, train
+from svr.models.train import TrainConfig, train, train_step
 from svr.sampling.augment import SliceAugmentConfig
 from svr.sampling.dataset import SliceDatasetConfig, SliceStream
 from svr.sampling.phantom import gestational_age_config, make_phantom
@@ -181,13 +182,7 @@ def model_section(
     labels = torch.from_numpy(inputs.labels).to(device)
 
     def step() -> None:
-        with torch.autocast(device.type, dtype=torch.float16, enabled=case.amp):
-            outputs = model(slices)
-        loss = criterion(outputs.float(), labels)
-        optimizer.zero_grad(set_to_none=True)
-        scaler.scale(loss).backward()
-        scaler.step(optimizer)
-        scaler.update()
+        train_step(model, criterion, optimizer, scaler, slices, labels)
 
     return lambda: step_times(step, settings.warmup + settings.repeats, device)
 

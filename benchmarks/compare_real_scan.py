@@ -16,9 +16,11 @@ same operator and NCC as the reconstruction's own ``ncc`` column) at **our** fin
   start ends below ``--min-correlation`` in volume NCC) and resampled (trilinear) onto our grid.
 
 To see how much of the gap is our poses imposed on MIALSRTK, the slices are also registered
-once more to each volume (one slice-to-volume pass from our poses, the reconstruction's settings:
-every slice alone, 3 levels of 6 Levenberg-Marquardt steps, slices under 200 pixels fixed) and
-the NCC recomputed at those poses ("slices re-registered" rows).
+once more to each volume (one slice-to-volume pass from our poses: the reconstruction's own step,
+:func:`svr.reconstruction.pipeline.svr_pass`, with its default settings: every slice alone,
+3 levels of 6 Levenberg-Marquardt steps, slices under 200 pixels fixed; the common motion is not
+taken back out, the volume being fixed) and the NCC recomputed at those poses ("slices
+re-registered" rows).
 
 It also shows both volumes side by side (orthogonal planes through our mask's centroid, our
 mask's outline drawn on both) and the per-slice NCCs of both methods.
@@ -81,19 +83,19 @@ from svr.files import atomic_write_bytes, atomic_write_text, check_output_path
 from svr.geometry import vector_to_se3
 from svr.image import Image, load_nifti
 from svr.pose_io import read_pose_table
-from svr.reconstruction.operators import SliceProjector, VolumeGrid
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.operators import VolumeGrid
 from svr.reconstruction.outputs import slice_affines
-from svr.reconstruction.pipeline import SVR_PSF_SAMPLES
+from svr.reconstruction.pipeline import acquisition_model, svr_pass
 from svr.reconstruction.qa import orthogonal_planes
-from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from svr.reconstruction.registration import slice_ncc
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from svr.reconstruction.stacks import load_stacks
 
 _LPS = np.diag([-1.0, -1.0, 1.0])  # RAS <-> LPS (ITK's world frame)
 _RUN = re.compile(r"run-(\d+)")
 _SUPPORT_LEVEL = 0.999  # a pixel's blurred support indicator must reach this (whole PSF inside)
-_SVR = RegistrationConfig(levels=3, iterations=6)  # the reconstruction's defaults
-_MIN_SLICE_PIXELS = 200  # slices with fewer brain pixels are not registered alone (as there)
+_RECONSTRUCTION = ReconstructionConfig()  # its defaults: the SVR settings used here
 
 
 def _run_of(name: str) -> int:
@@ -331,11 +333,9 @@ def consistency(slices: SliceSet, ours: Image, reference: Image) -> dict[str, np
         ``support_pixels`` per slice; ``ours_svr`` and ``reference_svr``: at poses re-registered
         to each volume by one slice-to-volume pass from the given poses.
     """
-    grid = VolumeGrid(ours.shape, ours.affine.double())
-    projector = SliceProjector(grid, slices)
-    svr_projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-    observed = projector.gather(slices.images)
-    points = projector.grid_points(slices.poses)
+    acquisition = acquisition_model(slices, VolumeGrid(ours.shape, ours.affine.double()))
+    projector, observed = acquisition.projector, acquisition.observed
+    points = acquisition.points(slices.poses)
     volumes = {"ours": ours.data.float(), "reference": reference.data.float()}
     support = ((ours.data > 0) & (reference.data > 0)).float()
     out = {}
@@ -353,15 +353,12 @@ def consistency(slices: SliceSet, ours: Image, reference: Image) -> dict[str, np
             out[f"{name}_support"] = (
                 slice_ncc(projector, simulated[pixels], observed[pixels], pixels).double().numpy()
             )
-    # As the reconstruction does: every slice its own group, slices with little brain fixed.
-    small = slices.masks.flatten(1).sum(1) < _MIN_SLICE_PIXELS
-    groups = torch.arange(len(slices))
+    # The reconstruction's last SVR pass: every slice its own group, slices with little brain
+    # fixed; not anchored (the volume does not move here).
     for name, volume in volumes.items():
-        poses = register_rigid(
-            svr_projector, volume, slices.images, slices.poses, groups, _SVR, fixed=small
-        )
+        poses = svr_pass(acquisition, volume, slices.poses, _RECONSTRUCTION, anchor=False)
         with torch.no_grad():
-            simulated = projector.forward(volume, projector.grid_points(poses))
+            simulated = projector.forward(volume, acquisition.points(poses))
             out[f"{name}_svr"] = slice_ncc(projector, simulated, observed).double().numpy()
     return out
 

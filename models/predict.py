@@ -58,10 +58,12 @@ from svr.pose_io import PoseTable
 from svr.sampling.slicer import SliceConfig, sample_slices
 
 __all__ = [
+    "PlanePredictions",
     "SliceFile",
     "load_pose_model",
     "load_slice_folder",
     "pose_model_from_checkpoint",
+    "predict_plane_poses",
     "predict_slice_folder",
     "predict_stack_poses",
     "prepare_stack_slices",
@@ -235,7 +237,7 @@ def prepare_stack_slices(
 
 
 def _predict(model: SlicePoseNet, prepared: _Prepared, batch_size: int) -> Tensor:
-    """(N, 6) float64 canonical poses of the stack's k-planes: ``T_k = P_k o C_k^-1 o S_k``."""
+    """(N, 4, 4) float64 CPU canonical poses of the k-planes: ``T_k = P_k o C_k^-1 o S_k``."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     device = next(model.parameters()).device
@@ -243,7 +245,56 @@ def _predict(model: SlicePoseNet, prepared: _Prepared, batch_size: int) -> Tenso
         [model.predict_poses(batch.to(device)).cpu() for batch in prepared.slices.split(batch_size)]
     )
     crop_to_plane = se3_compose(se3_inverse(prepared.crop_poses), prepared.plane_poses).cpu()
-    return se3_to_vector(se3_compose(vector_to_se3(predicted.double()), crop_to_plane))
+    return se3_compose(vector_to_se3(predicted.double()), crop_to_plane)
+
+
+@dataclass(frozen=True)
+class PlanePredictions:
+    """Predicted canonical poses of a stack's kept k-planes, as tensors (all float64 on the CPU).
+
+    Attributes:
+        indices: (N,) int64 ``k`` of each kept plane in the stack's array.
+        plane_poses: (N, 4, 4) ``S_k``: the k-plane's slice coordinates (mm, origin at the plane
+            centre, :func:`svr.image.stack_slice_poses`) -> the stack's world frame (mm).
+        poses: (N, 4, 4) ``T_k``: the same slice coordinates -> the canonical frame (mm).
+    """
+
+    indices: Tensor
+    plane_poses: Tensor
+    poses: Tensor
+
+
+def predict_plane_poses(
+    model: SlicePoseNet,
+    config: ModelConfig,
+    stack: Image,
+    mask: Image | None = None,
+    batch_size: int = 64,
+    name: str = "stack",
+    mask_name: str | None = None,
+) -> PlanePredictions:
+    """Predict the canonical pose of every kept k-plane of a stack, with its scanner pose.
+
+    Args:
+        model: The network, in eval mode (:func:`load_pose_model`).
+        config: Its configuration.
+        stack: An ``(I, J, K)`` thick-slice stack (any device; slices are prepared there).
+        mask: Its brain mask, or ``None`` (see :func:`prepare_stack_slices`).
+        batch_size: Slices per forward pass.
+        name: The stack's file name, for error messages.
+        mask_name: The mask's file name, for the error when the mask has no voxel on the
+            stack's grid.
+
+    Returns:
+        The kept planes' indices, scanner poses ``S_k`` and canonical poses ``T_k``.
+
+    Raises:
+        ValueError: Naming the stack, for an empty mask or unusable intensities; or a
+            ``batch_size`` below 1.
+    """
+    prepared = _prepare_stack(stack, mask, config, name, mask_name)
+    poses = _predict(model, prepared, batch_size)
+    return PlanePredictions(prepared.indices, prepared.plane_poses.cpu(), poses)
 
 
 def predict_stack_poses(
@@ -255,7 +306,7 @@ def predict_stack_poses(
     name: str = "stack",
     mask_name: str | None = None,
 ) -> PoseTable:
-    """Predict the canonical pose of every kept slice of a stack.
+    """Predict the canonical pose of every kept slice of a stack, as a pose table (for files).
 
     Args:
         model: The network, in eval mode (:func:`load_pose_model`).
@@ -270,15 +321,17 @@ def predict_stack_poses(
     Returns:
         A table with one row per kept slice: ``files`` all ``name``, ``slice_indices`` the k-plane
         indices, ``poses`` (N, 6) float64 pose vectors (rad, mm) mapping each k-plane's slice
-        coordinates (origin at its centre) to the canonical frame, ``frame`` ``"canonical"``.
+        coordinates (origin at its centre) to the canonical frame, ``frame`` ``"canonical"``
+        (:func:`predict_plane_poses`' ``T_k``).
 
     Raises:
         ValueError: Naming the stack, for an empty mask or unusable intensities; or a
             ``batch_size`` below 1.
     """
-    prepared = _prepare_stack(stack, mask, config, name, mask_name)
-    poses = _predict(model, prepared, batch_size)
-    return PoseTable([name] * len(poses), prepared.indices, poses, "canonical")
+    planes = predict_plane_poses(model, config, stack, mask, batch_size, name, mask_name)
+    return PoseTable(
+        [name] * len(planes.poses), planes.indices, se3_to_vector(planes.poses), "canonical"
+    )
 
 
 def load_slice_folder(folder: str | os.PathLike[str]) -> list[SliceFile]:
@@ -361,4 +414,4 @@ def predict_slice_folder(
         torch.cat([p.plane_poses for p in parts]),
     )
     poses = _predict(model, prepared, batch_size)
-    return PoseTable([name] * len(poses), prepared.indices, poses, "canonical")
+    return PoseTable([name] * len(poses), prepared.indices, se3_to_vector(poses), "canonical")

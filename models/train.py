@@ -230,6 +230,48 @@ def _distributed() -> tuple[int, int]:
     return (dist.get_rank(), world) if world > 1 else (0, 1)
 
 
+def train_step(
+    net: nn.Module,
+    criterion: Callable[[Tensor, Tensor], Tensor],
+    optimizer: torch.optim.Optimizer,
+    scaler: torch.amp.GradScaler,
+    slices: Tensor,
+    labels: Tensor,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+) -> Tensor:
+    """One optimisation step, as :func:`train` takes it.
+
+    The forward pass runs under float16 autocast on ``slices``' device type when ``scaler`` is
+    enabled (mixed precision); the loss is computed in float32 on the outputs, the gradients are
+    cleared, and the scaled loss is back-propagated; then ``scaler`` steps ``optimizer`` (skipping
+    the step if the gradients overflowed) and updates its scale, and ``scheduler``, if given,
+    advances the learning rate by one step.
+
+    Args:
+        net: The model in training mode (or its ``DistributedDataParallel`` wrapper).
+        criterion: The loss: (B, D) float32 outputs and labels -> scalar.
+        optimizer: The optimiser of ``net``'s parameters.
+        scaler: The loss scaler; a disabled one (``enabled=False``) makes this a plain float32
+            step.
+        slices: (B, 1, H, W) input slices, on ``net``'s device.
+        labels: The batch's labels in the model's representation, on the same device.
+        scheduler: The learning-rate schedule, stepped once per step, or ``None``.
+
+    Returns:
+        The loss (scalar, detached; on the device, not synchronised).
+    """
+    with torch.autocast(slices.device.type, dtype=torch.float16, enabled=scaler.is_enabled()):
+        outputs = net(slices)
+    loss = criterion(outputs.float(), labels)
+    optimizer.zero_grad(set_to_none=True)
+    scaler.scale(loss).backward()
+    scaler.step(optimizer)
+    scaler.update()
+    if scheduler is not None:
+        scheduler.step()
+    return loss.detach()
+
+
 def checkpoint_config(config: TrainConfig, step: int) -> dict:
     """The JSON config stored with a checkpoint (what a predictor needs, and provenance)."""
     return {
@@ -276,7 +318,9 @@ def train(
     ckpt_dir = out / "checkpoints"
     previous = latest_checkpoint(ckpt_dir)
     if previous is not None and not resume and not overwrite:
-        raise OutputExistsError(f"{out}: holds checkpoints; resume, or pass --overwrite")
+        raise OutputExistsError(
+            out, "holds checkpoints of an earlier run (resume it, or allow overwriting)"
+        )
 
     torch.manual_seed(config.seed)
     model = build_model(config.model).to(device)
@@ -346,17 +390,10 @@ def train(
     for step, batch in enumerate(bar, start=start + 1):
         slices = batch["slices"].to(device, non_blocking=True)
         labels = batch["labels"].to(device, non_blocking=True)
-        with torch.autocast(device.type, dtype=torch.float16, enabled=scaler.is_enabled()):
-            outputs = net(slices)
-        loss = criterion(outputs.float(), labels)
-        optimizer.zero_grad(set_to_none=True)
-        scaler.scale(loss).backward()
-        scaler.step(optimizer)
-        scaler.update()
-        scheduler.step()
+        loss = train_step(net, criterion, optimizer, scaler, slices, labels, scheduler)
         seen += slices.shape[0] * world
         if step % config.log_every == 0 or step == config.steps:
-            last_loss = float(loss.detach())
+            last_loss = float(loss)
             now = time.perf_counter()
             if log_file is not None:
                 log_file.write(

@@ -7,20 +7,20 @@ motion) one rigid body, so each prediction also proposes a scanner -> canonical 
     A_i = P_i o S_i^-1,
 
 with ``S_i`` the slice's acquisition (scanner-frame) pose. The robust mean ``A_s`` of a stack's
-``A_i`` (:func:`robust_mean_pose`) gives its consensus poses ``A_s o S_i``, which a minority of
-gross outliers cannot move; the robust mean ``A`` over all slices is the one map that brings
-scanner-frame poses (e.g. from stack registration) into canonical space. Refined per slice
-(:meth:`CnnInitialisation.refined_poses`), each slice keeps its own prediction where it agrees
+``A_i`` (:func:`svr.geometry.averaging.robust_mean_pose`) gives its consensus poses ``A_s o S_i``,
+which a minority of gross outliers cannot move; the robust mean ``A`` over all slices is the one map
+that brings scanner-frame poses (e.g. from stack registration) into canonical space. Refined per
+slice (:meth:`CnnInitialisation.refined_poses`), each slice keeps its own prediction where it agrees
 with its stack's consensus and takes the consensus pose where it does not, so the learned
 initialisation follows the motion of single slices that a rigid stack pose cannot.
 
-Frames and origins (``DESIGN.md``): :func:`svr.models.predict.predict_stack_poses` returns poses of
+Frames and origins (``DESIGN.md``): :func:`svr.models.predict.predict_plane_poses` returns poses of
 the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
 stack's (cropped) array, indexed by that array's ``k``. A
 :class:`~svr.reconstruction.slices.SliceSet` slice has its origin at the centre of its zero-padded
 array and is indexed by the file's ``k`` (``Stack.k_indices``). With ``C_k`` the k-plane's scanner
-pose (:func:`svr.image.stack_slice_poses`) and ``T_k`` its predicted canonical pose, the
-slice's predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
+pose and ``T_k`` its predicted canonical pose (both returned by the prediction), the slice's
+predicted pose is ``P_i = T_k o C_k^-1 o S_i``, where ``C_k^-1 o S_i`` is the in-plane shift
 between the two origins; hence ``A_i = T_k o C_k^-1``.
 """
 
@@ -33,11 +33,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_compose, se3_inverse, so3_exp, so3_log, vector_to_se3
+from svr.geometry import se3_compose, se3_inverse, so3_log
+from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
-from svr.image import stack_slice_poses
 from svr.models.network import ModelConfig, SlicePoseNet
-from svr.models.predict import predict_stack_poses
+from svr.models.predict import predict_plane_poses
 from svr.reconstruction.slices import SliceSet, Stack
 
 __all__ = [
@@ -45,10 +45,8 @@ __all__ = [
     "cnn_slice_poses",
     "disambiguate_stack",
     "learned_consensus",
-    "robust_mean_pose",
 ]
 
-_DISTANCE_FLOOR = 1e-12  # rad or mm: Weiszfeld weights are 1 / max(distance, this)
 _PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plane
 
 
@@ -126,110 +124,7 @@ class CnnInitialisation:
         return torch.where(outlier[:, None, None], self.consensus_poses, self.predicted_poses)
 
 
-def _weiszfeld_step(offsets: Tensor, weights: Tensor) -> Tensor:
-    """One Weiszfeld step of the weighted geometric median, from the current estimate.
-
-    Args:
-        offsets: (M, 3) the points relative to the current estimate.
-        weights: (M,) non-negative weights.
-
-    Returns:
-        (3,) the move to the next estimate: ``sum(w_i x_i / |x_i|) / sum(w_i / |x_i|)``, with
-        distances floored at ``_DISTANCE_FLOOR`` (a point on the estimate pulls hardest).
-    """
-    inverse = weights / offsets.norm(dim=-1).clamp_min(_DISTANCE_FLOOR)
-    return (inverse[:, None] * offsets).sum(dim=0) / inverse.sum()
-
-
-def _chordal_mean(rotations: Tensor, weights: Tensor) -> Tensor:
-    """(3, 3) weighted mean of (M, 3, 3) rotation matrices projected to SO(3) by SVD."""
-    u, _, vh = torch.linalg.svd((weights[:, None, None] * rotations).sum(dim=0))
-    flip = torch.ones(3, dtype=rotations.dtype, device=rotations.device)
-    flip[2] = torch.sign(torch.linalg.det(u @ vh))
-    return u @ torch.diag(flip) @ vh
-
-
-def robust_mean_pose(
-    transforms: Tensor,
-    weights: Tensor | None = None,
-    max_iterations: int = 100,
-    tolerance: float = 1e-12,
-) -> Tensor:
-    """A robust average of rigid transforms: geodesic L1 median rotation, geometric median shift.
-
-    The rotation minimises ``sum_i w_i angle(R^T R_i)`` (the L1 median under the bi-invariant
-    metric of SO(3)) by Weiszfeld iterations in the tangent space, ``R <- R exp(d)`` with ``d``
-    the Weiszfeld step of ``log(R^T R_i)``, started at the chordal mean projected to SO(3) by
-    SVD (Hartley et al., "L1 rotation averaging using the Weiszfeld algorithm", CVPR 2011). The
-    translation minimises ``sum_i w_i |t - t_i|`` by Weiszfeld iterations from the weighted mean.
-    Both medians tolerate up to half of the weight in gross outliers, and the result is
-    equivariant: ``robust_mean_pose(G o T_i) = G o robust_mean_pose(T_i)`` for any rigid ``G``.
-
-    Args:
-        transforms: (M, 4, 4) rigid transforms, M >= 1 (any float dtype; computed in float64).
-        weights: (M,) non-negative weights, not all zero; default all 1.
-        max_iterations: Most Weiszfeld iterations for each of rotation and translation, >= 1.
-        tolerance: The iterations stop once a step is shorter than this (rad for the rotation,
-            mm for the translation), > 0.
-
-    Returns:
-        (4, 4) float64 rigid transform on the device of ``transforms``.
-
-    Raises:
-        TypeError: If ``transforms`` is not a floating-point tensor.
-        ValueError: Naming the argument, for a wrong shape, an empty batch, non-finite values,
-            negative or all-zero weights, ``max_iterations`` < 1 or ``tolerance`` <= 0.
-    """
-    if not isinstance(transforms, Tensor) or not transforms.is_floating_point():
-        raise TypeError(
-            "robust_mean_pose(): 'transforms' must be a floating-point tensor (M, 4, 4), got "
-            f"{getattr(transforms, 'dtype', type(transforms).__name__)}"
-        )
-    if transforms.dim() != 3 or tuple(transforms.shape[1:]) != (4, 4) or len(transforms) == 0:
-        raise ValueError(
-            "robust_mean_pose(): 'transforms' must have shape (M, 4, 4) with M >= 1, got "
-            f"{tuple(transforms.shape)}"
-        )
-    if not bool(transforms.isfinite().all()):
-        raise ValueError("robust_mean_pose(): 'transforms' holds non-finite values")
-    T = transforms.to(torch.float64)
-    if weights is None:
-        w = torch.ones(len(T), dtype=torch.float64, device=T.device)
-    else:
-        w = weights.to(device=T.device, dtype=torch.float64)
-        if tuple(w.shape) != (len(T),):
-            raise ValueError(
-                f"robust_mean_pose(): 'weights' must have shape ({len(T)},), got {tuple(w.shape)}"
-            )
-        if not bool(w.isfinite().all()) or bool((w < 0).any()) or not bool((w > 0).any()):
-            raise ValueError(
-                "robust_mean_pose(): 'weights' must be finite, non-negative and not all zero"
-            )
-    if not (isinstance(max_iterations, int) and max_iterations >= 1):
-        raise ValueError(
-            f"robust_mean_pose(): 'max_iterations' must be an int >= 1, got {max_iterations!r}"
-        )
-    if not tolerance > 0:
-        raise ValueError(f"robust_mean_pose(): 'tolerance' must be > 0, got {tolerance!r}")
-    rotations, translations = T[:, :3, :3], T[:, :3, 3]
-    R = _chordal_mean(rotations, w)
-    for _ in range(max_iterations):
-        step = _weiszfeld_step(so3_log(R.T @ rotations), w)
-        R = R @ so3_exp(step)
-        if float(step.norm()) < tolerance:
-            break
-    t = (w[:, None] * translations).sum(dim=0) / w.sum()
-    for _ in range(max_iterations):
-        step = _weiszfeld_step(translations - t, w)
-        t = t + step
-        if float(step.norm()) < tolerance:
-            break
-    out = torch.eye(4, dtype=torch.float64, device=T.device)
-    out[:3, :3], out[:3, 3] = R, t
-    return out
-
-
-def _stack_scanner_to_canonical(
+def _stack_predictions(
     model: SlicePoseNet,
     model_config: ModelConfig,
     stack: Stack,
@@ -237,7 +132,7 @@ def _stack_scanner_to_canonical(
     file_k: Tensor,
     batch_size: int,
 ) -> Tensor:
-    """``A_i = T_k o C_k^-1`` for the given slices of one stack (see the module docstring).
+    """``P_i = T_k o S_k^-1 o S_i`` for the given slices of one stack (module docstring).
 
     Args:
         model: The network, in eval mode.
@@ -248,17 +143,16 @@ def _stack_scanner_to_canonical(
         batch_size: Slices per forward pass.
 
     Returns:
-        (M, 4, 4) float64 CPU scanner -> canonical transforms.
+        (M, 4, 4) float64 CPU predicted canonical poses of the slices.
 
     Raises:
         ValueError: Naming the stack, if a slice has no prediction or does not lie on the k-plane
             that its index names.
     """
-    table = predict_stack_poses(
+    planes = predict_plane_poses(
         model, model_config, stack.image, stack.mask, batch_size=batch_size, name=stack.name
     )
-    cropped_k = table.slice_indices.cpu()
-    row_of = {int(k): row for row, k in enumerate(stack.k_indices.cpu()[cropped_k].tolist())}
+    row_of = {int(k): row for row, k in enumerate(stack.k_indices.cpu()[planes.indices].tolist())}
     missing = [int(k) for k in file_k.tolist() if int(k) not in row_of]
     if missing:
         raise ValueError(
@@ -266,8 +160,7 @@ def _stack_scanner_to_canonical(
             "of 'slices' (the stack's mask is empty there); were the slices cut from 'stacks'?"
         )
     rows = torch.tensor([row_of[int(k)] for k in file_k.tolist()], dtype=torch.long)
-    planes = stack_slice_poses(stack.image).cpu()[cropped_k[rows]]
-    shift = se3_compose(se3_inverse(planes), scanner_poses)
+    shift = se3_compose(se3_inverse(planes.plane_poses[rows]), scanner_poses)
     off_plane = torch.maximum(
         (shift[:, :3, :3] - torch.eye(3, dtype=torch.float64)).abs().amax(dim=(1, 2)),
         shift[:, 2, 3].abs(),
@@ -277,8 +170,7 @@ def _stack_scanner_to_canonical(
             f"cnn_slice_poses(): stack {stack.name!r}: slices of 'slices' do not lie on the "
             "k-planes of the stack they name; were the slices cut from 'stacks'?"
         )
-    predicted = vector_to_se3(table.poses[rows].to(torch.float64).cpu())
-    return se3_compose(predicted, se3_inverse(planes))
+    return se3_compose(planes.poses[rows], shift)
 
 
 def cnn_slice_poses(
@@ -327,16 +219,16 @@ def cnn_slice_poses(
     scanner = slices.scanner_poses.to(torch.float64).cpu()
     stack_ids = slices.stack_ids.cpu()
     file_k = slices.slice_indices.cpu()
-    to_canonical = torch.empty_like(scanner)
+    predicted = torch.empty_like(scanner)
     for sid, stack in enumerate(stacks):
         members = torch.nonzero(stack_ids == sid).flatten()
         if len(members) > 0:
-            to_canonical[members] = _stack_scanner_to_canonical(
+            predicted[members] = _stack_predictions(
                 model, model_config, stack, scanner[members], file_k[members], batch_size
             )
     return learned_consensus(
         slices,
-        se3_compose(to_canonical, scanner),
+        predicted,
         model_config.symmetry_planes,
         max_rotation_deg,
         max_translation_mm,
@@ -400,15 +292,15 @@ def disambiguate_stack(
     """A stack's scanner -> canonical transform by a robust vote over its slices' pose candidates.
 
     Every slice brings ``K`` candidate canonical poses (its prediction and its mirror twins); each
-    candidate ``C_ki`` proposes the stack transform ``C_ki o S_i^-1``. A hypothesis's support is
-    the number of slices with a candidate within both bounds of the pose the hypothesis gives them
-    (RANSAC over all ``K M`` proposals, ties broken by the smaller summed normalised residual).
-    A twin reverses the stack's slice order along its normal, so the twin of one slice proposes a
+    candidate ``C_ki`` proposes the stack transform ``C_ki o S_i^-1``. A hypothesis's support is the
+    number of slices with a candidate within both bounds of the pose the hypothesis gives them
+    (RANSAC over all ``K M`` proposals, ties broken by the smaller summed normalised residual). A
+    twin reverses the stack's slice order along its normal, so the twin of one slice proposes a
     transform that only its neighbours within about half the translation bound support: the true
-    transform wins once most slices have one good candidate, whichever member it is. Each slice
-    then takes its candidate nearest to the winning hypothesis, and the transform is the robust
-    mean (:func:`robust_mean_pose`) of the chosen candidates of the supporting slices, after which
-    the choice is made once more against that mean.
+    transform wins once most slices have one good candidate, whichever member it is. Each slice then
+    takes its candidate nearest to the winning hypothesis, and the transform is the robust mean
+    (:func:`svr.geometry.averaging.robust_mean_pose`) of the chosen candidates of the supporting
+    slices, after which the choice is made once more against that mean.
 
     Args:
         candidates: (K, M, 4, 4) float64 candidate canonical poses of the stack's M slices

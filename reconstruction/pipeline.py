@@ -11,6 +11,10 @@ Phases (each timed and logged):
     3. rounds: slice-to-volume registration of every slice (skipped in the first round),
        per-slice intensity scales, EM outlier weights, exclusion of slices whose NCC with their
        simulation is below the threshold, then conjugate-gradient super-resolution.
+
+Each step of a round is public, for scripts that need one of them on their own volume and poses:
+:func:`acquisition_model` (the setup), :func:`initial_volume`, :func:`svr_pass`,
+:func:`reject_outliers`, :func:`super_resolve` and :func:`finalise`.
 """
 
 from __future__ import annotations
@@ -42,7 +46,20 @@ from svr.reconstruction.superres import (
     super_resolution,
 )
 
-__all__ = ["learned_initialisation", "reconstruct", "stack_registration"]
+__all__ = [
+    "Acquisition",
+    "FinalVolume",
+    "OutlierWeights",
+    "acquisition_model",
+    "finalise",
+    "initial_volume",
+    "learned_initialisation",
+    "reconstruct",
+    "reject_outliers",
+    "stack_registration",
+    "super_resolve",
+    "svr_pass",
+]
 
 log = logging.getLogger(__name__)
 
@@ -363,6 +380,282 @@ def reconstruct(
         torch.random.set_rng_state(generator_state)
 
 
+class Acquisition(NamedTuple):
+    """The slices' acquisition model on a volume grid: what every step of a round shares.
+
+    Built once per reconstruction by :func:`acquisition_model`. The slices' poses are not part of
+    it: every step takes the current poses (or their grid points) as an argument.
+
+    Attributes:
+        slices: The slices (images, masks, spacing and thickness).
+        grid: The volume grid; its affine maps voxel indices to the frame of the poses (mm).
+        projector: The acquisition model with the default PSF (5 Gauss-Hermite nodes along the
+            normal), for simulation, outlier rejection and super-resolution.
+        svr_projector: The same with :data:`SVR_PSF_SAMPLES` nodes, for slice-to-volume
+            registration.
+        observed: (P,) observed values of the P modelled (masked) pixels, in ``projector``'s
+            pixel order.
+        brain_pixels: (N,) int64 number of masked pixels of each slice.
+    """
+
+    slices: SliceSet
+    grid: VolumeGrid
+    projector: SliceProjector
+    svr_projector: SliceProjector
+    observed: Tensor
+    brain_pixels: Tensor
+
+    def points(self, poses: Tensor) -> Tensor:
+        """(K, P, 3) float32 ``grid_sample`` coordinates of every PSF node of every modelled pixel.
+
+        Args:
+            poses: (N, 4, 4) slice poses: slice-plane mm -> the grid's frame (mm).
+        """
+        return self.projector.grid_points(poses)
+
+
+def acquisition_model(slices: SliceSet, grid: VolumeGrid) -> Acquisition:
+    """The acquisition model of ``slices`` on ``grid`` (the setup of :func:`reconstruct`'s rounds).
+
+    Args:
+        slices: The slices; their poses' frame must be ``grid``'s frame.
+        grid: The volume grid (:func:`svr.reconstruction.superres.output_grid` in
+            :func:`reconstruct`).
+
+    Returns:
+        The projectors, the observed pixel values and the slices' brain pixel counts.
+    """
+    projector = SliceProjector(grid, slices)
+    return Acquisition(
+        slices=slices,
+        grid=grid,
+        projector=projector,
+        svr_projector=SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES),
+        observed=projector.gather(slices.images),
+        brain_pixels=slices.masks.flatten(1).sum(1),
+    )
+
+
+def initial_volume(acquisition: Acquisition, points: Tensor) -> Tensor:
+    """The first volume estimate: the scattered-data approximation with unit pixel weights.
+
+    Args:
+        acquisition: The acquisition model.
+        points: (K, P, 3) grid points of the slices' poses (:meth:`Acquisition.points`).
+
+    Returns:
+        (I, J, K) volume on ``acquisition.grid``, 0 where no data reaches.
+    """
+    observed = acquisition.observed
+    return scattered_data_approximation(
+        acquisition.projector, points, observed, torch.ones_like(observed)
+    )
+
+
+def svr_pass(
+    acquisition: Acquisition,
+    volume: Tensor,
+    poses: Tensor,
+    config: ReconstructionConfig,
+    group_size: int = 1,
+    slice_weights: Tensor | None = None,
+    anchor: bool = True,
+) -> Tensor:
+    """One slice-to-volume registration pass: every group of slices rigidly aligned to ``volume``.
+
+    Groups are ``group_size`` slices acquired one after another (:func:`slice_groups` with
+    ``config.packets``); with ``group_size = 1`` every slice is registered alone and slices with
+    fewer than ``config.min_slice_pixels`` brain pixels keep their pose (too little signal). The
+    registration (:func:`svr.reconstruction.registration.register_rigid`) runs
+    ``config.svr_levels`` levels of ``config.svr_iterations`` Levenberg-Marquardt steps with the
+    :data:`SVR_PSF_SAMPLES`-node PSF.
+
+    Args:
+        acquisition: The acquisition model.
+        volume: (I, J, K) volume on ``acquisition.grid``.
+        poses: (N, 4, 4) starting poses: slice-plane mm -> the grid's frame (mm).
+        config: Settings (``packets``, ``min_slice_pixels``, ``svr_levels``, ``svr_iterations``).
+        group_size: Slices per group (>= 1).
+        slice_weights: (N,) weight of each slice in its group's objective (0 leaves it out), or
+            ``None`` for all 1.
+        anchor: Take the common rigid motion of all slices back out of the corrections, so that
+            the volume stays in the frame of ``poses`` (as every round of :func:`reconstruct`
+            does); ``False`` returns the registered poses as they are.
+
+    Returns:
+        (N, 4, 4) float64 registered poses in the same frame.
+    """
+    slices = acquisition.slices
+    groups = slice_groups(slices, config.packets, group_size)
+    # Slices with little brain carry too little signal to be registered alone.
+    small = (acquisition.brain_pixels < config.min_slice_pixels) if group_size == 1 else None
+    registered = register_rigid(
+        acquisition.svr_projector,
+        volume,
+        slices.images,
+        poses,
+        groups,
+        RegistrationConfig(levels=config.svr_levels, iterations=config.svr_iterations),
+        fixed=small,
+        slice_weights=slice_weights,
+    )
+    return _anchored(registered, poses) if anchor else registered
+
+
+class OutlierWeights(NamedTuple):
+    """What :func:`reject_outliers` found, at one volume and set of poses.
+
+    Attributes:
+        scales: (N,) per-slice intensity scales ``c`` (observed ~ ``c`` x simulated), in
+            [0.5, 2], fitted with the previous pixel weights.
+        ncc: (N,) NCC of each observed slice with its simulation (over its masked pixels).
+        excluded: (N,) bool, slices left out: NCC below ``config.ncc_threshold`` and at least
+            ``config.min_slice_pixels`` brain pixels.
+        pixel_weights: (P,) EM pixel inlier probabilities (the previous ones when
+            ``config.robust`` is off).
+        slice_weights: (N,) EM slice inlier probabilities (likewise).
+        weights: (P,) the data weights of super-resolution: the pixel weight times its slice's
+            weight, 0 for the pixels of excluded slices.
+    """
+
+    scales: Tensor
+    ncc: Tensor
+    excluded: Tensor
+    pixel_weights: Tensor
+    slice_weights: Tensor
+    weights: Tensor
+
+
+def reject_outliers(
+    acquisition: Acquisition,
+    volume: Tensor,
+    points: Tensor,
+    config: ReconstructionConfig,
+    pixel_weights: Tensor | None = None,
+    slice_weights: Tensor | None = None,
+) -> OutlierWeights:
+    """Per-slice intensity scales, EM outlier weights and NCC exclusion at the current volume.
+
+    Slices are simulated from ``volume`` at ``points``; the per-slice scales are fitted with the
+    previous ``pixel_weights``; slices whose NCC with their simulation is below
+    ``config.ncc_threshold`` are excluded unless they have fewer than
+    ``config.min_slice_pixels`` brain pixels (their NCC is noise: they rely on the EM weights
+    alone); with ``config.robust`` the EM pixel and slice weights are recomputed from the scaled
+    residuals (:func:`svr.reconstruction.robust.robust_weights`).
+
+    Args:
+        acquisition: The acquisition model.
+        volume: (I, J, K) volume on ``acquisition.grid``.
+        points: (K, P, 3) grid points of the current poses (:meth:`Acquisition.points`).
+        config: Settings (``ncc_threshold``, ``min_slice_pixels``, ``robust``).
+        pixel_weights: (P,) previous pixel weights, or ``None`` for all 1 (the first round).
+        slice_weights: (N,) previous slice weights, or ``None`` for all 1 (the first round).
+
+    Returns:
+        The scales, NCCs, exclusions and weights.
+    """
+    projector, observed = acquisition.projector, acquisition.observed
+    num_slices = len(acquisition.slices)
+    if pixel_weights is None:
+        pixel_weights = torch.ones_like(observed)
+    if slice_weights is None:
+        slice_weights = torch.ones(num_slices, device=observed.device)
+    simulated = projector.forward(volume, points)
+    scales = slice_intensity_scales(projector, simulated, observed, pixel_weights)
+    ncc = slice_ncc(projector, simulated, observed)
+    # NCC of slices with little brain is noise: those rely on the EM weights alone.
+    excluded = (ncc < config.ncc_threshold) & (acquisition.brain_pixels >= config.min_slice_pixels)
+    if config.robust:
+        robust = robust_weights(
+            observed - scales[projector.slice_of] * simulated, projector.slice_of, num_slices
+        )
+        pixel_weights, slice_weights = robust.pixel, robust.slice
+    weights = pixel_weights * (slice_weights * (~excluded))[projector.slice_of]
+    return OutlierWeights(scales, ncc, excluded, pixel_weights, slice_weights, weights)
+
+
+def super_resolve(
+    acquisition: Acquisition,
+    volume: Tensor,
+    points: Tensor,
+    outliers: OutlierWeights,
+    config: ReconstructionConfig,
+    round_index: int,
+) -> Tensor:
+    """Conjugate-gradient super-resolution from ``volume``, as round ``round_index`` does it.
+
+    Round ``round_index`` (from 0) uses that round's ``config.sr_iterations`` and
+    ``config.regularization`` (the last value repeats) and ``config.edge_delta``
+    (:func:`svr.reconstruction.superres.super_resolution`).
+
+    Args:
+        acquisition: The acquisition model.
+        volume: (I, J, K) starting volume on ``acquisition.grid``.
+        points: (K, P, 3) grid points of the current poses (:meth:`Acquisition.points`).
+        outliers: The data weights and per-slice scales (:func:`reject_outliers`).
+        config: Settings.
+        round_index: The round (>= 0).
+
+    Returns:
+        (I, J, K) non-negative volume on ``acquisition.grid``.
+    """
+    return super_resolution(
+        acquisition.projector,
+        points,
+        acquisition.observed,
+        outliers.weights,
+        outliers.scales,
+        volume,
+        _per_round(config.sr_iterations, round_index),
+        _per_round(config.regularization, round_index),
+        config.edge_delta,
+    )
+
+
+class FinalVolume(NamedTuple):
+    """What :func:`finalise` returns.
+
+    Attributes:
+        volume: (I, J, K) volume, 0 outside ``mask``.
+        mask: (I, J, K) float 0/1, the voxels the slices cover.
+        slice_ncc: (N,) NCC of each observed slice with its scaled simulation from the volume
+            (before masking).
+    """
+
+    volume: Tensor
+    mask: Tensor
+    slice_ncc: Tensor
+
+
+def finalise(
+    acquisition: Acquisition, volume: Tensor, points: Tensor, pixel_weights: Tensor
+) -> FinalVolume:
+    """The final slice NCCs and the coverage mask, applied to the volume.
+
+    The mask keeps the voxels whose coverage ``A^T 1`` exceeds 5% of its 99th percentile over
+    the covered voxels.
+
+    Args:
+        acquisition: The acquisition model.
+        volume: (I, J, K) volume on ``acquisition.grid``.
+        points: (K, P, 3) grid points of the final poses (:meth:`Acquisition.points`).
+        pixel_weights: (P,) pixel weights of the last round, for the intensity scales.
+
+    Returns:
+        The masked volume, the mask and the slices' NCCs.
+    """
+    projector, observed = acquisition.projector, acquisition.observed
+    simulated = projector.forward(volume, points)
+    scales = slice_intensity_scales(projector, simulated, observed, pixel_weights)
+    ncc = slice_ncc(projector, scales[projector.slice_of] * simulated, observed)
+    cover = coverage(projector, points, torch.ones_like(observed))
+    # kthvalue, not torch.quantile: no limit on the number of voxels (NeSVoR #21).
+    covered = cover[cover > 0].float()
+    high = covered.kthvalue(max(1, int(0.99 * covered.numel()))).values
+    mask = (cover > 0.05 * float(high)).float()
+    return FinalVolume(volume * mask, mask, ncc)
+
+
 def _rounds(
     slices: SliceSet,
     config: ReconstructionConfig,
@@ -372,16 +665,13 @@ def _rounds(
 ) -> ReconstructionResult:
     with timer.phase("setup"):
         grid = output_grid(slices, config.output_resolution_mm)
-        projector = SliceProjector(grid, slices)
-        svr_projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-        observed = projector.gather(slices.images)
+        model = acquisition_model(slices, grid)
         poses = slices.poses
-        points = projector.grid_points(poses)
-        pixel_w = torch.ones_like(observed)
-        pixels = slices.masks.flatten(1).sum(1)
-        slice_w = torch.ones(len(slices), device=observed.device)
-        excluded = torch.zeros(len(slices), dtype=torch.bool, device=observed.device)
-        volume = scattered_data_approximation(projector, points, observed, pixel_w)
+        points = model.points(poses)
+        pixel_w = torch.ones_like(model.observed)
+        slice_w = torch.ones(len(slices), device=model.observed.device)
+        excluded = torch.zeros(len(slices), dtype=torch.bool, device=model.observed.device)
+        volume = initial_volume(model, points)
         initial = volume.clone()
         log.info(
             "output grid %s at %.2f mm (%s frame)",
@@ -389,72 +679,35 @@ def _rounds(
             config.output_resolution_mm,
             slices.frame,
         )
-    svr_config = RegistrationConfig(levels=config.svr_levels, iterations=config.svr_iterations)
     bar = tqdm(range(config.outer_iterations), desc="reconstruction", disable=not progress)
     for round_index in bar:
         if round_index > 0:
             with timer.phase("slice-to-volume registration"):
-                previous = poses
-                size = _group_size(config, round_index)
-                groups = slice_groups(slices, config.packets, size)
-                # Slices with little brain carry too little signal to be registered alone.
-                small = (pixels < config.min_slice_pixels) if size == 1 else None
-                poses = register_rigid(
-                    svr_projector,
+                poses = svr_pass(
+                    model,
                     volume,
-                    slices.images,
                     poses,
-                    groups,
-                    svr_config,
-                    fixed=small,
+                    config,
+                    _group_size(config, round_index),
                     slice_weights=slice_w * (~excluded),
                 )
-                poses = _anchored(poses, previous)
-                points = projector.grid_points(poses)
+                points = model.points(poses)
         with timer.phase("outlier rejection"):
-            simulated = projector.forward(volume, points)
-            scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
-            ncc = slice_ncc(projector, simulated, observed)
-            # NCC of slices with little brain is noise: those rely on the EM weights alone.
-            excluded = (ncc < config.ncc_threshold) & (pixels >= config.min_slice_pixels)
-            if config.robust:
-                weights = robust_weights(
-                    observed - scales[projector.slice_of] * simulated,
-                    projector.slice_of,
-                    len(slices),
-                )
-                pixel_w, slice_w = weights.pixel, weights.slice
-            weights_now = pixel_w * (slice_w * (~excluded))[projector.slice_of]
+            outliers = reject_outliers(model, volume, points, config, pixel_w, slice_w)
+            pixel_w, slice_w = outliers.pixel_weights, outliers.slice_weights
+            excluded = outliers.excluded
         with timer.phase("super-resolution"):
-            volume = super_resolution(
-                projector,
-                points,
-                observed,
-                weights_now,
-                scales,
-                volume,
-                _per_round(config.sr_iterations, round_index),
-                _per_round(config.regularization, round_index),
-                config.edge_delta,
-            )
-        bar.set_postfix(ncc=f"{float(ncc.mean()):.3f}", excluded=int(excluded.sum()))
+            volume = super_resolve(model, volume, points, outliers, config, round_index)
+        bar.set_postfix(ncc=f"{float(outliers.ncc.mean()):.3f}", excluded=int(excluded.sum()))
     with timer.phase("finish"):
-        simulated = projector.forward(volume, points)
-        scales = slice_intensity_scales(projector, simulated, observed, pixel_w)
-        ncc = slice_ncc(projector, scales[projector.slice_of] * simulated, observed)
-        cover = coverage(projector, points, torch.ones_like(observed))
-        # kthvalue, not torch.quantile: no limit on the number of voxels (NeSVoR #21).
-        covered = cover[cover > 0].float()
-        high = covered.kthvalue(max(1, int(0.99 * covered.numel()))).values
-        mask = (cover > 0.05 * float(high)).float()
-        volume = volume * mask
+        final = finalise(model, volume, points, pixel_w)
     _report_exclusions(slices, excluded)
     return ReconstructionResult(
-        volume=grid.image(volume.float()),
-        mask=grid.image(mask),
+        volume=grid.image(final.volume.float()),
+        mask=grid.image(final.mask),
         initial_volume=grid.image(initial.float()),
         slices=slices.with_poses(poses),
-        slice_ncc=ncc.detach().cpu(),
+        slice_ncc=final.slice_ncc.detach().cpu(),
         slice_weights=slice_w.detach().cpu(),
         excluded=excluded.cpu(),
         initialisation=init,

@@ -7,6 +7,7 @@ adjointness, scipy quadrature and closed forms for the PSF, scipy ``Rotation`` f
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -16,14 +17,27 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from svr.image import Image
+from svr.reconstruction.cnn_init import robust_mean_pose
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur, psf_nodes
-from svr.reconstruction.pipeline import reconstruct, slice_groups
+from svr.reconstruction.pipeline import (
+    SVR_PSF_SAMPLES,
+    Acquisition,
+    acquisition_model,
+    finalise,
+    initial_volume,
+    reconstruct,
+    reject_outliers,
+    slice_groups,
+    super_resolve,
+    svr_pass,
+)
 from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
 from svr.reconstruction.robust import robust_weights
-from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 from svr.reconstruction.superres import (
+    coverage,
     output_grid,
     scattered_data_approximation,
     super_resolution,
@@ -728,3 +742,262 @@ def test_reconstruct_on_cuda_matches_cpu():
     assert cuda.volume.shape == cpu.volume.shape
     a, b = cpu.volume.data.numpy().ravel(), cuda.volume.data.cpu().numpy().ravel()
     assert ncc_np(a, b) > 0.99
+
+
+# --- the steps of a round ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def phantom_acquisition(phantom, phantom_slices) -> Acquisition:
+    """The acquisition model of the exact-pose phantom slices on the phantom's own grid."""
+    volume, _ = phantom
+    return acquisition_model(phantom_slices, VolumeGrid(volume.shape, volume.affine))
+
+
+def test_acquisition_model_holds_the_masked_pixels(phantom_slices, phantom_acquisition):
+    slices, acquisition = phantom_slices, phantom_acquisition
+    assert torch.equal(acquisition.observed, slices.images[slices.masks])
+    assert torch.equal(acquisition.brain_pixels, slices.masks.sum((1, 2)))
+    assert acquisition.projector.weights.numel() == 5
+    assert acquisition.svr_projector.weights.numel() == SVR_PSF_SAMPLES
+    points = acquisition.points(slices.poses)
+    assert points.shape == (5, len(acquisition.observed), 3) and points.dtype == torch.float32
+
+
+def test_initial_volume_is_the_average_of_the_data(phantom_slices):
+    slices = dataclasses.replace(phantom_slices, images=2.5 * phantom_slices.masks.float())
+    acquisition = acquisition_model(slices, output_grid(slices, 2.0))
+    points = acquisition.points(slices.poses)
+    volume = initial_volume(acquisition, points).numpy()
+    cover = coverage(acquisition.projector, points, torch.ones_like(acquisition.observed)).numpy()
+    filled = volume != 0
+    np.testing.assert_allclose(volume[filled], 2.5, rtol=1e-5)
+    assert filled[cover > 0.01 * cover.max()].all()
+    assert not filled[cover == 0].any() and (cover == 0).any()
+
+
+def test_svr_pass_recovers_slice_offsets_and_keeps_small_slices(
+    phantom, phantom_slices, phantom_acquisition, rng
+):
+    volume, _ = phantom
+    truth = phantom_slices.poses
+    rotvecs, shifts = random_offsets(rng, len(truth), 3.0, 2.0)
+    start = perturb(truth, rotvecs, shifts, truth[:, :3, 3].numpy())
+    pixels = phantom_acquisition.brain_pixels
+    config = ReconstructionConfig(min_slice_pixels=int(pixels.float().quantile(0.2)))
+    small = pixels < config.min_slice_pixels
+    assert 0 < int(small.sum()) < 0.5 * len(truth)
+    estimate = svr_pass(phantom_acquisition, volume.data, start, config, anchor=False)
+    assert estimate.dtype == F64 and estimate.shape == start.shape
+    assert torch.equal(estimate[small], start[small])  # too little brain to be registered alone
+    angle, shift = pose_errors(estimate, truth)
+    moved = ~small.numpy()
+    assert np.median(angle[moved]) < 0.5 and np.median(shift[moved]) < 0.3
+
+
+def test_svr_pass_anchoring_takes_the_common_motion_out(
+    phantom, phantom_slices, phantom_acquisition
+):
+    """Every slice moved by one rigid motion: registration undoes it; anchored, the slices stay
+    where they started (the volume follows them instead) and the robust mean correction is 1."""
+    volume, _ = phantom
+    truth = phantom_slices.poses
+    n = len(truth)
+    centre = truth[:, :3, 3].mean(0).numpy()
+    start = perturb(
+        truth,
+        np.repeat(np.radians([[2.0, -1.5, 1.0]]), n, 0),
+        np.repeat([[1.0, -1.0, 0.5]], n, 0),
+        np.repeat(centre[None], n, 0),
+    )
+    config = ReconstructionConfig(min_slice_pixels=0)
+    free = svr_pass(phantom_acquisition, volume.data, start, config, anchor=False)
+    anchored = svr_pass(phantom_acquisition, volume.data, start, config)
+    angle, shift = pose_errors(free, truth)
+    assert np.median(angle) < 0.5 and np.median(shift) < 0.3
+    angle, shift = pose_errors(anchored, start)
+    assert np.median(angle) < 0.5 and np.median(shift) < 0.3
+    angle, shift = pose_errors(anchored, truth)
+    assert np.median(angle) > 2.0 and np.median(shift) > 1.0
+    drift = robust_mean_pose(anchored @ torch.linalg.inv(start))
+    torch.testing.assert_close(drift, torch.eye(4, dtype=F64), rtol=0, atol=1e-6)
+
+
+def test_svr_pass_moves_groups_as_rigid_bodies(phantom, phantom_slices, phantom_acquisition, rng):
+    volume, _ = phantom
+    truth = phantom_slices.poses
+    rotvecs, shifts = random_offsets(rng, len(truth), 3.0, 2.0)
+    start = perturb(truth, rotvecs, shifts, truth[:, :3, 3].numpy())
+    # In groups no slice is held, however little brain it has.
+    config = ReconstructionConfig(packets=2, min_slice_pixels=10**6, svr_levels=2)
+    estimate = svr_pass(phantom_acquisition, volume.data, start, config, 3, anchor=False)
+    correction = (estimate @ torch.linalg.inv(start)).numpy()
+    groups = slice_groups(phantom_slices, 2, 3).numpy()
+    sizes = np.bincount(groups)
+    assert sizes.max() == 3 and len(sizes) < len(truth)
+    for group in range(len(sizes)):
+        members = correction[groups == group]
+        np.testing.assert_allclose(members, members[:1].repeat(len(members), 0), atol=1e-6)
+    moved = np.abs(correction - np.eye(4)).max(axis=(1, 2)) > 1e-3
+    assert moved.mean() > 0.8
+
+
+def test_reject_outliers_scales_weights_and_excludes(phantom, phantom_slices):
+    volume, _ = phantom
+    slices = phantom_slices
+    pixels = slices.masks.flatten(1).sum(1)
+    order = torch.argsort(pixels, descending=True).tolist()
+    brighter, broken, small_broken = order[0], order[1], order[-1]
+    images = slices.images.clone()
+    images[brighter] *= 1.5
+    generator = torch.Generator().manual_seed(0)
+    for i in (broken, small_broken):  # the brain's pixels shuffled: nothing like the volume
+        values = images[i][slices.masks[i]]
+        images[i][slices.masks[i]] = values[torch.randperm(len(values), generator=generator)]
+    corrupted = dataclasses.replace(slices, images=images)
+    acquisition = acquisition_model(corrupted, VolumeGrid(volume.shape, volume.affine))
+    points = acquisition.points(corrupted.poses)
+    config = ReconstructionConfig(min_slice_pixels=int(pixels[small_broken]) + 1)
+    assert int(pixels[broken]) >= config.min_slice_pixels
+
+    out = reject_outliers(acquisition, volume.data, points, config)
+    slice_of = acquisition.projector.slice_of
+    assert float(out.ncc[broken]) < 0.5 and float(out.ncc[small_broken]) < 0.5
+    # Only the broken slice with enough brain is excluded; the small one relies on its weights.
+    assert out.excluded.tolist() == [i == broken for i in range(len(slices))]
+    assert float(out.scales[brighter]) == pytest.approx(1.5 * float(out.scales.median()), rel=0.05)
+    assert float(out.slice_weights[broken]) < 0.5 and float(out.slice_weights[small_broken]) < 0.5
+    assert ((out.pixel_weights >= 0) & (out.pixel_weights <= 1)).all()
+    expected = out.pixel_weights * out.slice_weights[slice_of] * (slice_of != broken)
+    torch.testing.assert_close(out.weights, expected, rtol=0, atol=0)
+
+    # Without robust statistics the given weights are kept.
+    pixel_w = torch.full_like(acquisition.observed, 0.5)
+    slice_w = torch.linspace(0.5, 1.0, len(slices))
+    plain = reject_outliers(
+        acquisition,
+        volume.data,
+        points,
+        dataclasses.replace(config, robust=False),
+        pixel_w,
+        slice_w,
+    )
+    assert torch.equal(plain.pixel_weights, pixel_w) and torch.equal(plain.slice_weights, slice_w)
+    assert torch.equal(plain.excluded, out.excluded)
+    torch.testing.assert_close(plain.weights, pixel_w * (slice_w * ~out.excluded)[slice_of])
+
+
+def test_super_resolve_runs_the_rounds_settings(phantom_slices, phantom_acquisition):
+    acquisition = phantom_acquisition
+    points = acquisition.points(phantom_slices.poses)
+    sda = initial_volume(acquisition, points)
+    config = ReconstructionConfig(sr_iterations=(1, 4), regularization=(0.1, 0.02))
+    outliers = reject_outliers(acquisition, sda, points, config)
+
+    def expected(iterations: int, regularization: float) -> torch.Tensor:
+        return super_resolution(
+            acquisition.projector,
+            points,
+            acquisition.observed,
+            outliers.weights,
+            outliers.scales,
+            sda,
+            iterations,
+            regularization,
+            config.edge_delta,
+        )
+
+    first = super_resolve(acquisition, sda, points, outliers, config, 0)
+    second = super_resolve(acquisition, sda, points, outliers, config, 1)
+    assert torch.equal(first, expected(1, 0.1)) and torch.equal(second, expected(4, 0.02))
+    assert not torch.equal(first, second)
+    # The last round's settings repeat.
+    assert torch.equal(super_resolve(acquisition, sda, points, outliers, config, 7), second)
+
+    def misfit(x: torch.Tensor) -> float:
+        c = outliers.scales[acquisition.projector.slice_of]
+        residual = c * acquisition.projector.forward(x, points) - acquisition.observed
+        return float((outliers.weights * residual**2).sum())
+
+    assert misfit(second) < 0.8 * misfit(sda)
+
+
+def test_finalise_masks_the_covered_volume(phantom, phantom_slices, phantom_acquisition):
+    volume, _ = phantom
+    acquisition = phantom_acquisition
+    points = acquisition.points(phantom_slices.poses)
+    ones = torch.ones_like(acquisition.observed)
+    final = finalise(acquisition, volume.data, points, ones)
+    cover = coverage(acquisition.projector, points, ones)
+    assert set(final.mask.unique().tolist()) == {0.0, 1.0}
+    assert (cover[final.mask > 0] > 0).all()
+    assert (final.mask[cover > 0.5 * cover.max()] == 1).all()
+    assert torch.equal(final.volume, volume.data * final.mask)
+    # NCC does not depend on the intensity scales; at the true poses the true volume fits.
+    simulated = acquisition.projector.forward(volume.data, points)
+    unscaled = slice_ncc(acquisition.projector, simulated, acquisition.observed)
+    torch.testing.assert_close(final.slice_ncc, unscaled, rtol=0, atol=1e-3)
+    assert float(final.slice_ncc.median()) > 0.9
+
+
+def test_the_steps_in_sequence_reproduce_reconstruct():
+    volume, mask = make_phantom(
+        PhantomConfig(shape=(32, 38, 35), spacing_mm=1.5, brain_length_mm=40.0, folding=0.3)
+    )
+    simulation = SimulationConfig(
+        num_stacks=3,
+        thickness_mm=3.0,
+        in_plane_mm=2.0,
+        margin_mm=4.0,
+        random_walk_rotation_deg=2.0,
+        random_walk_translation_mm=1.0,
+        noise=0.01,
+        seed=3,
+    )
+    case = simulate_case(canonicalize(volume, mask), simulation)
+    stacks = prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
+    config = ReconstructionConfig(
+        output_resolution_mm=2.0,
+        registration="none",
+        outer_iterations=4,
+        sr_iterations=(2, 3),
+        regularization=(0.2, 0.1),
+        svr_levels=2,
+        svr_iterations=2,
+        group_sizes=(3,),
+        ncc_threshold=0.75,
+    )
+    result = reconstruct(stacks, config, progress=False)
+
+    slices = extract_slices(stacks)
+    acquisition = acquisition_model(slices, output_grid(slices, config.output_resolution_mm))
+    poses = slices.poses
+    points = acquisition.points(poses)
+    sda = volume = initial_volume(acquisition, points)
+    outliers = reject_outliers(acquisition, volume, points, config)
+    volume = super_resolve(acquisition, volume, points, outliers, config, 0)
+    for round_index, group_size in ((1, 3), (2, 1), (3, 1)):
+        poses = svr_pass(
+            acquisition,
+            volume,
+            poses,
+            config,
+            group_size,
+            slice_weights=outliers.slice_weights * ~outliers.excluded,
+        )
+        points = acquisition.points(poses)
+        outliers = reject_outliers(
+            acquisition, volume, points, config, outliers.pixel_weights, outliers.slice_weights
+        )
+        volume = super_resolve(acquisition, volume, points, outliers, config, round_index)
+    final = finalise(acquisition, volume, points, outliers.pixel_weights)
+
+    assert 0 < int(outliers.excluded.sum()) < len(slices)  # exclusion was exercised
+    assert torch.equal(result.initial_volume.data, sda.float())
+    assert torch.equal(result.volume.data, final.volume.float())
+    assert torch.equal(result.mask.data, final.mask)
+    assert torch.equal(result.volume.affine, acquisition.grid.affine)
+    assert torch.equal(result.slices.poses, poses)
+    assert torch.equal(result.slice_ncc, final.slice_ncc)
+    assert torch.equal(result.slice_weights, outliers.slice_weights)
+    assert torch.equal(result.excluded, outliers.excluded)

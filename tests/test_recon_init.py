@@ -10,13 +10,21 @@ import torch
 from synthetic import ellipsoid_brain
 
 import svr.reconstruction.cnn_init as cnn_init
-from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, se3_to_vector, so3_exp, so3_log
+from svr.geometry import (
+    quat_to_matrix,
+    se3_compose,
+    se3_inverse,
+    so3_exp,
+    so3_log,
+    vector_to_se3,
+)
+from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.symmetry import SAGITTAL, mirror_twin_matrix
-from svr.image import Image
+from svr.image import Image, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, build_model
-from svr.pose_io import PoseTable
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, robust_mean_pose
+from svr.models.predict import PlanePredictions
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.pipeline import learned_initialisation, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
@@ -131,7 +139,7 @@ def test_robust_mean_argument_errors():
     T = torch.eye(4, dtype=F64).repeat(3, 1, 1)
     with pytest.raises(TypeError, match="'transforms'"):
         robust_mean_pose(torch.eye(4, dtype=torch.int64)[None])
-    with pytest.raises(ValueError, match=r"'transforms' must have shape \(M, 4, 4\)"):
+    with pytest.raises(ValueError, match=r"'transforms' must have shape \(\.\.\., M, 4, 4\)"):
         robust_mean_pose(T[:, :3])
     with pytest.raises(ValueError, match="'transforms' must have shape"):
         robust_mean_pose(T[:0])
@@ -244,32 +252,32 @@ def moving_scene() -> tuple[Image, list[Stack], dict[str, torch.Tensor], SliceSe
 
 
 def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool = False):
-    """A stand-in for :func:`svr.models.predict.predict_stack_poses` that knows the true poses.
+    """A stand-in for :func:`svr.models.predict.predict_plane_poses` that knows the true poses.
 
-    It keeps its contract: rows for the cropped stack's k-planes with a nonempty mask, poses
-    about the plane centre. A fraction ``corrupt`` of the rows get random poses instead.
+    It keeps its contract: the cropped stack's k-planes with a nonempty mask, their scanner poses
+    and canonical poses about the plane centre. A fraction ``corrupt`` of the rows get random
+    poses instead.
     """
     generator = torch.Generator().manual_seed(11)
 
-    def predict(model, config, stack, mask=None, batch_size=64, name="stack") -> PoseTable:
+    def predict(model, config, stack, mask=None, batch_size=64, name="stack") -> PlanePredictions:
         kept = torch.nonzero(mask.data.flatten(0, 1).any(dim=0)).flatten()
         if drop_last:
             kept = kept[:-1]
-        poses = se3_to_vector(truth[name][kept])
+        poses = truth[name][kept].clone()
         bad = torch.randperm(len(kept), generator=generator)[: round(corrupt * len(kept))]
-        wrong = rigid(
+        poses[bad] = rigid(
             random_rotations(len(bad), generator),
             40 * torch.randn(len(bad), 3, generator=generator, dtype=F64),
         )
-        poses[bad] = se3_to_vector(wrong)
-        return PoseTable([name] * len(kept), kept, poses, "canonical")
+        return PlanePredictions(kept, stack_slice_poses(stack)[kept], poses)
 
     return predict
 
 
 def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch):
     volume, stacks, truth, slices = scene
-    monkeypatch.setattr(cnn_init, "predict_stack_poses", oracle(truth))
+    monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
     init = cnn_slice_poses(build_model(TINY).eval(), TINY, stacks, slices)
     n = len(slices)
     assert init.predicted_poses.shape == init.consensus_poses.shape == (n, 4, 4)
@@ -303,7 +311,7 @@ def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch
 
 def test_consensus_survives_25_percent_random_predictions(scene, monkeypatch):
     _, stacks, truth, slices = scene
-    monkeypatch.setattr(cnn_init, "predict_stack_poses", oracle(truth, corrupt=0.25))
+    monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, corrupt=0.25))
     init = cnn_slice_poses(build_model(TINY).eval(), TINY, stacks, slices)
     expected = se3_compose(se3_inverse(G), slices.scanner_poses)
     wrong = (init.predicted_poses - expected).abs().amax(dim=(1, 2)) > 1e-6
@@ -327,10 +335,10 @@ def test_cnn_slice_poses_errors(scene, monkeypatch):
     moved = stacks[1].image.affine.clone()
     moved[:3, 3] += 2.0 * moved[:3, 2] / moved[:3, 2].norm()  # 2 mm along the normal
     shifted = [stacks[0], replace(stacks[1], image=Image(stacks[1].image.data, moved)), stacks[2]]
-    monkeypatch.setattr(cnn_init, "predict_stack_poses", oracle(truth))
+    monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
     with pytest.raises(ValueError, match=r"'coronal\.nii\.gz': slices of 'slices' do not lie"):
         cnn_slice_poses(model, TINY, shifted, slices)
-    monkeypatch.setattr(cnn_init, "predict_stack_poses", oracle(truth, drop_last=True))
+    monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, drop_last=True))
     with pytest.raises(
         ValueError, match=r"'axial\.nii\.gz': no prediction for the slices k = \[\d+\]"
     ):
@@ -553,3 +561,25 @@ def test_learned_initialisation_rejects_confident_but_inconsistent_stacks(moving
     stack_rows = torch.tensor([k == "stack" for k in kept])[slices.stack_ids]
     moved = start.poses[stack_rows] @ torch.linalg.inv(registered[stack_rows])
     torch.testing.assert_close(moved, moved[:1].expand_as(moved), atol=1e-6, rtol=0)
+
+
+def test_robust_mean_pose_is_batched():
+    gen = torch.Generator().manual_seed(11)
+    T = vector_to_se3(
+        torch.randn(2, 3, 7, 6, generator=gen, dtype=F64)
+        * torch.tensor([0.4] * 3 + [5.0] * 3, dtype=F64)
+    )
+    weights = torch.rand(2, 3, 7, generator=gen, dtype=F64) + 0.1
+    batched = robust_mean_pose(T, weights)
+    assert batched.shape == (2, 3, 4, 4)
+    for a in range(2):
+        for b in range(3):
+            torch.testing.assert_close(
+                batched[a, b], robust_mean_pose(T[a, b], weights[a, b]), atol=1e-10, rtol=0
+            )
+    with pytest.raises(ValueError, match=r"'weights' must have shape \(2, 3, 7\)"):
+        robust_mean_pose(T, weights[0])
+    zero = weights.clone()
+    zero[1, 2] = 0.0
+    with pytest.raises(ValueError, match="not all zero"):
+        robust_mean_pose(T, zero)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import json
@@ -21,7 +22,7 @@ from svr.image import Image, save_nifti
 from svr.models.backbones import BackboneConfig
 from svr.models.checkpoint import latest_checkpoint, load_checkpoint
 from svr.models.network import ModelConfig, build_model, loss_function
-from svr.models.train import OptimConfig, TrainConfig, train
+from svr.models.train import OptimConfig, TrainConfig, train, train_step
 from svr.sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
 from svr.sampling.poses import EulerGridConfig
 from svr.sampling.slicer import SliceConfig
@@ -139,8 +140,9 @@ def test_grid_sampling_trains_on_the_shuffled_grid(volume, tmp_path, monkeypatch
 
 def test_existing_run_is_not_silently_restarted(volume, tmp_path):
     train(small_config(tmp_path / "r", steps=3), [volume], progress=False)
-    with pytest.raises(OutputExistsError, match="--overwrite"):
+    with pytest.raises(OutputExistsError, match="holds checkpoints of an earlier run") as info:
         train(small_config(tmp_path / "r", steps=3), [volume], resume=False, progress=False)
+    assert "--" not in str(info.value)  # the library names no command-line option
     fresh = train(
         small_config(tmp_path / "r", steps=3),
         [volume],
@@ -149,6 +151,39 @@ def test_existing_run_is_not_silently_restarted(volume, tmp_path):
         progress=False,
     )
     assert fresh.steps_done == 3
+
+
+def test_train_step_is_one_gradient_step(volume):
+    """One step of plain SGD: the loss before the step, parameters moved by -lr x gradient."""
+    config = small_config(Path("unused"))
+    batch = SliceStream([volume], config.data).batch(0)
+    criterion = loss_function(config.model.representation)
+    torch.manual_seed(0)
+    model = build_model(config.model).train()
+    reference = copy.deepcopy(model)
+    expected_loss = criterion(reference(batch["slices"]), batch["labels"])
+    parameters = list(reference.parameters())
+    gradients = torch.autograd.grad(expected_loss, parameters, allow_unused=True)
+    optimizer = torch.optim.SGD(model.parameters(), lr=0.1)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda step: 0.5**step)
+    scaler = torch.amp.GradScaler("cuda", enabled=False)
+
+    loss = train_step(
+        model, criterion, optimizer, scaler, batch["slices"], batch["labels"], scheduler
+    )
+    assert not loss.requires_grad and loss.shape == ()
+    torch.testing.assert_close(loss, expected_loss.detach(), rtol=0, atol=0)
+    moved = 0
+    for after, before, gradient in zip(model.parameters(), parameters, gradients, strict=True):
+        if gradient is None:
+            assert torch.equal(after, before)
+        else:
+            torch.testing.assert_close(after, before - 0.1 * gradient)
+            moved += int(bool((gradient != 0).any()))
+    assert moved > 0
+    assert scheduler.get_last_lr() == [0.05]  # the schedule advanced by one step
+    train_step(model, criterion, optimizer, scaler, batch["slices"], batch["labels"])
+    assert scheduler.get_last_lr() == [0.05]  # no schedule given: left alone
 
 
 def test_config_validation(tmp_path):
@@ -297,6 +332,16 @@ def test_cli_errors(tmp_path, capsys):
         == 1
     )
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_cli_says_how_to_restart_a_run(volume_files, tmp_path, capsys):
+    args = ["train", "--output-dir", str(tmp_path / "run"), *volume_files, *TINY, "--steps", "1"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main([*args, "--no-resume"]) == 1
+    err = capsys.readouterr().err
+    assert "holds checkpoints; resume, or pass --overwrite" in err and "--no-resume" in err
+    assert main([*args, "--no-resume", "--overwrite"]) == 0
 
 
 def test_ddp_with_two_cpu_processes(volume_files, tmp_path):

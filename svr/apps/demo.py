@@ -73,6 +73,7 @@ from torch import Tensor
 
 from svr.files import atomic_directory
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, resample_to_grid
 from svr.image_metrics import ncc, psnr, ssim
 from svr.metrics import pose_errors
@@ -80,7 +81,6 @@ from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, SlicePoseNet
 from svr.models.predict import load_pose_model
 from svr.models.train import OptimConfig, TrainConfig, train
-from svr.reconstruction.cnn_init import robust_mean_pose
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.outputs import write_transforms, write_volume
 from svr.reconstruction.pipeline import reconstruct
@@ -325,7 +325,7 @@ def frame_alignment(slices: SliceSet, true_poses: Sequence[Tensor]) -> Tensor:
 
     Returns:
         (4, 4) float64 ``G``, the robust mean
-        (:func:`~svr.reconstruction.cnn_init.robust_mean_pose`) of ``T_true o T_final^-1`` over the
+        (:func:`~svr.geometry.averaging.robust_mean_pose`) of ``T_true o T_final^-1`` over the
         slices: a point ``x`` of the reconstruction's frame is at ``G x`` in the truth's.
     """
     truth = _true_plane_poses(slices, true_poses)

@@ -216,6 +216,7 @@ def _symmetry_summary(report: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train``."""
+    from svr.files import OutputExistsError
     from svr.models.backbones import BackboneConfig
     from svr.models.network import ModelConfig, loss_function
     from svr.models.train import OptimConfig, TrainConfig, train
@@ -286,13 +287,21 @@ def run(args: argparse.Namespace) -> int:
             "symmetry_report": report,
         }
     )
-    result = train(
-        config,
-        volumes,
-        resume=not args.no_resume,
-        overwrite=args.overwrite,
-        progress=not args.quiet,
-    )
+    try:
+        result = train(
+            config,
+            volumes,
+            resume=not args.no_resume,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+        )
+    except OutputExistsError as err:
+        if not args.no_resume or args.overwrite:
+            raise  # another output in the way: worded by svr.cli as any other
+        raise CliError(
+            f"--output-dir {args.output_dir}: holds checkpoints; resume, or pass --overwrite "
+            "to start afresh (to resume, drop --no-resume)"
+        ) from err
     summary = {
         "checkpoint": str(result.checkpoint),
         "symmetry_planes": report["planes"],
