@@ -176,7 +176,7 @@ def bench_case(
             *errors(plane_poses(slices, registered), scanner_truth, align=True),
         )
     )
-    learned = cnn_slice_poses(*model, stacks, slices)
+    learned = cnn_slice_poses(model, stacks, slices)
     for label, poses in (
         ("per-slice predictions", learned.predicted_poses),
         ("per-stack consensus", learned.consensus_poses),

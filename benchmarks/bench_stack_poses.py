@@ -145,7 +145,7 @@ def stack_rows(case: Path, model, planes_off: bool) -> tuple[list[dict], dict]:
     slices = extract_slices(stacks)
     canonical_truth, _ = case_truth(case, slices)
     nominal = plane_poses(slices, slices.scanner_poses)
-    learned = cnn_slice_poses(*model, stacks, slices)
+    learned = cnn_slice_poses(model, stacks, slices)
     variants = {"disambiguated": learned}
     if planes_off:
         variants["no twin logic"] = learned_consensus(slices, learned.raw_predicted_poses)
@@ -168,7 +168,7 @@ def stack_rows(case: Path, model, planes_off: bool) -> tuple[list[dict], dict]:
     raw = se3_to_vector(plane_poses(slices, learned.raw_predicted_poses).cpu())
     truth_v = se3_to_vector(canonical_truth)
     nearest, _ = nearest_orbit_member(
-        raw, truth_v, model[1].symmetry_planes, distance=rotation_error_rad
+        raw, truth_v, model.config.symmetry_planes, distance=rotation_error_rad
     )
     ang = rotation_error_rad(raw, nearest).rad2deg()
     per_slice = {
@@ -253,7 +253,7 @@ def main() -> int:
     cases = [SHARED / "data" / "bench" / c for c in args.bench]
     cases += simulate_cases(args.cases_dir, args.simulated)
     model = load_pose_model(args.model)
-    planes = model[1].symmetry_planes
+    planes = model.config.symmetry_planes
     all_rows, slice_rows, recon = [], [], []
     for case in cases:
         rows, per_slice = stack_rows(case, model, planes_off=bool(planes))

@@ -58,7 +58,7 @@ from svr.image_metrics import ncc
 from svr.metrics import pose_errors
 from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
 from svr.models.evaluation import EvalConfig, evaluate_poses, summarize
-from svr.models.network import ModelConfig, SlicePoseNet
+from svr.models.network import SlicePoseNet
 from svr.models.predict import load_pose_model, predict_stack_poses
 from svr.models.pretrained.export import export_model
 from svr.sampling.phantom import gestational_age_config, make_phantom
@@ -190,9 +190,7 @@ def rotation_label(rotation: str) -> str:
     return EULER_BOX if rotation == "euler" else UNIFORM
 
 
-def bench_result(
-    model: SlicePoseNet, config: ModelConfig, case: Path, atlas_dir: Path, device: str
-) -> Result:
+def bench_result(model: SlicePoseNet, case: Path, atlas_dir: Path, device: str) -> Result:
     """Every acquired slice of a bench case posed by the model and compared with the truth."""
     info = json.loads((case / "case.json").read_text(encoding="utf-8"))
     atlas = atlas_dir / info["source"].removeprefix("fetal_SB_atlas_")
@@ -223,9 +221,7 @@ def bench_result(
         brain = (mask.data > 0.5).sum(dim=(0, 1)) > 0
         cc = ncc(stack.data.permute(2, 0, 1).float()[brain], cut[brain])
         truth_cc.append(cc.cpu().numpy())
-        posed = predict_stack_poses(
-            model, config, stack.to(device), mask.to(device), name=path.name
-        )
+        posed = predict_stack_poses(model, stack.to(device), mask.to(device), name=path.name)
         true_poses.append(truth[posed.slice_indices])
         predicted.append(posed.poses)
     truth_cc_all = np.concatenate(truth_cc)
@@ -234,6 +230,7 @@ def bench_result(
             f"{case}: the atlas cut at the true poses does not reproduce the acquired slices "
             f"(median CC {np.median(truth_cc_all):.3f} < {TRUTH_CC_MIN}); check the frames"
         )
+    config = model.config
     eval_config = EvalConfig(SliceConfig(config.input_size, config.spacing_mm, thickness))
     metrics = evaluate_poses(
         volume.to(device),
@@ -387,8 +384,9 @@ def main() -> int:
         )
     out = export_model(args.checkpoint, args.out, provenance=prov, overwrite=args.overwrite)
     print(f"exported {args.checkpoint} -> {out}")
-    model, config = load_pose_model(out, device)
-    reference, _ = load_pose_model(args.checkpoint, device)
+    model = load_pose_model(out, device)
+    config = model.config
+    reference = load_pose_model(args.checkpoint, device)
     slice_config = SliceConfig(config.input_size, config.spacing_mm, thickness_mm=args.thickness)
 
     phantoms = [
@@ -436,7 +434,7 @@ def main() -> int:
     for name in BENCH_CASES:
         case = args.bench_dir / name
         if case.is_dir() and args.atlas_dir.is_dir():
-            results.append(bench_result(model, config, case, args.atlas_dir, device))
+            results.append(bench_result(model, case, args.atlas_dir, device))
         else:
             print(f"skipping bench case {case} (not found, or no --atlas-dir)", file=sys.stderr)
 

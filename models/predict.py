@@ -102,7 +102,7 @@ class _Prepared:
 
 def load_pose_model(
     path: str | os.PathLike[str], device: str | torch.device = "cpu"
-) -> tuple[SlicePoseNet, ModelConfig]:
+) -> SlicePoseNet:
     """Load a slice-pose network from a checkpoint folder or the shipped model, for inference.
 
     Args:
@@ -114,7 +114,7 @@ def load_pose_model(
         device: Where the network runs.
 
     Returns:
-        The network in eval mode on ``device``, and its configuration.
+        The network in eval mode on ``device``; its configuration is ``model.config``.
 
     Raises:
         CheckpointError: Naming the path, if ``"default"`` is asked for but the shipped model is
@@ -128,7 +128,7 @@ def load_pose_model(
 
 def pose_model_from_checkpoint(
     checkpoint: Checkpoint, device: str | torch.device = "cpu"
-) -> tuple[SlicePoseNet, ModelConfig]:
+) -> SlicePoseNet:
     """Build the slice-pose network that a loaded checkpoint describes, with its weights.
 
     Args:
@@ -136,7 +136,7 @@ def pose_model_from_checkpoint(
         device: Where the network runs.
 
     Returns:
-        The network in eval mode on ``device``, and its configuration.
+        The network in eval mode on ``device``; its configuration is ``model.config``.
 
     Raises:
         CheckpointError: Naming the checkpoint's folder, if its config has no usable ``"model"``
@@ -159,7 +159,7 @@ def pose_model_from_checkpoint(
         raise CheckpointError(
             path, f"weights do not fit the model in its config: {summary[:300]}"
         ) from err
-    return model.eval(), config
+    return model.eval()
 
 
 def _foreground(stack: Image, mask: Tensor | None) -> Tensor:
@@ -266,7 +266,6 @@ class PlanePredictions:
 
 def predict_plane_poses(
     model: SlicePoseNet,
-    config: ModelConfig,
     stack: Image,
     mask: Image | None = None,
     batch_size: int = 64,
@@ -276,8 +275,8 @@ def predict_plane_poses(
     """Predict the canonical pose of every kept k-plane of a stack, with its scanner pose.
 
     Args:
-        model: The network, in eval mode (:func:`load_pose_model`).
-        config: Its configuration.
+        model: The network, in eval mode (:func:`load_pose_model`); ``model.config`` gives the
+            input size and spacing its slices are prepared to.
         stack: An ``(I, J, K)`` thick-slice stack (any device; slices are prepared there).
         mask: Its brain mask, or ``None`` (see :func:`prepare_stack_slices`).
         batch_size: Slices per forward pass.
@@ -292,14 +291,13 @@ def predict_plane_poses(
         ValueError: Naming the stack, for an empty mask or unusable intensities; or a
             ``batch_size`` below 1.
     """
-    prepared = _prepare_stack(stack, mask, config, name, mask_name)
+    prepared = _prepare_stack(stack, mask, model.config, name, mask_name)
     poses = _predict(model, prepared, batch_size)
     return PlanePredictions(prepared.indices, prepared.plane_poses.cpu(), poses)
 
 
 def predict_stack_poses(
     model: SlicePoseNet,
-    config: ModelConfig,
     stack: Image,
     mask: Image | None = None,
     batch_size: int = 64,
@@ -309,8 +307,8 @@ def predict_stack_poses(
     """Predict the canonical pose of every kept slice of a stack, as a pose table (for files).
 
     Args:
-        model: The network, in eval mode (:func:`load_pose_model`).
-        config: Its configuration.
+        model: The network, in eval mode (:func:`load_pose_model`); ``model.config`` gives the
+            input size and spacing its slices are prepared to.
         stack: An ``(I, J, K)`` thick-slice stack (any device; slices are prepared there).
         mask: Its brain mask, or ``None`` (see :func:`prepare_stack_slices`).
         batch_size: Slices per forward pass.
@@ -328,7 +326,7 @@ def predict_stack_poses(
         ValueError: Naming the stack, for an empty mask or unusable intensities; or a
             ``batch_size`` below 1.
     """
-    planes = predict_plane_poses(model, config, stack, mask, batch_size, name, mask_name)
+    planes = predict_plane_poses(model, stack, mask, batch_size, name, mask_name)
     return PoseTable(
         [name] * len(planes.poses), planes.indices, se3_to_vector(planes.poses), "canonical"
     )
@@ -376,7 +374,6 @@ def load_slice_folder(folder: str | os.PathLike[str]) -> list[SliceFile]:
 
 def predict_slice_folder(
     model: SlicePoseNet,
-    config: ModelConfig,
     folder: str | os.PathLike[str],
     batch_size: int = 64,
 ) -> PoseTable:
@@ -386,8 +383,7 @@ def predict_slice_folder(
     voxels); slices with an empty mask are dropped.
 
     Args:
-        model: The network, in eval mode.
-        config: Its configuration.
+        model: The network, in eval mode (``model.config``: input size and spacing).
         folder: The slice folder (:func:`load_slice_folder`).
         batch_size: Slices per forward pass.
 
@@ -406,7 +402,7 @@ def predict_slice_folder(
     if not kept:
         raise ValueError(f"{name}: every slice's mask is empty")
     scale = intensity_scale(torch.cat([_foreground(s.image, m) for s, m in kept]), name)
-    parts = [_prepare(s.image, m, config, scale) for s, m in kept]
+    parts = [_prepare(s.image, m, model.config, scale) for s, m in kept]
     prepared = _Prepared(
         torch.cat([p.slices for p in parts]),
         torch.tensor([s.index for s, _ in kept], dtype=torch.long),

@@ -36,7 +36,7 @@ from torch import Tensor
 from svr.geometry import se3_compose, se3_inverse, so3_log
 from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
-from svr.models.network import ModelConfig, SlicePoseNet
+from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
 from svr.reconstruction.slices import SliceSet, Stack
 
@@ -126,7 +126,6 @@ class CnnInitialisation:
 
 def _stack_predictions(
     model: SlicePoseNet,
-    model_config: ModelConfig,
     stack: Stack,
     scanner_poses: Tensor,
     file_k: Tensor,
@@ -136,7 +135,6 @@ def _stack_predictions(
 
     Args:
         model: The network, in eval mode.
-        model_config: Its configuration.
         stack: The stack.
         scanner_poses: (M, 4, 4) float64 CPU scanner poses ``S_i`` of its slices in the slice set.
         file_k: (M,) int64 CPU file k-plane index of each of those slices.
@@ -150,7 +148,7 @@ def _stack_predictions(
             that its index names.
     """
     planes = predict_plane_poses(
-        model, model_config, stack.image, stack.mask, batch_size=batch_size, name=stack.name
+        model, stack.image, stack.mask, batch_size=batch_size, name=stack.name
     )
     row_of = {int(k): row for row, k in enumerate(stack.k_indices.cpu()[planes.indices].tolist())}
     missing = [int(k) for k in file_k.tolist() if int(k) not in row_of]
@@ -175,7 +173,6 @@ def _stack_predictions(
 
 def cnn_slice_poses(
     model: SlicePoseNet,
-    model_config: ModelConfig,
     stacks: list[Stack],
     slices: SliceSet,
     batch_size: int = 64,
@@ -184,12 +181,12 @@ def cnn_slice_poses(
 ) -> CnnInitialisation:
     """Predict every slice's canonical pose and the per-stack rigid consensus of the predictions.
 
-    A model trained up to the mirror twin (``model_config.symmetry_planes``) has each stack
+    A model trained up to the mirror twin (``model.config.symmetry_planes``) has each stack
     choose, per slice, between the prediction and its twin (:func:`learned_consensus`).
 
     Args:
-        model: The slice-pose network, in eval mode (:func:`svr.models.predict.load_pose_model`).
-        model_config: Its configuration.
+        model: The slice-pose network, in eval mode (:func:`svr.models.predict.load_pose_model`),
+            with its configuration ``model.config``.
         stacks: The stacks the slices were cut from, in the order of ``slices.stack_names``.
         slices: The slices (:func:`svr.reconstruction.slices.extract_slices`); their
             ``scanner_poses`` are used, whatever frame ``poses`` is in.
@@ -224,12 +221,12 @@ def cnn_slice_poses(
         members = torch.nonzero(stack_ids == sid).flatten()
         if len(members) > 0:
             predicted[members] = _stack_predictions(
-                model, model_config, stack, scanner[members], file_k[members], batch_size
+                model, stack, scanner[members], file_k[members], batch_size
             )
     return learned_consensus(
         slices,
         predicted,
-        model_config.symmetry_planes,
+        model.config.symmetry_planes,
         max_rotation_deg,
         max_translation_mm,
     )

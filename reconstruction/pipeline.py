@@ -31,8 +31,9 @@ from torch import Tensor
 from tqdm import tqdm
 
 from svr.geometry import se3_compose, se3_inverse
-from svr.models.network import ModelConfig, SlicePoseNet
-from svr.reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses, robust_mean_pose
+from svr.geometry.averaging import robust_mean_pose
+from svr.models.network import SlicePoseNet
+from svr.reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses
 from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
 from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
@@ -307,7 +308,7 @@ def _per_round(values: tuple, round_index: int) -> float:
 def reconstruct(
     stacks: list[Stack],
     config: ReconstructionConfig | None = None,
-    model: tuple[SlicePoseNet, ModelConfig] | None = None,
+    model: SlicePoseNet | None = None,
     initial_poses: Tensor | None = None,
     frame: str = "scanner",
     initialisation: tuple[str, ...] | None = None,
@@ -319,7 +320,7 @@ def reconstruct(
     Args:
         stacks: The stacks (:func:`svr.reconstruction.stacks.load_stacks`).
         config: Settings.
-        model: The slice-pose network and its configuration
+        model: The slice-pose network, with its configuration ``model.config``
             (:func:`svr.models.predict.load_pose_model`), needed by ``registration="cnn"``.
         initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``;
             when given, ``config.registration`` is not run.
@@ -362,7 +363,7 @@ def reconstruct(
                 if model is None:
                     raise ValueError("reconstruct(): registration 'cnn' needs a model")
                 learned = cnn_slice_poses(
-                    *model,
+                    model,
                     stacks,
                     slices,
                     max_rotation_deg=config.cnn_max_deviation_deg,

@@ -86,8 +86,8 @@ def centroid(image: torch.Tensor) -> torch.Tensor:
 
 
 def test_load_pose_model_returns_an_eval_model(untrained):
-    model, config = load_pose_model(untrained)
-    assert config == CONFIG and not model.training
+    model = load_pose_model(untrained)
+    assert model.config == CONFIG and not model.training
     out = model.predict_poses(torch.rand(2, 1, 32, 32))
     assert torch.equal(out, torch.zeros(2, 6))  # untrained head: the identity pose
 
@@ -162,9 +162,9 @@ def test_prepared_slices_are_cut_where_the_poses_say(untrained):
     affine[:3, 3] = S[0, :3, 3] - (size - 1) / 2 * (R[:, 0] + R[:, 1])
     cut = sample_slices(volume, S, SliceConfig(size=(size, size), spacing_mm=1.0))
     stack = Image(cut.permute(1, 2, 0).contiguous(), affine)
-    model, config = load_pose_model(untrained)
-    table = predict_stack_poses(model, config, stack)
-    slices = prepare_stack_slices(stack, None, config)[0][:, 0, 7:25, 7:25]  # inside the stack
+    model = load_pose_model(untrained)
+    table = predict_stack_poses(model, stack)
+    slices = prepare_stack_slices(stack, None, model.config)[0][:, 0, 7:25, 7:25]  # in the stack
     crop = se3_compose(S, se3_inverse(vector_to_se3(table.poses)))
     for shift, close in ((0.0, True), (1.0, False)):
         moved = crop.clone()
@@ -225,9 +225,9 @@ def test_preparation_errors():
 
 
 def test_untrained_model_poses_each_slice_about_its_crop_centre(untrained):
-    model, config = load_pose_model(untrained)
+    model = load_pose_model(untrained)
     stack, mask = squares_stack()
-    table = predict_stack_poses(model, config, stack, mask, name="ax.nii.gz")
+    table = predict_stack_poses(model, stack, mask, name="ax.nii.gz")
     assert table.files == ["ax.nii.gz"] * 2 and table.frame == "canonical"
     assert table.slice_indices.tolist() == [1, 2]
     # The crop (mask centroid) is at the canonical origin; the plane centre (23.5, 23.5) lies at
@@ -237,20 +237,19 @@ def test_untrained_model_poses_each_slice_about_its_crop_centre(untrained):
 
 
 def test_poses_move_with_the_content_and_ignore_the_batch_size(perturbed):
-    model, config = load_pose_model(perturbed)
+    model = load_pose_model(perturbed)
     stack, mask = squares_stack()
-    table = predict_stack_poses(model, config, stack, mask, batch_size=1)
+    table = predict_stack_poses(model, stack, mask, batch_size=1)
     assert table.poses.shape == (2, 6) and bool(table.poses.isfinite().all())
     assert table.poses[:, :3].abs().max() > 1e-3  # not the identity
     torch.testing.assert_close(
-        predict_stack_poses(model, config, stack, mask, batch_size=64).poses, table.poses
+        predict_stack_poses(model, stack, mask, batch_size=64).poses, table.poses
     )
     # Content and mask moved by (3, -2) voxels (mm): the same prepared slices, so the plane
     # centre is (-3, 2) mm further from the brain in slice coordinates.
     shift = (3, -2)
     moved = predict_stack_poses(
         model,
-        config,
         Image(stack.data.roll(shift, (0, 1)), stack.affine),
         Image(mask.data.roll(shift, (0, 1)), mask.affine),
     )
@@ -259,7 +258,7 @@ def test_poses_move_with_the_content_and_ignore_the_batch_size(perturbed):
     expected = se3_compose(vector_to_se3(table.poses), offset)
     torch.testing.assert_close(vector_to_se3(moved.poses), expected, atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="batch_size must be >= 1"):
-        predict_stack_poses(model, config, stack, mask, batch_size=0)
+        predict_stack_poses(model, stack, mask, batch_size=0)
 
 
 def write_slice_folder(folder: Path) -> None:
@@ -281,8 +280,8 @@ def test_slice_folder_prediction(untrained, tmp_path):
     write_slice_folder(folder)
     items = load_slice_folder(folder)
     assert [s.index for s in items] == [0, 1, 2] and items[0].mask is None
-    model, config = load_pose_model(untrained)
-    table = predict_slice_folder(model, config, folder)
+    model = load_pose_model(untrained)
+    table = predict_slice_folder(model, folder)
     assert table.files == [str(folder)] * 2 and table.slice_indices.tolist() == [0, 2]
     # Slice 0 (no mask) is cropped at its centre: identity. Slice 2 about its mask centroid
     # (11.5, 7.5): its centre (11.5, 11.5) is 4 voxels of 1.5 mm along v from the origin.

@@ -89,9 +89,9 @@ def test_export_writes_a_small_float16_model_with_its_provenance(checkpoint, exp
 
 
 def test_round_trip_matches_the_float32_model_to_float16_precision(checkpoint, exported):
-    full, full_config = load_pose_model(checkpoint)
-    half, half_config = load_pose_model(exported)
-    assert half_config == full_config == CONFIG and not half.training
+    full = load_pose_model(checkpoint)
+    half = load_pose_model(exported)
+    assert half.config == full.config == CONFIG and not half.training
     for (name, a), b in zip(half.state_dict().items(), full.state_dict().values(), strict=True):
         assert a.dtype == b.dtype, name  # cast back to float32 on loading
         if a.is_floating_point():  # the weights are the float32 ones rounded to float16
@@ -191,8 +191,8 @@ def test_default_without_shipped_weights_is_a_clear_error(tmp_path, monkeypatch)
 
 def test_default_loads_the_folder_it_resolves_to(exported, monkeypatch):
     monkeypatch.setattr(svr.models.pretrained, "default_model_path", lambda: exported)
-    model, config = load_pose_model(DEFAULT_MODEL)
-    assert config == CONFIG and not model.training
+    model = load_pose_model(DEFAULT_MODEL)
+    assert model.config == CONFIG and not model.training
 
 
 def test_the_shipped_model_loads():
@@ -201,13 +201,13 @@ def test_the_shipped_model_loads():
             f"no shipped weights in {default_model_path()} (export them with "
             "benchmarks/export_default_model.py)"
         )
-    model, config = load_pose_model(DEFAULT_MODEL)
+    model = load_pose_model(DEFAULT_MODEL)
     assert all(p.dtype == torch.float32 for p in model.parameters())
     size = sum(p.stat().st_size for p in default_model_path().iterdir() if p.suffix != ".md")
     assert size <= MAX_MODEL_BYTES
     provenance = json.loads((default_model_path() / CHECKPOINT_CONFIG).read_text())["provenance"]
     assert "sb-fidon2021" in json.dumps(provenance["data"]) and provenance["training_command"]
-    slices = torch.rand(2, 1, *config.input_size)
+    slices = torch.rand(2, 1, *model.config.input_size)
     assert model.predict_poses(slices).shape == (2, 6)
 
 

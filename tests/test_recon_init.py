@@ -260,7 +260,7 @@ def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool
     """
     generator = torch.Generator().manual_seed(11)
 
-    def predict(model, config, stack, mask=None, batch_size=64, name="stack") -> PlanePredictions:
+    def predict(model, stack, mask=None, batch_size=64, name="stack") -> PlanePredictions:
         kept = torch.nonzero(mask.data.flatten(0, 1).any(dim=0)).flatten()
         if drop_last:
             kept = kept[:-1]
@@ -278,7 +278,7 @@ def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool
 def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch):
     volume, stacks, truth, slices = scene
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
-    init = cnn_slice_poses(build_model(TINY).eval(), TINY, stacks, slices)
+    init = cnn_slice_poses(build_model(TINY).eval(), stacks, slices)
     n = len(slices)
     assert init.predicted_poses.shape == init.consensus_poses.shape == (n, 4, 4)
     assert init.stack_transforms.shape == (3, 4, 4) and init.global_transform.shape == (4, 4)
@@ -312,7 +312,7 @@ def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch
 def test_consensus_survives_25_percent_random_predictions(scene, monkeypatch):
     _, stacks, truth, slices = scene
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, corrupt=0.25))
-    init = cnn_slice_poses(build_model(TINY).eval(), TINY, stacks, slices)
+    init = cnn_slice_poses(build_model(TINY).eval(), stacks, slices)
     expected = se3_compose(se3_inverse(G), slices.scanner_poses)
     wrong = (init.predicted_poses - expected).abs().amax(dim=(1, 2)) > 1e-6
     assert 0.2 < float(wrong.double().mean()) < 0.3
@@ -329,20 +329,20 @@ def test_cnn_slice_poses_errors(scene, monkeypatch):
     _, stacks, truth, slices = scene
     model = build_model(TINY).eval()
     with pytest.raises(ValueError, match="'stacks' must be the stacks of 'slices', in order"):
-        cnn_slice_poses(model, TINY, stacks[::-1], slices)
+        cnn_slice_poses(model, stacks[::-1], slices)
     with pytest.raises(ValueError, match="'batch_size' must be an int >= 1"):
-        cnn_slice_poses(model, TINY, stacks, slices, batch_size=0)
+        cnn_slice_poses(model, stacks, slices, batch_size=0)
     moved = stacks[1].image.affine.clone()
     moved[:3, 3] += 2.0 * moved[:3, 2] / moved[:3, 2].norm()  # 2 mm along the normal
     shifted = [stacks[0], replace(stacks[1], image=Image(stacks[1].image.data, moved)), stacks[2]]
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
     with pytest.raises(ValueError, match=r"'coronal\.nii\.gz': slices of 'slices' do not lie"):
-        cnn_slice_poses(model, TINY, shifted, slices)
+        cnn_slice_poses(model, shifted, slices)
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, drop_last=True))
     with pytest.raises(
         ValueError, match=r"'axial\.nii\.gz': no prediction for the slices k = \[\d+\]"
     ):
-        cnn_slice_poses(model, TINY, stacks, slices)
+        cnn_slice_poses(model, stacks, slices)
 
 
 def test_cnn_slice_poses_end_to_end_with_a_tiny_network(scene):
@@ -351,7 +351,7 @@ def test_cnn_slice_poses_end_to_end_with_a_tiny_network(scene):
     with torch.no_grad():
         for p in model.head.parameters():
             p.normal_(0.0, 0.1)  # input-dependent predictions
-    init = cnn_slice_poses(model.eval(), TINY, stacks, slices.subset(slices.stack_ids != 1), 16)
+    init = cnn_slice_poses(model.eval(), stacks, slices.subset(slices.stack_ids != 1), 16)
     n = int((slices.stack_ids != 1).sum())
     assert init.predicted_poses.shape == init.consensus_poses.shape == (n, 4, 4)
     for field in (init.predicted_poses, init.consensus_poses, init.global_transform):

@@ -98,11 +98,11 @@ def export_model(
         raise ValueError(f"export_model(): 'out_dir' {out} is the checkpoint folder itself")
     provenance = _check_provenance(out, provenance)
     checkpoint = load_checkpoint(source)
-    model, config = pose_model_from_checkpoint(checkpoint)
+    model = pose_model_from_checkpoint(checkpoint)
     state_dict = model.state_dict()
     training = checkpoint.config.get("training")
     export_config = {
-        **checkpoint_model_config(config),
+        **checkpoint_model_config(model.config),
         "metric_weights": checkpoint.config.get("metric_weights"),
         "training": training,
         "provenance": provenance,

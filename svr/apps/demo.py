@@ -417,7 +417,7 @@ def _figure(
 
 def _obtain_model(
     model: str, config: TrainConfig, volume: CanonicalVolume, folder: Path, progress: bool
-) -> tuple[tuple[SlicePoseNet, ModelConfig], str]:
+) -> tuple[SlicePoseNet, str]:
     """Train a model in ``folder / "model"`` or load the given one; returns it and its name."""
     if model != TRAIN_MODEL:
         log.info("loading the slice-pose model %s", model)

@@ -167,8 +167,8 @@ def _load_method(name: str, spec: str, device: str) -> _Method:
         folder = resolve_model_path(spec)
     except CheckpointError as err:
         raise CliError(f"--checkpoints: {err}") from err
-    model, config = load_pose_model(folder, device)
-    log.info("%s: %s (%s)", name, folder, config.representation)
+    model = load_pose_model(folder, device)
+    log.info("%s: %s (%s)", name, folder, model.config.representation)
     return _Method(name, folder, model)
 
 

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(f"--output-poses {args.output_poses}: must end in .csv or .json")
     check_output_path(args.output_poses, args.overwrite)
     device = resolve_device(args.device)
-    model, config = load_pose_model(args.model, device)
+    model = load_pose_model(args.model, device)
     masks = args.stack_masks or [None] * len(args.input_stacks)
     inputs = [
         *((path, mask, False) for path, mask in zip(args.input_stacks, masks, strict=True)),
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     tables = []
     for path, mask, is_folder in tqdm(inputs, desc="stacks", unit="stack", disable=args.quiet):
         if is_folder:
-            table = predict_slice_folder(model, config, path, args.batch_size)
+            table = predict_slice_folder(model, path, args.batch_size)
         else:
             stack = load_nifti(path)
             mask_image = None if mask is None else load_nifti(mask)
@@ -113,7 +113,6 @@ def run(args: argparse.Namespace) -> int:
                 raise ImageError(f"{mask}: the mask is empty")
             table = predict_stack_poses(
                 model,
-                config,
                 stack,
                 mask_image,
                 args.batch_size,
