@@ -21,7 +21,7 @@ Steps:
          reference, on the training atlas volumes (seen anatomy, ``--atlas-slices`` each), when
          ``--atlas-dir`` exists;
        * on the bench cases (``--bench-dir``, when it exists): every slice of the acquired,
-         motion-corrupted stacks is posed with :func:`svr.models.predict.predict_stack_poses` and
+         motion-corrupted stacks is posed with :func:`svr.models.predict.predict_plane_poses` and
          compared with its true pose from ``truth_slices.json`` (``atlas.R``, ``atlas.t``: slice
          plane mm -> the source atlas's world frame; canonical = that frame shifted by the atlas
          mask centroid, checked against ``case.json``'s ``atlas_centre_mm``). The convention is
@@ -59,7 +59,7 @@ from svr.metrics import pose_errors
 from svr.models.checkpoint import CHECKPOINT_CONFIG, CHECKPOINT_WEIGHTS, load_checkpoint
 from svr.models.evaluation import EvalConfig, evaluate_poses, summarize
 from svr.models.network import SlicePoseNet
-from svr.models.predict import load_pose_model, predict_stack_poses
+from svr.models.predict import load_pose_model, predict_plane_poses
 from svr.models.pretrained.export import export_model
 from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.poses import VALIDATION_BRAIN_FRACTION, draw_validation_poses
@@ -221,7 +221,8 @@ def bench_result(model: SlicePoseNet, case: Path, atlas_dir: Path, device: str) 
         brain = (mask.data > 0.5).sum(dim=(0, 1)) > 0
         cc = ncc(stack.data.permute(2, 0, 1).float()[brain], cut[brain])
         truth_cc.append(cc.cpu().numpy())
-        posed = predict_stack_poses(model, stack.to(device), mask.to(device), name=path.name)
+        posed = predict_plane_poses(model, stack.to(device), mask.to(device), name=path.name)
+        posed = posed.table(path.name)
         true_poses.append(truth[posed.slice_indices])
         predicted.append(posed.poses)
     truth_cc_all = np.concatenate(truth_cc)
@@ -348,7 +349,7 @@ def model_card(
         f"{model['input_size'][0]}×{model['input_size'][1]} at {model['spacing_mm']:g} mm, "
         f"kept when ≥ {VALIDATION_BRAIN_FRACTION:.0%} of the pixels are brain, seed {args.seed}. "
         "Bench stacks: every slice with a nonempty mask, posed with "
-        "`svr.models.predict.predict_stack_poses`. Rotation error: geodesic angle; translation "
+        "`svr.models.predict.predict_plane_poses`. Rotation error: geodesic angle; translation "
         "error: distance between the slice centres; CC: the volume cut at the true vs the "
         "predicted pose (`svr.models.evaluation.evaluate_poses`). The phantom is procedural "
         "(`svr.sampling.phantom`) and looks unlike real anatomy in its details, so its rows are a "

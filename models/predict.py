@@ -65,7 +65,6 @@ __all__ = [
     "pose_model_from_checkpoint",
     "predict_plane_poses",
     "predict_slice_folder",
-    "predict_stack_poses",
     "prepare_stack_slices",
 ]
 
@@ -263,6 +262,19 @@ class PlanePredictions:
     plane_poses: Tensor
     poses: Tensor
 
+    def table(self, name: str) -> PoseTable:
+        """The predictions as a pose table (for files): one row per kept plane.
+
+        Args:
+            name: The stack's file name, written in the table's ``files``.
+
+        Returns:
+            ``files`` all ``name``, ``slice_indices`` the k-plane indices, ``poses`` (N, 6)
+            float64 pose vectors (rad, mm) of ``T_k``, ``frame`` ``"canonical"``.
+        """
+        poses = se3_to_vector(self.poses)
+        return PoseTable([name] * len(poses), self.indices, poses, "canonical")
+
 
 def predict_plane_poses(
     model: SlicePoseNet,
@@ -294,42 +306,6 @@ def predict_plane_poses(
     prepared = _prepare_stack(stack, mask, model.config, name, mask_name)
     poses = _predict(model, prepared, batch_size)
     return PlanePredictions(prepared.indices, prepared.plane_poses.cpu(), poses)
-
-
-def predict_stack_poses(
-    model: SlicePoseNet,
-    stack: Image,
-    mask: Image | None = None,
-    batch_size: int = 64,
-    name: str = "stack",
-    mask_name: str | None = None,
-) -> PoseTable:
-    """Predict the canonical pose of every kept slice of a stack, as a pose table (for files).
-
-    Args:
-        model: The network, in eval mode (:func:`load_pose_model`); ``model.config`` gives the
-            input size and spacing its slices are prepared to.
-        stack: An ``(I, J, K)`` thick-slice stack (any device; slices are prepared there).
-        mask: Its brain mask, or ``None`` (see :func:`prepare_stack_slices`).
-        batch_size: Slices per forward pass.
-        name: The stack's file name, written in the table's ``files`` and error messages.
-        mask_name: The mask's file name, for the error when the mask has no voxel on the
-            stack's grid.
-
-    Returns:
-        A table with one row per kept slice: ``files`` all ``name``, ``slice_indices`` the k-plane
-        indices, ``poses`` (N, 6) float64 pose vectors (rad, mm) mapping each k-plane's slice
-        coordinates (origin at its centre) to the canonical frame, ``frame`` ``"canonical"``
-        (:func:`predict_plane_poses`' ``T_k``).
-
-    Raises:
-        ValueError: Naming the stack, for an empty mask or unusable intensities; or a
-            ``batch_size`` below 1.
-    """
-    planes = predict_plane_poses(model, stack, mask, batch_size, name, mask_name)
-    return PoseTable(
-        [name] * len(planes.poses), planes.indices, se3_to_vector(planes.poses), "canonical"
-    )
 
 
 def load_slice_folder(folder: str | os.PathLike[str]) -> list[SliceFile]:

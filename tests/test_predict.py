@@ -18,8 +18,8 @@ from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.models.predict import (
     load_pose_model,
     load_slice_folder,
+    predict_plane_poses,
     predict_slice_folder,
-    predict_stack_poses,
     prepare_stack_slices,
 )
 from svr.pose_io import read_pose_table
@@ -163,7 +163,7 @@ def test_prepared_slices_are_cut_where_the_poses_say(untrained):
     cut = sample_slices(volume, S, SliceConfig(size=(size, size), spacing_mm=1.0))
     stack = Image(cut.permute(1, 2, 0).contiguous(), affine)
     model = load_pose_model(untrained)
-    table = predict_stack_poses(model, stack)
+    table = predict_plane_poses(model, stack).table("stack")
     slices = prepare_stack_slices(stack, None, model.config)[0][:, 0, 7:25, 7:25]  # in the stack
     crop = se3_compose(S, se3_inverse(vector_to_se3(table.poses)))
     for shift, close in ((0.0, True), (1.0, False)):
@@ -227,7 +227,7 @@ def test_preparation_errors():
 def test_untrained_model_poses_each_slice_about_its_crop_centre(untrained):
     model = load_pose_model(untrained)
     stack, mask = squares_stack()
-    table = predict_stack_poses(model, stack, mask, name="ax.nii.gz")
+    table = predict_plane_poses(model, stack, mask, name="ax.nii.gz").table("ax.nii.gz")
     assert table.files == ["ax.nii.gz"] * 2 and table.frame == "canonical"
     assert table.slice_indices.tolist() == [1, 2]
     # The crop (mask centroid) is at the canonical origin; the plane centre (23.5, 23.5) lies at
@@ -239,26 +239,26 @@ def test_untrained_model_poses_each_slice_about_its_crop_centre(untrained):
 def test_poses_move_with_the_content_and_ignore_the_batch_size(perturbed):
     model = load_pose_model(perturbed)
     stack, mask = squares_stack()
-    table = predict_stack_poses(model, stack, mask, batch_size=1)
+    table = predict_plane_poses(model, stack, mask, batch_size=1).table("stack")
     assert table.poses.shape == (2, 6) and bool(table.poses.isfinite().all())
     assert table.poses[:, :3].abs().max() > 1e-3  # not the identity
     torch.testing.assert_close(
-        predict_stack_poses(model, stack, mask, batch_size=64).poses, table.poses
+        predict_plane_poses(model, stack, mask, batch_size=64).table("stack").poses, table.poses
     )
     # Content and mask moved by (3, -2) voxels (mm): the same prepared slices, so the plane
     # centre is (-3, 2) mm further from the brain in slice coordinates.
     shift = (3, -2)
-    moved = predict_stack_poses(
+    moved = predict_plane_poses(
         model,
         Image(stack.data.roll(shift, (0, 1)), stack.affine),
         Image(mask.data.roll(shift, (0, 1)), mask.affine),
-    )
+    ).table("stack")
     offset = torch.eye(4, dtype=F64)
     offset[:2, 3] = torch.tensor([-3.0, 2.0], dtype=F64)
     expected = se3_compose(vector_to_se3(table.poses), offset)
     torch.testing.assert_close(vector_to_se3(moved.poses), expected, atol=1e-4, rtol=1e-4)
     with pytest.raises(ValueError, match="batch_size must be >= 1"):
-        predict_stack_poses(model, stack, mask, batch_size=0)
+        predict_plane_poses(model, stack, mask, batch_size=0)
 
 
 def write_slice_folder(folder: Path) -> None:
@@ -396,3 +396,17 @@ def test_cli_help_has_an_example(cli, capsys):
     for option in ("--model", "--input-stacks", "--stack-masks", "--output-poses", "(default: 64)"):
         assert option in text
     assert "svr predict --model runs/" in text
+
+
+def test_plane_predictions_carry_the_scanner_poses_of_their_planes(untrained):
+    from svr.image import stack_slice_poses
+
+    model = load_pose_model(untrained)
+    stack, mask = squares_stack()
+    planes = predict_plane_poses(model, stack, mask)
+    assert planes.indices.tolist() == [1, 2]
+    assert planes.poses.shape == planes.plane_poses.shape == (2, 4, 4)
+    assert planes.poses.dtype == planes.plane_poses.dtype == F64
+    torch.testing.assert_close(planes.plane_poses, stack_slice_poses(stack)[planes.indices])
+    table = planes.table("ax.nii.gz")
+    torch.testing.assert_close(vector_to_se3(table.poses), planes.poses, atol=1e-12, rtol=0)

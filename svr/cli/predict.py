@@ -82,7 +82,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr predict``."""
     from svr.image import ImageError, load_nifti
-    from svr.models.predict import load_pose_model, predict_slice_folder, predict_stack_poses
+    from svr.models.predict import load_pose_model, predict_plane_poses, predict_slice_folder
     from svr.pose_io import PoseTable, write_pose_table
 
     if not args.input_stacks and not args.input_slices:
@@ -111,14 +111,14 @@ def run(args: argparse.Namespace) -> int:
             mask_image = None if mask is None else load_nifti(mask)
             if mask_image is not None and not bool((mask_image.data > 0.5).any()):
                 raise ImageError(f"{mask}: the mask is empty")
-            table = predict_stack_poses(
+            table = predict_plane_poses(
                 model,
                 stack,
                 mask_image,
                 args.batch_size,
                 name=str(path),
                 mask_name=None if mask is None else str(mask),
-            )
+            ).table(str(path))
         log.debug("%s: %d slices posed", path, len(table.poses))
         tables.append(table)
     result = PoseTable(
