@@ -24,7 +24,7 @@ starts as the identity.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal, cast, get_args
 
 import torch
 from torch import Tensor, nn
@@ -212,7 +212,8 @@ class Backbone(nn.Module):
                 nn.init.zeros_(module.bias)
         for module in self.modules():
             if isinstance(module, BasicBlock):
-                nn.init.zeros_(module.branch[-1].weight)
+                # the branch's last layer is its BatchNorm2d
+                nn.init.zeros_(cast("nn.BatchNorm2d", module.branch[-1]).weight)
 
     def forward(self, slices: Tensor) -> Tensor:
         """Features of slices.

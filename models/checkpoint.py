@@ -444,7 +444,9 @@ def _load_weights(file: Path, device: torch.device) -> dict[str, torch.Tensor]:
     except (SafetensorError, OSError) as exc:
         raise CheckpointError(file, f"corrupted safetensors file: {_summary(exc)}") from exc
     try:
-        dtypes = {name: getattr(torch, dtype) for name, dtype in json.loads(record).items()}
+        # a missing record (None) raises TypeError, reported below
+        recorded = json.loads(record)  # type: ignore[arg-type]
+        dtypes = {name: getattr(torch, dtype) for name, dtype in recorded.items()}
     except (TypeError, ValueError, AttributeError) as exc:
         raise CheckpointError(file, "no valid record of the original dtypes") from exc
     if dtypes.keys() != tensors.keys() or not all(

@@ -54,8 +54,12 @@ def check_length(value: object, owner: str, name: str) -> None:
     Raises:
         ValueError: Naming ``owner`` and the field ``name``.
     """
-    ok = isinstance(value, int | float) and not isinstance(value, bool)
-    if not (ok and math.isfinite(value) and value > 0):
+    if not (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value > 0
+    ):
         raise ValueError(f"{owner}: '{name}' must be a finite number > 0, got {value!r}")
 
 

@@ -341,9 +341,9 @@ def load_slice_folder(folder: str | os.PathLike[str]) -> list[SliceFile]:
     for number in sorted(slices):
         image = load_nifti(slices[number])
         mask = load_nifti(masks[number]) if number in masks else None
-        for path, img in ((slices[number], image), (masks.get(number), mask)):
+        for file, img in ((slices[number], image), (masks.get(number), mask)):
             if img is not None and img.shape[2] != 1:
-                raise ImageError(f"{path}: expected one slice (I, J, 1), got shape {img.shape}")
+                raise ImageError(f"{file}: expected one slice (I, J, 1), got shape {img.shape}")
         out.append(SliceFile(number, image, mask))
     return out
 

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, cast
 
 import torch
 import torch.distributed as dist
@@ -332,6 +332,7 @@ def train(
         ckpt = load_checkpoint(previous, map_location=device, with_training_state=True)
         model.load_state_dict(ckpt.state_dict)
         state = ckpt.training_state
+        assert state is not None  # loaded with_training_state
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
         scaler.load_state_dict(state["scaler"])
@@ -351,7 +352,7 @@ def train(
     )
     sources = [v.to(device) for v in volumes] if config.workers == 0 else volumes
     if config.pose_sampling == "grid":
-        stream = EulerGridStream(sources, config.data, config.grid)
+        stream: SliceStream = EulerGridStream(sources, config.data, config.grid)
     else:
         stream = SliceStream(sources, config.data)
     batches = _StepBatches(stream, range(start * world + rank, config.steps * world, world))
@@ -399,7 +400,7 @@ def train(
                 log_file.write(
                     step,
                     loss=last_loss,
-                    lr=scheduler.get_last_lr()[0],
+                    lr=cast("float", scheduler.get_last_lr()[0]),  # the optimiser's lr is a float
                     images_per_s=seen / (now - tick),
                 )
                 bar.set_postfix(loss=f"{last_loss:.4g}")

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import torch
@@ -138,7 +139,10 @@ class SliceProjector:
             if in_plane_psf
             else 0.0
         )
-        self.blur_sigma_vox = tuple(float(sigma_in / s) for s in grid.spacing.tolist())
+        self.blur_sigma_vox = cast(
+            "tuple[float, float, float]",
+            tuple(float(sigma_in / s) for s in grid.spacing.tolist()),
+        )
         sigma_t = slices.thickness_mm.to(torch.float64) * FWHM_TO_SIGMA
         sigma_normal = torch.sqrt(torch.clamp(sigma_t**2 - sigma_in**2, min=0.0))
         nodes, weights = psf_nodes(psf_samples)

@@ -24,7 +24,7 @@ import logging
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import torch
 from torch import Tensor
@@ -63,6 +63,8 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
 SVR_PSF_SAMPLES = 3
@@ -300,7 +302,7 @@ def _group_size(config: ReconstructionConfig, round_index: int) -> int:
     return sizes[round_index - 1] if round_index - 1 < len(sizes) else 1
 
 
-def _per_round(values: tuple, round_index: int) -> float:
+def _per_round(values: tuple[_T, ...], round_index: int) -> _T:
     """The value for round ``round_index``; the last one repeats."""
     return values[min(round_index, len(values) - 1)]
 

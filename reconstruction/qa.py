@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import os
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -93,7 +94,7 @@ def qa_figure(
         where = torch.nonzero(mask).double().mean(dim=0)
     else:
         where = (torch.tensor(mask.shape, dtype=torch.float64) - 1) / 2
-    centre = tuple(round(float(c)) for c in where)
+    centre = cast("tuple[int, int, int]", tuple(round(float(c)) for c in where))
     volumes = {"initial": result.initial_volume, "final": result.volume}
     if reference is not None:
         volumes["reference"] = resample_to_grid(reference, result.volume)

@@ -220,7 +220,7 @@ def _thicknesses(
         return widths
     values = (
         [float(thicknesses)]
-        if isinstance(thicknesses, numbers.Real)
+        if isinstance(thicknesses, numbers.Real | float)  # float: for the type checker
         else [float(t) for t in thicknesses]
     )
     if len(values) == 1:

@@ -16,6 +16,7 @@ scattered-data approximation ``x0 = A^T (w y) / A^T w``.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -55,7 +56,10 @@ def output_grid(slices: SliceSet, resolution_mm: float, margin_mm: float = 4.0) 
     pad = margin_mm + float(slices.thickness_mm.max()) / 2
     low = points.min(dim=0).values - pad
     high = points.max(dim=0).values + pad
-    shape = tuple(int(n) + 1 for n in torch.ceil((high - low) / resolution_mm).long().tolist())
+    shape = cast(
+        "tuple[int, int, int]",
+        tuple(int(n) + 1 for n in torch.ceil((high - low) / resolution_mm).long().tolist()),
+    )
     affine = torch.eye(4, dtype=torch.float64)
     affine[:3, :3] *= resolution_mm
     affine[:3, 3] = low.cpu()

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, cast
 
 import torch
 from torch import Tensor
@@ -175,7 +176,7 @@ class AugmentParams:
         Returns:
             The identity parameters.
         """
-        kw = {"dtype": torch.float64, "device": device}
+        kw: dict[str, Any] = {"dtype": torch.float64, "device": device}
         return cls(
             scale=torch.ones(batch, **kw),
             gamma=torch.ones(batch, **kw),
@@ -214,7 +215,11 @@ def draw_augment_params(
         raise ValueError(
             f"draw_augment_params(): 'batch' must be a non-negative integer, got {batch!r}"
         )
-    kw = {"generator": generator, "dtype": torch.float64, "device": generator.device}
+    kw: dict[str, Any] = {
+        "generator": generator,
+        "dtype": torch.float64,
+        "device": generator.device,
+    }
     n = config.bias_order
 
     def log_uniform(value_range: tuple[float, float]) -> Tensor:
@@ -270,7 +275,7 @@ def bias_field(
     """
     c = coefficients.to(torch.float64)
     n = c.shape[-1] - 1
-    kw = {"dtype": torch.float64, "device": c.device}
+    kw: dict[str, Any] = {"dtype": torch.float64, "device": c.device}
     p = _legendre(n, torch.linspace(-1.0, 1.0, size[0], **kw))
     q = _legendre(n, torch.linspace(-1.0, 1.0, size[1], **kw))
     field = torch.exp(torch.einsum("bij,ih,jw->bhw", c, p, q))
@@ -311,7 +316,7 @@ def apply_augment(slices: Tensor, params: AugmentParams) -> Tensor:
     """
     _check_slices(slices, params)
     x = slices.clone()
-    size = tuple(x.shape[1:])
+    size = cast("tuple[int, int]", tuple(x.shape[1:]))
 
     rows = _rows(params.gamma != 1, x.device)
     if len(rows):

@@ -32,6 +32,7 @@ import itertools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -322,7 +323,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         if cfg.augment is not None:
             slices = apply_augment(slices, draw_augment_params(cfg.augment, b, generator))
         thickness = slice_config.thickness_mm or 0.0
-        kw = {"dtype": torch.float64, "device": self.device}
+        kw: dict[str, Any] = {"dtype": torch.float64, "device": self.device}
         return {
             "slices": slices.unsqueeze(1),
             "labels": pose_labels(poses, cfg.representation).to(self.device, torch.float32),

@@ -353,7 +353,9 @@ def make_phantom(config: PhantomConfig | None = None) -> tuple[Image, Image]:
 # --- signed-distance functions of points q (3, N) in units of L; negative inside ---------------
 
 
-def _ellipsoid(q: np.ndarray, centre: tuple[float, ...], axes: tuple[float, ...]) -> np.ndarray:
+def _ellipsoid(
+    q: np.ndarray, centre: tuple[float, ...], axes: tuple[float | np.ndarray, ...]
+) -> np.ndarray:
     """Approximate signed distance to an ellipsoid (exact on the surface, ~unit gradient near it).
 
     Args:

@@ -225,6 +225,7 @@ def _motions(
         )
         ranks = torch.argsort(torch.argsort(torch.from_numpy(times_s)))  # step of each slice
         return walk[ranks]
+    assert trajectories is not None  # loaded for motion="trajectories"
     index = int(torch.randint(len(trajectories), (1,), generator=generator))
     trajectory = trajectories[index]
     start = float(torch.rand(1, generator=generator, dtype=torch.float64)) * trajectory.duration_s
@@ -293,9 +294,10 @@ def simulate_case(
         The simulated case (CPU tensors).
     """
     generator = torch.Generator().manual_seed(config.seed)
-    trajectories = (
-        load_trajectories(config.motion_path) if config.motion == "trajectories" else None
-    )
+    trajectories = None
+    if config.motion == "trajectories":
+        assert config.motion_path is not None  # checked by SimulationConfig
+        trajectories = load_trajectories(config.motion_path)
     brain_idx = torch.nonzero(volume.mask).to(torch.float64)
     brain_pts = voxel_to_world(volume.image.affine, brain_idx)
     radius = float(brain_pts.norm(dim=1).max())

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -113,7 +114,7 @@ def _plane(
     origin: Tensor, step_u: Tensor, step_v: Tensor, size: tuple[int, int], dtype: torch.dtype
 ) -> Tensor:
     """(B, H, W, 3) points ``origin + a step_u + b step_v`` for pixels (a, b), in ``dtype``."""
-    kw = {"dtype": dtype, "device": origin.device}
+    kw: dict[str, Any] = {"dtype": dtype, "device": origin.device}
     a = torch.arange(size[0], **kw)[None, :, None, None]
     b = torch.arange(size[1], **kw)[None, None, :, None]
     return (

@@ -16,7 +16,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import numpy as np
 import torch
@@ -146,7 +146,7 @@ def mean_plane(planes: Sequence[ReflectionPlane]) -> ReflectionPlane:
         raise ValueError("mean_plane(): 'planes' is empty")
     n = np.mean([p.normal for p in planes], axis=0)
     d = float(np.mean([p.offset_mm for p in planes]))
-    return ReflectionPlane(tuple(float(v) for v in n), d)
+    return ReflectionPlane(cast("tuple[float, float, float]", tuple(float(v) for v in n)), d)
 
 
 def resolve_symmetry(

@@ -18,6 +18,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import nibabel as nib
 import numpy as np
@@ -138,7 +139,8 @@ def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32)
     try:
         # singular affines are reported below
         with np.errstate(invalid="ignore", divide="ignore"), _nibabel_messages(p):
-            img = nib.load(str(p))
+            # a NIfTI file loads as a spatial image (Nifti1Image, Nifti2Image)
+            img = cast("nib.spatialimages.SpatialImage", nib.load(str(p)))
             stored = img.get_data_dtype()
             if stored.kind not in "biuf":  # complex would lose its imaginary part, RGB fail
                 raise _fail(p, f"unsupported data type {stored} (expected real-valued voxels)")

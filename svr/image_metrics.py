@@ -52,6 +52,7 @@ def _check_pair(a: object, b: object, func: str) -> tuple[Tensor, Tensor]:
             raise TypeError(f"{func}(): '{name}' must be a floating-point tensor, got {x.dtype}")
         if x.dim() != 3:
             raise ValueError(f"{func}(): '{name}' must have shape (B, H, W), got {tuple(x.shape)}")
+    assert isinstance(a, Tensor) and isinstance(b, Tensor)  # checked above
     if a.shape != b.shape:
         raise ValueError(
             f"{func}(): 'b' must have the shape of 'a' {tuple(a.shape)}, got {tuple(b.shape)}"

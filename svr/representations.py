@@ -103,7 +103,7 @@ class PoseRepresentation:
         ValueError: On construction, naming the field, for an empty name or a size < 1.
     """
 
-    name: str
+    name: Representation
     cli_name: str
     size: int
     encode: Converter

@@ -64,6 +64,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import torch
@@ -231,7 +232,7 @@ def quick_phantom(weeks: float = 28.0) -> tuple[CanonicalVolume, str]:
     """
     config = gestational_age_config(weeks, spacing_mm=_QUICK_SPACING_MM)
     fov = required_field_of_view_mm(config.brain_length_mm, _QUICK_SPACING_MM)
-    shape = tuple(math.ceil(mm / _QUICK_SPACING_MM) + 1 for mm in fov)
+    shape = cast("tuple[int, int, int]", tuple(math.ceil(mm / _QUICK_SPACING_MM) + 1 for mm in fov))
     volume, mask = make_phantom(replace(config, shape=shape))
     name = f"phantom (GA {weeks:g} weeks, {_QUICK_SPACING_MM:g} mm)"
     return canonicalize(volume, mask, name="phantom"), name
@@ -390,7 +391,10 @@ def _figure(
 ) -> None:
     """Orthogonal views through the mask's centroid, one row per volume, on the truth's scale."""
     inside = mask.cpu().bool()
-    centre = tuple(round(float(c)) for c in inside.nonzero().double().mean(dim=0))
+    centre = cast(
+        "tuple[int, int, int]",
+        tuple(round(float(c)) for c in inside.nonzero().double().mean(dim=0)),
+    )
     world = truth.affine[:3, :3] @ torch.tensor(centre, dtype=torch.float64) + truth.affine[:3, 3]
     vmax = float(np.percentile(truth.data[inside].numpy(), 99.5)) or 1.0
     figure = Figure(figsize=(8.27, 2.5 * len(rows) + 0.4), layout="constrained")
@@ -452,7 +456,8 @@ def _score(
     aligned = se3_compose(G, plane_poses(result.slices).cpu())
     truth_poses = _true_plane_poses(result.slices, true_poses)
     errors = pose_errors(se3_to_vector(aligned), se3_to_vector(truth_poses))
-    scores, rows = {}, []
+    scores: dict[str, VolumeScore] = {}
+    rows: list[tuple[str, Image, VolumeScore | None]] = []
     for kind, image in (("initial", result.initial_volume), ("reconstructed", result.volume)):
         moved = Image(image.data.cpu(), G @ image.affine.cpu().double())
         scores[kind], fitted = score_volume(moved, truth, mask)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -20,6 +21,9 @@ from svr.cli.common import (
     resolve_device,
 )
 from svr.files import atomic_directory, check_output_path
+
+if TYPE_CHECKING:
+    from svr.sampling.poses import PoseDraw
 
 DESCRIPTION = """\
 Cut 2D slices from a brain volume (or the built-in phantom) in canonical space, at the paper's
@@ -39,7 +43,11 @@ examples:
 SAMPLE_CHUNK = 256  # slices sampled at once (bounds the memory of the sampling grid)
 
 
-_POSE_DRAWS = {"random": "euler", "uniform": "uniform", "euler-grid": "euler-grid"}
+_POSE_DRAWS: dict[str, PoseDraw] = {
+    "random": "euler",
+    "uniform": "uniform",
+    "euler-grid": "euler-grid",
+}
 """``--poses`` choices and the :data:`svr.sampling.poses.PoseDraw` kinds they stand for."""
 
 

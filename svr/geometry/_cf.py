@@ -13,6 +13,7 @@ Wherever they take a vector, the sequence of its three rows (``v.unbind(0)``) wo
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -25,7 +26,7 @@ def dot(
 ) -> Tensor:
     """Dot products of (3, ...) vectors, kept as (1, ...), or written into ``out`` (...)."""
     if out is None:
-        return (a * b).sum(0, keepdim=True)
+        return (cast("Tensor", a) * cast("Tensor", b)).sum(0, keepdim=True)  # sequences need out
     (ax, ay, az), (bx, by, bz) = a, b
     return torch.mul(ax, bx, out=out).addcmul_(ay, by).addcmul_(az, bz)
 

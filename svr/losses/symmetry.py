@@ -25,6 +25,7 @@ their own label encoders, so that the comparison of losses stays fair.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Literal, overload
 
 from torch import Tensor
 
@@ -33,6 +34,37 @@ from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, check_planes, orbit
 from svr.losses.se3 import Gradient, Reduction, reduce_loss, resolve_weights, se3_geodesic_loss
 
 
+@overload
+def orbit_min_loss(
+    loss: Callable[[Tensor, Tensor], Tensor],
+    pred: Tensor,
+    target_poses: Tensor,
+    planes: Sequence[ReflectionPlane] = ...,
+    encode: Callable[[Tensor], Tensor] | None = ...,
+    reduction: Reduction = ...,
+    return_index: Literal[False] = ...,
+) -> Tensor: ...
+@overload
+def orbit_min_loss(
+    loss: Callable[[Tensor, Tensor], Tensor],
+    pred: Tensor,
+    target_poses: Tensor,
+    planes: Sequence[ReflectionPlane] = ...,
+    encode: Callable[[Tensor], Tensor] | None = ...,
+    reduction: Reduction = ...,
+    *,
+    return_index: Literal[True],
+) -> tuple[Tensor, Tensor]: ...
+@overload
+def orbit_min_loss(
+    loss: Callable[[Tensor, Tensor], Tensor],
+    pred: Tensor,
+    target_poses: Tensor,
+    planes: Sequence[ReflectionPlane] = ...,
+    encode: Callable[[Tensor], Tensor] | None = ...,
+    reduction: Reduction = ...,
+    return_index: bool = ...,
+) -> Tensor | tuple[Tensor, Tensor]: ...
 def orbit_min_loss(
     loss: Callable[[Tensor, Tensor], Tensor],
     pred: Tensor,
