@@ -374,3 +374,76 @@ def test_weights_follow_the_predictions_dtype(rng):
     z = DIAG_ANISO.float().requires_grad_(True)
     se3_geodesic_loss(pred, target, z).backward()
     assert z.grad.dtype == torch.float32 and pred.grad.dtype == F64
+
+
+def _diagonal_path_cases(rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pose pairs with relative angles near 0 (down to exactly 0) and near pi (down to pi)."""
+    pred, target = poses(rng, 40), poses(rng, 40)
+    tiny = pred[:8] + torch.from_numpy(rng.normal(scale=1e-9, size=(8, 6)))  # angle ~1e-9
+    small = pred[:8].clone()
+    small[:, :3] += torch.from_numpy(rng.normal(scale=1e-4, size=(8, 3)))
+    equal_rotation = target[:8].clone()
+    equal_rotation[:, :3] = pred[:8, :3]
+    identity = torch.zeros(4, 6, dtype=F64)
+    identity[:, 3:] = poses(rng, 4)[:, 3:]
+    near_pi = [near_pi_pair(rng, 6, gap) for gap in (0.0, 1e-9, 1e-6, 1e-3)]
+    big = pred[:6].clone()  # |r_pred| near 2 pi
+    big[:, :3] *= (2 * math.pi - 1e-3) / big[:, :3].norm(dim=1, keepdim=True)
+    preds = [pred, pred[:8], pred[:8], pred[:8], identity, *(p for p, _ in near_pi), big]
+    targets = [target, tiny, small, equal_rotation, identity.flip(0)]
+    targets += [t for _, t in near_pi] + [target[:6]]
+    return torch.cat(preds), torch.cat(targets)
+
+
+@pytest.mark.parametrize("gradient", ["exact", "riemannian"])
+def test_anisotropic_diagonal_fast_path_matches_general_formula(rng, gradient):
+    """The fused path for a diagonal anisotropic Z (Z read on the CPU) equals, in float64, the
+    general path taken by the same Z as a (6, 6) matrix and by a Z that needs a gradient."""
+    pred, target = _diagonal_path_cases(rng)
+    want_target = gradient == "exact"
+    results = []
+    for weights in (DIAG_ANISO, torch.diag(DIAG_ANISO), DIAG_ANISO.clone().requires_grad_(True)):
+        p, t = pred.clone().requires_grad_(True), target.clone().requires_grad_(want_target)
+        loss = se3_geodesic_loss(p, t, weights, reduction="none", gradient=gradient)
+        (loss * torch.linspace(0.5, 2.0, len(loss), dtype=F64)).sum().backward()
+        results.append((loss.detach(), p.grad, t.grad))
+    fast, *general = results
+    for other in general:
+        torch.testing.assert_close(fast, other, rtol=1e-10, atol=1e-11)
+    assert all(torch.isfinite(g).all() for g in fast if g is not None)
+
+
+@pytest.mark.parametrize(
+    "case", ["generic", "equal", "zero_relative_rotation", "identity_rotations", "near_pi"]
+)
+def test_anisotropic_diagonal_fast_path_gradcheck(rng, case):
+    """gradcheck of the fused diagonal path itself (Z without gradient: no fallback)."""
+    pred, target = _gradcheck_cases(rng)[case]
+    pred.requires_grad_(True)
+    target.requires_grad_(True)
+    assert gradcheck(
+        lambda a, b: se3_geodesic_loss(a, b, DIAG_ANISO, reduction="none"), (pred, target)
+    )
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("gradient", ["exact", "riemannian"])
+def test_anisotropic_diagonal_fast_path_finite_at_singular_points(rng, dtype, gradient):
+    """Finite loss and gradients (prediction and target) at angle 0, pi and |r| near 2 pi."""
+    pred, target = poses(rng, 4), poses(rng, 4)
+    big = pred.clone()
+    big[:, :3] *= (2 * math.pi - 1e-3) / big[:, :3].norm(dim=1, keepdim=True)  # |r| near 2 pi
+    cases = [
+        (pred, pred.clone()),
+        (torch.zeros(4, 6, dtype=F64), torch.zeros(4, 6, dtype=F64)),
+        near_pi_pair(rng, 4, gap=0.0),
+        near_pi_pair(rng, 4, gap=1e-9),
+        (big, target),
+    ]
+    for p, t in cases:
+        p = p.to(dtype).requires_grad_(True)
+        t = t.to(dtype).requires_grad_(gradient == "exact")
+        loss = se3_geodesic_loss(p, t, DIAG_ANISO.to(dtype), gradient=gradient)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(p.grad).all()
+        assert t.grad is None or torch.isfinite(t.grad).all()

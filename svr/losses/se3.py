@@ -24,19 +24,25 @@ Gradients (``gradient=``):
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
-from torch.autograd.function import FunctionCtx, once_differentiable
+from torch.autograd.function import once_differentiable
 
 from svr.geometry import _cf, _series
 from svr.geometry._validation import check_tensor
 from svr.geometry.se3 import se3_error
 from svr.losses.metric_weights import default_metric_weights, validate_metric_weights
 
+_Ctx = Any
+"""The autograd context: the forward stores its own attributes on it, which torch's
+``FunctionCtx`` type does not declare."""
+
 Reduction = Literal["mean", "sum", "none"]
 Gradient = Literal["exact", "riemannian", "autograd"]
+
+_ONE = torch.ones((), dtype=torch.float64)
 
 
 def quadratic_form(e: Tensor, weights: Tensor) -> Tensor:
@@ -46,15 +52,21 @@ def quadratic_form(e: Tensor, weights: Tensor) -> Tensor:
     return ((e @ weights) * e).sum(-1)
 
 
-def _block_isotropic(z: Tensor) -> tuple[float, float] | None:
-    """``(a, b)`` if ``Z = diag(a, a, a, b, b, b)``, else None.
+def _cpu_diagonal(z: Tensor) -> list[float] | None:
+    """The six entries of a diagonal Z as Python floats, or None if Z is a matrix.
 
-    Only checked on the CPU, where reading Z costs no device synchronisation.
+    Only read on the CPU, where it costs no device synchronisation (None elsewhere).
     """
     if z.dim() != 1 or z.device.type != "cpu":
         return None
-    d = z.tolist()
-    return (d[0], d[3]) if d[0] == d[1] == d[2] and d[3] == d[4] == d[5] else None
+    return z.tolist()
+
+
+def _block_isotropic(d: list[float] | None) -> tuple[float, float] | None:
+    """``(a, b)`` if the diagonal ``d`` is ``(a, a, a, b, b, b)``, else None."""
+    if d is None or not (d[0] == d[1] == d[2] and d[3] == d[4] == d[5]):
+        return None
+    return d[0], d[3]
 
 
 def _jacobian_coefficients(sq: Tensor, c: Tensor, s: Tensor, k: int, aw: Tensor | None) -> Tensor:
@@ -106,11 +118,19 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
     (``phi`` the error angle, ``|e_t| = |t - t_pred|``), ``g_r`` is parallel to ``e_r`` so that
     ``J_l(-e_r)^-1 g_r = g_r``, and ``e_t x g_t = 0``: the forward skips ``e_t`` and the backward
     these terms (exact and Riemannian gradients coincide).
+
+    For any other diagonal Z on the CPU (the data-adaptive weights), its entries are read as
+    Python numbers and folded into the row operations, and the products with the prediction's
+    quaternion ``(c, v)`` are shared: the forward applies ``M(a) = c a + a x v`` to ``v_target``
+    and ``dt`` at once (the error quaternion's vector part is ``M(v_target) - c_target v`` and
+    ``e_t = R_pred^T dt = dt + 2 M(dt) x v``), and the backward needs no generic cross product
+    with ``g`` (see :func:`_diagonal_backward`). Z of another kind (a matrix, on another device,
+    or needing a gradient) takes the general path.
     """
 
     @staticmethod
     def forward(
-        ctx: FunctionCtx, pred: Tensor, target: Tensor, weights: Tensor, riemannian: bool
+        ctx: _Ctx, pred: Tensor, target: Tensor, weights: Tensor, riemannian: bool
     ) -> Tensor:
         n = pred.shape[0]
         x = pred.new_empty((6, 2, n), dtype=torch.float64)  # (component, pred/target, pose)
@@ -119,34 +139,67 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
         r = x[:3]
         sq = x.new_empty((3, n))  # phi^2 (error angle), theta_pred^2, theta_target^2
         rows_r = r.unbind(0)
-        q = x.new_empty((4, 2, n))  # quaternions (c, v) = (cos(theta/2), s r)
+        ctx.diag = None if ctx.needs_input_grad[2] else _cpu_diagonal(weights)
+        ctx.iso = _block_isotropic(ctx.diag)
+        anisotropic = ctx.diag is not None and ctx.iso is None
+        # quaternions (c, v) = (cos(theta/2), s r) of pred and target, then (0, dt) if anisotropic
+        q = x.new_empty((4, 3 if anisotropic else 2, n))
         c, s = _series.half_angle(
-            _cf.dot(rows_r, rows_r, out=sq[1:]), out=(q[0], sq.new_empty(2, n))
+            _cf.dot(rows_r, rows_r, out=sq[1:]), out=(q[0, :2], sq.new_empty(2, n))
         )
-        torch.mul(r, s, out=q[1:])
+        torch.mul(r, s, out=q[1:, :2])
         vp, vt = q[1:, 0], q[1:, 1]
         cp, ct = c
         rows_vp, rows_vt = vp.unbind(0), vt.unbind(0)
         # Error quaternion conj(q_pred) q_target = (w, u) and e_r = 2 atan(|u| / w) u / |u|
         # (the signed atan gives the angle in [0, pi] whatever the sign of w).
         w = _cf.dot(rows_vp, rows_vt, out=torch.empty_like(cp)).addcmul_(cp, ct)
-        u = vt * cp
-        u.addcmul_(vp, ct, value=-1.0)
+        if anisotropic:
+            # u = M(v_t) - c_t v_p and m = M(dt), with M(a) = c_p a + a x v_p for both at once.
+            dt = torch.sub(x[3:, 1], x[3:, 0], out=q[1:, 2])
+            stacked = q[1:, 1:]
+            m = stacked * cp
+            _cf.add_cross_(m.unbind(0), stacked.unbind(0), rows_vp)
+            u = torch.addcmul(m[:, 0], vp, ct, value=-1.0)
+        else:
+            u = vt * cp
+            u.addcmul_(vp, ct, value=-1.0)
+            _cf.add_cross_(u.unbind(0), rows_vt, rows_vp)
+            dt = x[3:, 1].sub_(x[3:, 0])
         rows_u = u.unbind(0)
-        _cf.add_cross_(rows_u, rows_vt, rows_vp)
         norm = _cf.dot(rows_u, rows_u, out=torch.empty_like(cp)).add_(_series.TINY).sqrt()
         tan_half = norm / w
-        half_phi = tan_half.atan()
+        # atan(tan_half) as atan2(tan_half, 1): the same values to within an ulp, faster, and (a
+        # binary operation) not split across threads below 32768 elements.
+        half_phi = torch.atan2(tan_half, _ONE if w.is_cpu else w.new_ones(()))
         torch.mul(half_phi, half_phi, out=sq[0]).mul_(4.0)
         scale = torch.div(half_phi, norm).mul_(2.0)
-        dt = x[3:, 1].sub_(x[3:, 0])
-        ctx.iso = None if ctx.needs_input_grad[2] else _block_isotropic(weights)
         if ctx.iso is not None:
             a, b = ctx.iso
             e_r = u.mul_(scale)
             rows_dt = dt.unbind(0)
             loss = _cf.dot(rows_dt, rows_dt, out=w).mul_(b).add_(sq[0], alpha=a)
             ctx.save_for_backward(r, c, s, q, sq, e_r, dt)
+        elif anisotropic:
+            d = ctx.diag
+            e = x.new_empty((2, 3, n))  # e_r, e_t
+            torch.mul(u, scale, out=e[0])
+            # e_t = R_pred^T dt = dt - 2 v_p x M(dt) = dt + 2 M(dt) x v_p.
+            e3, e4, e5 = e[1].unbind(0)
+            (mx, my, mz), (vx, vy, vz) = m[:, 1].unbind(0), rows_vp
+            dx, dy, dz = dt.unbind(0)
+            torch.addcmul(dx, my, vz, value=2.0, out=e3).addcmul_(mz, vy, value=-2.0)
+            torch.addcmul(dy, mz, vx, value=2.0, out=e4).addcmul_(mx, vz, value=-2.0)
+            torch.addcmul(dz, mx, vy, value=2.0, out=e5).addcmul_(my, vx, value=-2.0)
+            e0, e1, e2 = e[0].unbind(0)
+            # L_r = e_r^T Z_r e_r, kept for the backward pass, and the loss L_r + e_t^T Z_t e_t.
+            l_r = torch.mul(e0, e0).mul_(d[0]).addcmul_(e1, e1, value=d[1])
+            l_r.addcmul_(e2, e2, value=d[2])
+            loss = torch.addcmul(l_r, e3, e3, value=d[3]).addcmul_(e4, e4, value=d[4])
+            loss.addcmul_(e5, e5, value=d[5])
+            ctx.save_for_backward(r, c, s, q, sq, e, l_r, half_phi, tan_half)
+            # Row views for the backward pass, kept to spare re-slicing (they are not outputs).
+            ctx.rows = (e0, e1, e2), (e3, e4, e5), rows_vp, r[:, 0].unbind(0)
         else:
             z = weights.to(device=x.device, dtype=torch.float64)
             e = x.new_empty((6, n))
@@ -161,7 +214,7 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
 
     @staticmethod
     @once_differentiable
-    def backward(ctx: FunctionCtx, grad: Tensor) -> tuple[Tensor | None, ...]:
+    def backward(ctx: _Ctx, grad: Tensor) -> tuple[Tensor | None, ...]:
         pred_dtype, target_dtype, weights_dtype = ctx.dtypes
         grad = grad.to(torch.float64)
         want_target = ctx.needs_input_grad[1] and not ctx.riemannian
@@ -178,6 +231,8 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
             post = grad * (2.0 * a)
             post = torch.stack([post.neg(), post]) if want_target else post.neg_()
             coef = _jacobian_coefficients(sq, c, s, k, None)
+        elif ctx.diag is not None:
+            out = _diagonal_backward(ctx, grad, want_target)
         else:
             r, c, s, q, sq, e, z, half_phi, tan_half = ctx.saved_tensors
             n = e.shape[1]
@@ -208,12 +263,13 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
                 rows_y = y_pred.unbind(0)
                 _cf.add_cross_(rows_y, rows_er, rows_gr, -0.5)
                 _cf.add_cross_(rows_y, e[3:].unbind(0), g_t.unbind(0), -1.0)
-        if want_target:
-            torch.neg(out[0, 3:], out=out[1, 3:])
-        jl = out[:, :3].transpose(0, 1)
-        _apply_left_jacobian(jl, r[:, :k], q[1:, :k], c[:k], s[:k], coef, y)
-        if post is not None:
-            jl.mul_(post)
+        if ctx.diag is None or ctx.iso is not None:
+            if want_target:
+                torch.neg(out[0, 3:], out=out[1, 3:])
+            jl = out[:, :3].transpose(0, 1)
+            _apply_left_jacobian(jl, r[:, :k], q[1:, :k], c[:k], s[:k], coef, y)
+            if post is not None:
+                jl.mul_(post)
         grad_pred = grad_target = grad_weights = None
         if ctx.needs_input_grad[0]:
             grad_pred = out[0].T.to(pred_dtype, memory_format=torch.contiguous_format)
@@ -224,6 +280,88 @@ class _SE3GeodesicLossFunction(torch.autograd.Function):
                 device=ctx.weights_device, dtype=weights_dtype
             )
         return grad_pred, grad_target, grad_weights, None
+
+
+def _diagonal_backward(ctx: _Ctx, grad: Tensor, want_target: bool) -> Tensor:
+    """Gradients of :class:`_SE3GeodesicLossFunction` for an anisotropic diagonal Z.
+
+    Args:
+        ctx: The forward pass's context: its saved tensors, ``ctx.rows`` (row views of ``e_r``,
+            ``e_t``, ``v_pred`` and ``r_pred``) and ``ctx.diag`` (the six entries of Z).
+        grad: (N,) float64 incoming gradient of the per-pose losses.
+        want_target: Whether the target needs its gradient too.
+
+    Returns:
+        (k, 6, N) float64 gradients of the prediction (then of the target if ``want_target``,
+        k = 2), components first.
+
+    With ``aw = (phi/2) cot(phi/2)``, ``D = (1 - aw) / phi^2``, ``L_r = e_r^T Z_r e_r`` and
+    ``B = aw Z_r e_r + D L_r e_r`` (``J_l(-+e_r)^-1 Z_r e_r = B -+ e_r x Z_r e_r / 2``, as
+    ``e_r . Z_r e_r = L_r``), the prediction's rotation gradient is ``J_l(r_pred) y`` with
+    ``y = -2 grad (B + e_r x Z_r e_r / 2 + e_t x Z_t e_t)`` and the target's ``J_l(r) y_t`` with
+    ``y_t = 2 grad (B - e_r x Z_r e_r / 2)``; for diagonal Z, ``(e x Z e)_i = (z_i2 - z_i1)
+    e_i1 e_i2`` for ``(i, i1, i2)`` cyclic. The translation gradients are
+    ``-+2 grad R_pred Z_t e_t``. ``R_pred g`` and ``J_l(r_pred) y`` share ``M'(a) = c a + v x a``
+    (``(c, v = s r)`` the prediction's quaternion), applied to both at once:
+    ``R_pred g = g + 2 v x M'(g)`` and ``J_l(r_pred) y = 2 s M'(y) + C (r . y) r`` with
+    ``C = (1 - 2 s c) / theta^2``. ``D`` and ``C`` cancel for small angles but only multiply
+    terms that vanish like the squared angle (see :func:`_jacobian_coefficients`).
+    """
+    r, c, s, q, sq, e, l_r, half_phi, tan_half = ctx.saved_tensors
+    rows_r, rows_t, rows_v, rows_rp = ctx.rows
+    d = ctx.diag
+    k = 2 if want_target else 1
+    n = e.shape[-1]
+    cp, sp = c[0], s[0]
+    post = grad * -2.0
+    a = e.new_empty((3, 2, n))  # g_t and y_pred (y up to the factor post)
+    g_t, y = a.unbind(1)
+    rows_g, rows_y = g_t.unbind(0), y.unbind(0)
+    for row_g, row_t, z in zip(rows_g, rows_t, d[3:], strict=True):
+        torch.mul(row_t, post, out=row_g).mul_(z)  # -2 grad Z_t e_t
+    if ctx.riemannian:  # y_pred = -g_r
+        for row_y, row_r, z in zip(rows_y, rows_r, d[:3], strict=True):
+            torch.mul(row_r, z, out=row_y)
+    else:
+        aw = half_phi / tan_half  # (phi/2) cot(phi/2)
+        # D L_r e_r + aw Z_r e_r with D = (1 - aw) / phi^2 (see _jacobian_coefficients).
+        d_lr = torch.rsub(aw, 1.0).mul_(l_r).div_(sq[0] + _series.TINY)
+        for row_y, row_r, z in zip(rows_y, rows_r, d[:3], strict=True):
+            torch.mul(row_r, d_lr, out=row_y).addcmul_(row_r, aw, value=z)
+        if want_target:
+            y_target = y.clone()
+            rows_target = y_target.unbind(0)
+        # + e_r x Z_r e_r / 2 + e_t x Z_t e_t, with (e x Z e)_i = (z_i2 - z_i1) e_i1 e_i2 for
+        # (i, i1, i2) cyclic.
+        for i, row_y in enumerate(rows_y):
+            i1, i2 = (i + 1) % 3, (i + 2) % 3
+            half_dr = 0.5 * (d[i2] - d[i1])
+            if want_target:
+                rows_target[i].addcmul_(rows_r[i1], rows_r[i2], value=-half_dr)
+            row_y.addcmul_(rows_r[i1], rows_r[i2], value=half_dr)
+            row_y.addcmul_(rows_t[i1], rows_t[i2], value=d[3 + i2] - d[3 + i1])
+    m = a * cp
+    rows_a, rows_m = a.unbind(0), m.unbind(0)
+    _cf.add_cross_(rows_m, rows_v, rows_a)  # M'(g_t), M'(y)
+    out = e.new_empty((k, 6, n))
+    # R_pred g_t = g_t + 2 v x M'(g_t).
+    (vx, vy, vz), (mx, my, mz) = rows_v, m[:, 0].unbind(0)
+    (gx, gy, gz), (ox, oy, oz) = rows_g, out[0, 3:].unbind(0)
+    torch.addcmul(gx, vy, mz, value=2.0, out=ox).addcmul_(vz, my, value=-2.0)
+    torch.addcmul(gy, vz, mx, value=2.0, out=oy).addcmul_(vx, mz, value=-2.0)
+    torch.addcmul(gz, vx, my, value=2.0, out=oz).addcmul_(vy, mx, value=-2.0)
+    # J_l(r_pred) y = 2 s M'(y) + C (r . y) r, C = (1 - 2 s c) / theta^2.
+    jl = torch.mul(m[:, 1], sp * 2.0, out=out[0, :3])
+    coef = torch.mul(sp, cp).mul_(-2.0).add_(1.0).div_(sq[1] + _series.TINY)
+    r_dot_y = _cf.dot(rows_rp, rows_y, out=torch.empty_like(sp)).mul_(coef)
+    jl.addcmul_(r[:, 0], r_dot_y).mul_(post)
+    if want_target:
+        torch.neg(out[0, 3:], out=out[1, 3:])
+        coef = torch.mul(s[1:], c[1:]).mul_(-2.0).add_(1.0).div_(sq[2:] + _series.TINY)
+        jl = out[1:, :3].transpose(0, 1)
+        _apply_left_jacobian(jl, r[:, 1:], q[1:, 1:2], c[1:], s[1:], coef, y_target[:, None])
+        jl.mul_(grad * 2.0)
+    return out
 
 
 def reduce_loss(loss: Tensor, reduction: str, func: str) -> Tensor:
@@ -310,6 +448,8 @@ class SE3GeodesicLoss(nn.Module):
         reduction: ``"mean"``, ``"sum"`` or ``"none"``.
         gradient: ``"exact"``, ``"riemannian"`` or ``"autograd"``.
     """
+
+    weights: Tensor  # the validated Z, a buffer
 
     def __init__(
         self,
