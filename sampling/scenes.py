@@ -1,0 +1,226 @@
+"""Whole-uterus scenes around an atlas brain, for training brain segmentation without real scans.
+
+A clinical fetal stack shows the whole maternal abdomen; the brain is a small part of it. No real
+whole-uterus scan may be used for training (issue 14), so :func:`make_scene` builds one by domain
+randomisation (SynthSeg-style: random shapes, random intensities) around a canonical atlas brain:
+
+1. the brain, resampled at a random isotropic scale (other sizes and ages), intensities raised to
+   a random gamma;
+2. the fetal head around it, as shells by distance from the brain surface: extra-axial CSF
+   (bright on T2), the skull (dark) and the scalp;
+3. the fetal body, an ellipsoid next to the head, and the amniotic fluid, a larger ellipsoid
+   around both (bright);
+4. maternal tissue everywhere else: a random label field (the arg-max of smoothed noise channels)
+   with a random intensity per label and a smooth texture.
+
+The result is a :class:`~svr.sampling.volume.CanonicalVolume` whose ``image`` holds the whole
+scene (it is *not* zero outside the brain) and whose ``mask`` is the brain only, on a grid
+centred on the brain. :func:`svr.sampling.simulate.simulate_case` cuts motion-corrupted
+thick-slice stacks from it as from any volume (``margin_mm`` sets how much of the scene a stack
+sees; bias fields, noise and signal voids come from there), and each stack's brain mask is the
+training target. Intensities are relative to the brain's 99th percentile (1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from svr.image import Image, sample_world, voxel_centres
+from svr.sampling._validation import check_positive_range, is_finite_number
+from svr.sampling.volume import CanonicalVolume
+
+__all__ = ["SceneConfig", "make_scene"]
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How :func:`make_scene` builds a scene (ranges are drawn uniformly unless said otherwise).
+
+    Attributes:
+        extent_mm: Edge of the cubic scene, mm (centred on the brain), > 0.
+        spacing_mm: Isotropic voxel size of the scene, mm, > 0.
+        brain_scale: Range of the brain's isotropic scale factor (drawn log-uniformly).
+        gamma: Range of the gamma applied to the brain's intensities.
+        csf_mm: Range of the extra-axial CSF thickness, mm.
+        skull_mm: Range of the skull thickness, mm.
+        scalp_mm: Range of the scalp thickness, mm.
+        fluid_margin_mm: Range of the amniotic fluid's extent beyond the head, mm.
+        maternal_labels: Range (inclusive) of the number of maternal tissue labels.
+        maternal_smoothness_mm: Range of the smoothing of the maternal label field, mm.
+        csf_intensity: Range of the CSF and amniotic fluid intensity.
+        skull_intensity: Range of the skull intensity.
+        tissue_intensity: Range of the scalp, body and maternal tissue intensities.
+        texture: Relative standard deviation of the smooth multiplicative texture, >= 0.
+
+    Raises:
+        ValueError: On construction, naming the field, for an invalid value.
+    """
+
+    extent_mm: float = 320.0
+    spacing_mm: float = 2.0
+    brain_scale: tuple[float, float] = (0.85, 1.15)
+    gamma: tuple[float, float] = (0.7, 1.4)
+    csf_mm: tuple[float, float] = (1.5, 5.0)
+    skull_mm: tuple[float, float] = (1.5, 4.0)
+    scalp_mm: tuple[float, float] = (1.5, 4.0)
+    fluid_margin_mm: tuple[float, float] = (10.0, 45.0)
+    maternal_labels: tuple[int, int] = (3, 8)
+    maternal_smoothness_mm: tuple[float, float] = (6.0, 20.0)
+    csf_intensity: tuple[float, float] = (1.0, 2.0)
+    skull_intensity: tuple[float, float] = (0.02, 0.3)
+    tissue_intensity: tuple[float, float] = (0.1, 1.2)
+    texture: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("extent_mm", "spacing_mm"):
+            value = getattr(self, name)
+            if not (is_finite_number(value) and value > 0):
+                raise ValueError(
+                    f"SceneConfig: '{name}' must be a finite number > 0, got {value!r}"
+                )
+        for name in (
+            "brain_scale",
+            "gamma",
+            "csf_mm",
+            "skull_mm",
+            "scalp_mm",
+            "fluid_margin_mm",
+            "maternal_smoothness_mm",
+            "csf_intensity",
+            "skull_intensity",
+            "tissue_intensity",
+        ):
+            check_positive_range(getattr(self, name), "SceneConfig", name)
+        low, high = self.maternal_labels
+        if not (isinstance(low, int) and isinstance(high, int) and 1 <= low <= high):
+            raise ValueError(
+                "SceneConfig: 'maternal_labels' must be integers (low, high) with 1 <= low <= "
+                f"high, got {self.maternal_labels!r}"
+            )
+        if not (is_finite_number(self.texture) and self.texture >= 0):
+            raise ValueError(f"SceneConfig: 'texture' must be a number >= 0, got {self.texture!r}")
+
+
+def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    return float(rng.uniform(bounds[0], bounds[1]))
+
+
+def _smooth_noise(
+    rng: np.random.Generator, shape: tuple[int, ...], sigma_voxels: float
+) -> np.ndarray:
+    """Zero-mean, unit-std Gaussian noise smoothed by a Gaussian of ``sigma_voxels``."""
+    field = ndimage.gaussian_filter(rng.standard_normal(shape), sigma_voxels, mode="wrap")
+    return (field - field.mean()) / max(float(field.std()), 1e-12)
+
+
+def _ellipsoid(
+    points: np.ndarray, centre: np.ndarray, radii: np.ndarray, rotation: np.ndarray
+) -> np.ndarray:
+    """Bool mask of the points inside an ellipsoid (radii along the columns of ``rotation``)."""
+    local = (points - centre) @ rotation
+    return ((local / radii) ** 2).sum(axis=-1) <= 1.0
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.standard_normal(4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def make_scene(
+    brain: CanonicalVolume, config: SceneConfig | None = None, seed: int = 0
+) -> CanonicalVolume:
+    """A random whole-uterus scene around ``brain`` (module docstring).
+
+    Args:
+        brain: A canonical brain volume (e.g. an atlas age, :func:`load_canonical_volume`).
+        config: The scene's ranges; ``None`` for ``SceneConfig()``.
+        seed: Seed of every random choice (a scene is a pure function of its inputs and seed).
+
+    Returns:
+        The scene: ``image`` (float32, the whole scene, brain 99th percentile ~1) and ``mask``
+        (the brain, bool) on a cubic grid of ``config.spacing_mm`` centred on the brain's
+        canonical origin; ``centre_mm`` zero and ``intensity_scale`` 1.
+
+    Raises:
+        ValueError: If ``seed`` is negative.
+    """
+    cfg = SceneConfig() if config is None else config
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"make_scene(): 'seed' must be an integer >= 0, got {seed!r}")
+    rng = np.random.default_rng(seed)
+    n = math.ceil(cfg.extent_mm / cfg.spacing_mm)
+    affine = torch.eye(4, dtype=torch.float64)
+    affine[:3, :3] *= cfg.spacing_mm
+    affine[:3, 3] = -(n - 1) / 2 * cfg.spacing_mm
+    grid = Image(torch.zeros(n, n, n), affine)
+    points = voxel_centres(grid)  # (n, n, n, 3) canonical mm
+
+    # 1. The brain at a random scale: the scene at x shows the atlas at x / scale.
+    low, high = (math.log(v) for v in cfg.brain_scale)
+    scale = math.exp(rng.uniform(low, high))
+    source = brain.to("cpu")
+    moved = (points / scale).float()
+    intensity = sample_world(source.image, moved).numpy().astype(np.float64)
+    brain_mask = (
+        sample_world(Image(source.mask.float(), source.image.affine), moved, "nearest").numpy()
+        > 0.5
+    )
+    intensity = np.clip(intensity, 0.0, None) ** _uniform(rng, cfg.gamma)
+
+    # 2. The head: shells by distance from the brain surface.
+    distance = ndimage.distance_transform_edt(~brain_mask, sampling=cfg.spacing_mm)
+    csf = _uniform(rng, cfg.csf_mm)
+    skull = csf + _uniform(rng, cfg.skull_mm)
+    scalp = skull + _uniform(rng, cfg.scalp_mm)
+    xyz = points.numpy()
+    radius = float(np.linalg.norm(xyz[brain_mask], axis=-1).max()) if brain_mask.any() else 30.0
+
+    # 3. Body and amniotic fluid.
+    direction = rng.standard_normal(3)
+    direction /= np.linalg.norm(direction)
+    body_radii = radius * rng.uniform(0.9, 1.6, size=3) * np.array([1.0, 1.0, 1.5])
+    body_centre = direction * (radius + scalp + body_radii[2] * rng.uniform(0.6, 0.9))
+    body = _ellipsoid(xyz, body_centre, body_radii, _random_rotation(rng))
+    margin = _uniform(rng, cfg.fluid_margin_mm)
+    fluid_centre = body_centre * rng.uniform(0.3, 0.6)
+    fluid_radii = (np.linalg.norm(body_centre - fluid_centre) + radius + margin) * rng.uniform(
+        0.9, 1.2, size=3
+    )
+    fluid = _ellipsoid(xyz, fluid_centre, fluid_radii, _random_rotation(rng))
+
+    # 4. Maternal tissue: a random label field with random intensities.
+    labels = int(rng.integers(cfg.maternal_labels[0], cfg.maternal_labels[1] + 1))
+    sigma = _uniform(rng, cfg.maternal_smoothness_mm) / cfg.spacing_mm
+    channels = np.stack([_smooth_noise(rng, (n, n, n), sigma) for _ in range(labels)])
+    maternal_label = channels.argmax(axis=0)
+    tissue_values = rng.uniform(*cfg.tissue_intensity, size=labels)
+    scene = tissue_values[maternal_label]
+
+    # Paint from the outside in.
+    scene = np.where(fluid, _uniform(rng, cfg.csf_intensity), scene)
+    scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
+    scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)
+    scene = np.where(distance <= skull, _uniform(rng, cfg.skull_intensity), scene)
+    scene = np.where(distance <= csf, _uniform(rng, cfg.csf_intensity), scene)
+    if cfg.texture > 0:
+        texture = 1.0 + cfg.texture * _smooth_noise(rng, (n, n, n), 2.0 / cfg.spacing_mm)
+        scene = scene * np.clip(texture, 0.2, None)
+    scene = np.where(brain_mask, intensity, scene)
+    return CanonicalVolume(
+        Image(torch.from_numpy(scene.astype(np.float32)), affine),
+        torch.from_numpy(brain_mask),
+        torch.zeros(3, dtype=torch.float64),
+        1.0,
+    )

@@ -1,0 +1,97 @@
+"""Whole-uterus training scenes: the brain and its mask kept exactly, shells and surroundings."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from synthetic import ellipsoid_brain
+
+from svr.sampling.scenes import SceneConfig, make_scene
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import canonicalize
+
+SMALL = SceneConfig(extent_mm=120.0, spacing_mm=2.0, brain_scale=(1.0, 1.0), gamma=(1.0, 1.0))
+
+
+@pytest.fixture(scope="module")
+def brain():
+    return canonicalize(*ellipsoid_brain(48, 1.0, (18.0, 22.0, 16.0), seed=0), name="ellipsoid")
+
+
+def test_scene_keeps_the_brain_and_its_mask(brain):
+    scene = make_scene(brain, SMALL, seed=1)
+    assert scene.image.shape == scene.mask.shape == (60, 60, 60)
+    assert scene.image.data.dtype == torch.float32 and scene.mask.dtype == torch.bool
+    # at scale 1 the mask is the brain's mask resampled (nearest) onto the scene grid
+    from svr.image import Image, resample_to_grid
+
+    brain_mask = Image(brain.mask.float(), brain.image.affine)
+    want = resample_to_grid(brain_mask, scene.image, mode="nearest").data > 0.5
+    assert torch.equal(scene.mask, want)
+    inside = resample_to_grid(brain.image, scene.image).data[scene.mask]
+    torch.testing.assert_close(scene.image.data[scene.mask], inside.clamp_min(0), atol=1e-5, rtol=0)
+    assert torch.equal(scene.centre_mm, torch.zeros(3, dtype=torch.float64))
+
+
+def test_scene_has_surroundings_and_head_shells(brain):
+    config = SceneConfig(
+        extent_mm=120.0, spacing_mm=2.0, csf_mm=(2.5, 4.0), skull_mm=(3.0, 4.0), texture=0.0
+    )
+    scene = make_scene(brain, config, seed=2)
+    outside = scene.image.data[~scene.mask]
+    assert float((outside > 0).float().mean()) > 0.99  # no empty background: a uterus scene
+    from scipy import ndimage
+
+    distance = ndimage.distance_transform_edt(~scene.mask.numpy(), sampling=2.0)
+    image = scene.image.data.numpy()
+    csf = image[(distance > 0) & (distance <= 2.0)]  # the first shell: CSF, 2.5-4 mm thick
+    assert csf.min() == csf.max() and 1.0 <= csf.min() <= 2.0
+    skull = image[(distance > 4.5) & (distance <= 5.5)]  # inside the skull: [csf, csf + 3..4]
+    assert skull.size and float(np.median(skull)) <= 0.3
+
+
+def test_scenes_are_reproducible_and_differ_by_seed(brain):
+    a, b = make_scene(brain, SMALL, seed=5), make_scene(brain, SMALL, seed=5)
+    assert torch.equal(a.image.data, b.image.data) and torch.equal(a.mask, b.mask)
+    c = make_scene(brain, SMALL, seed=6)
+    assert not torch.equal(a.image.data, c.image.data)
+
+
+def test_scale_changes_the_brain_size(brain):
+    small = make_scene(brain, SceneConfig(extent_mm=120.0, brain_scale=(0.8, 0.8)), seed=0)
+    large = make_scene(brain, SceneConfig(extent_mm=120.0, brain_scale=(1.2, 1.2)), seed=0)
+    ratio = float(large.mask.sum()) / float(small.mask.sum())
+    assert ratio == pytest.approx(1.5**3, rel=0.15)
+
+
+def test_stacks_cut_from_a_scene_show_the_surroundings(brain):
+    scene = make_scene(brain, SMALL, seed=3)
+    case = simulate_case(
+        scene, SimulationConfig(num_stacks=1, margin_mm=30.0, motion="none", seed=0)
+    )
+    stack = case.stacks[0]
+    data, mask = stack.image.data, stack.mask.data > 0.5
+    assert 0.0 < float(mask.float().mean()) < 0.5
+    assert float((data[~mask] > 0.05).float().mean()) > 0.5  # not a masked brain alone
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("extent_mm", 0.0),
+        ("spacing_mm", float("nan")),
+        ("brain_scale", (1.2, 0.8)),
+        ("maternal_labels", (0, 3)),
+        ("texture", -0.1),
+    ],
+)
+def test_config_errors_name_the_field(field, value):
+    with pytest.raises(ValueError, match=f"'{field}'"):
+        SceneConfig(**{field: value})
+
+
+def test_seed_must_be_a_non_negative_int(brain):
+    with pytest.raises(ValueError, match="'seed'"):
+        make_scene(brain, SMALL, seed=-1)
+    assert np.isfinite(make_scene(brain, SMALL, seed=0).image.data.numpy()).all()
