@@ -10,8 +10,9 @@ randomisation (SynthSeg-style: random shapes, random intensities) around a canon
    (bright on T2), the skull (dark) and the scalp;
 3. the fetal body, an ellipsoid next to the head, and the amniotic fluid, a larger ellipsoid
    around both (bright);
-4. maternal tissue everywhere else: a random label field (the arg-max of smoothed noise channels)
-   with a random intensity per label and a smooth texture.
+4. maternal tissue around them, inside an abdomen (an ellipsoid with a randomly perturbed
+   boundary; air, 0, outside): a random label field (the arg-max of smoothed noise channels) with
+   a random intensity per label and a smooth texture.
 
 The result is a :class:`~svr.sampling.volume.CanonicalVolume` whose ``image`` holds the whole
 scene (it is *not* zero outside the brain) and whose ``mask`` is the brain only, on a grid
@@ -50,6 +51,10 @@ class SceneConfig:
         skull_mm: Range of the skull thickness, mm.
         scalp_mm: Range of the scalp thickness, mm.
         fluid_margin_mm: Range of the amniotic fluid's extent beyond the head, mm.
+        abdomen_margin_mm: Range of the maternal abdomen's extent beyond the fluid, mm; air (0)
+            outside it.
+        irregularity: Relative amplitude of the smooth random perturbation of the fluid's and
+            the abdomen's boundaries, >= 0.
         maternal_labels: Range (inclusive) of the number of maternal tissue labels.
         maternal_smoothness_mm: Range of the smoothing of the maternal label field, mm.
         csf_intensity: Range of the CSF and amniotic fluid intensity.
@@ -69,6 +74,8 @@ class SceneConfig:
     skull_mm: tuple[float, float] = (1.5, 4.0)
     scalp_mm: tuple[float, float] = (1.5, 4.0)
     fluid_margin_mm: tuple[float, float] = (10.0, 45.0)
+    abdomen_margin_mm: tuple[float, float] = (15.0, 80.0)
+    irregularity: float = 0.15
     maternal_labels: tuple[int, int] = (3, 8)
     maternal_smoothness_mm: tuple[float, float] = (6.0, 20.0)
     csf_intensity: tuple[float, float] = (1.0, 2.0)
@@ -90,6 +97,7 @@ class SceneConfig:
             "skull_mm",
             "scalp_mm",
             "fluid_margin_mm",
+            "abdomen_margin_mm",
             "maternal_smoothness_mm",
             "csf_intensity",
             "skull_intensity",
@@ -102,8 +110,10 @@ class SceneConfig:
                 "SceneConfig: 'maternal_labels' must be integers (low, high) with 1 <= low <= "
                 f"high, got {self.maternal_labels!r}"
             )
-        if not (is_finite_number(self.texture) and self.texture >= 0):
-            raise ValueError(f"SceneConfig: 'texture' must be a number >= 0, got {self.texture!r}")
+        for name in ("texture", "irregularity"):
+            value = getattr(self, name)
+            if not (is_finite_number(value) and value >= 0):
+                raise ValueError(f"SceneConfig: '{name}' must be a number >= 0, got {value!r}")
 
 
 def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
@@ -119,11 +129,19 @@ def _smooth_noise(
 
 
 def _ellipsoid(
-    points: np.ndarray, centre: np.ndarray, radii: np.ndarray, rotation: np.ndarray
+    points: np.ndarray,
+    centre: np.ndarray,
+    radii: np.ndarray,
+    rotation: np.ndarray,
+    perturbation: np.ndarray | float = 0.0,
 ) -> np.ndarray:
-    """Bool mask of the points inside an ellipsoid (radii along the columns of ``rotation``)."""
+    """Bool mask of the points inside an ellipsoid (radii along the columns of ``rotation``).
+
+    ``perturbation`` (scalar or per point) moves the boundary: inside where the ellipsoid's
+    level ``sum((local / radii) ** 2)`` is at most ``1 + perturbation``.
+    """
     local = (points - centre) @ rotation
-    return ((local / radii) ** 2).sum(axis=-1) <= 1.0
+    return ((local / radii) ** 2).sum(axis=-1) <= 1.0 + perturbation
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -198,7 +216,11 @@ def make_scene(
     fluid_radii = (np.linalg.norm(body_centre - fluid_centre) + radius + margin) * rng.uniform(
         0.9, 1.2, size=3
     )
-    fluid = _ellipsoid(xyz, fluid_centre, fluid_radii, _random_rotation(rng))
+    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 15.0 / cfg.spacing_mm)
+    fluid = _ellipsoid(xyz, fluid_centre, fluid_radii, _random_rotation(rng), wobble)
+    abdomen_radii = fluid_radii + rng.uniform(*cfg.abdomen_margin_mm, size=3)
+    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 25.0 / cfg.spacing_mm)
+    abdomen = _ellipsoid(xyz, fluid_centre, abdomen_radii, _random_rotation(rng), wobble)
 
     # 4. Maternal tissue: a random label field with random intensities.
     labels = int(rng.integers(cfg.maternal_labels[0], cfg.maternal_labels[1] + 1))
@@ -209,6 +231,7 @@ def make_scene(
     scene = tissue_values[maternal_label]
 
     # Paint from the outside in.
+    scene = np.where(abdomen | fluid, scene, 0.0)
     scene = np.where(fluid, _uniform(rng, cfg.csf_intensity), scene)
     scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)

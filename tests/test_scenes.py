@@ -95,3 +95,17 @@ def test_seed_must_be_a_non_negative_int(brain):
     with pytest.raises(ValueError, match="'seed'"):
         make_scene(brain, SMALL, seed=-1)
     assert np.isfinite(make_scene(brain, SMALL, seed=0).image.data.numpy()).all()
+
+
+def test_air_outside_the_abdomen(brain):
+    config = SceneConfig(
+        extent_mm=400.0,
+        spacing_mm=4.0,
+        fluid_margin_mm=(10.0, 10.0),
+        abdomen_margin_mm=(15.0, 15.0),
+    )
+    scene = make_scene(brain, config, seed=4)
+    image = scene.image.data
+    assert float(image[0, 0, 0]) == 0.0 and float(image[-1, -1, -1]) == 0.0
+    assert 0.2 < float((image == 0).float().mean()) < 0.95
+    assert bool((image[scene.mask] > 0).any())
