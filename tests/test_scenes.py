@@ -99,7 +99,7 @@ def test_seed_must_be_a_non_negative_int(brain):
 
 def test_air_outside_the_abdomen(brain):
     config = SceneConfig(
-        extent_mm=400.0,
+        extent_mm=200.0,
         spacing_mm=4.0,
         fluid_margin_mm=(10.0, 10.0),
         abdomen_margin_mm=(15.0, 15.0),
