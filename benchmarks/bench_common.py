@@ -77,3 +77,16 @@ def load_case_stacks(case: Path) -> list:
     paths = sorted((case / "stacks").glob("*.nii.gz"))
     masks = [case / "masks" / p.name.replace(".nii.gz", "_mask.nii.gz") for p in paths]
     return load_stacks(paths, masks, info["thickness"])
+
+
+def reconstruct_default(stacks: list, registration: str, model=None):
+    """``reconstruct`` with the default settings; ``model`` is passed for ``"cnn"`` only."""
+    from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.pipeline import reconstruct
+
+    return reconstruct(
+        stacks,
+        ReconstructionConfig(registration=registration),
+        model=model if registration == "cnn" else None,
+        progress=False,
+    )

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import load_case_stacks, run_scorer, true_slice_poses
+from bench_common import load_case_stacks, reconstruct_default, run_scorer, true_slice_poses
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_exp
 from svr.geometry.averaging import robust_mean_pose
@@ -195,12 +195,7 @@ def bench_case(
 
     for registration in ("stack", "cnn"):
         start = time.perf_counter()
-        result = reconstruct(
-            stacks,
-            ReconstructionConfig(registration=registration),
-            model=model if registration == "cnn" else None,
-            progress=False,
-        )
+        result = reconstruct_default(stacks, registration, model)
         quality = score(result, out / f"{case.name}-{registration}.nii.gz", case, scorer)
         frame_truth = canonical_truth if result.slices.frame == "canonical" else scanner_truth
         rot, trans = errors(plane_poses(result.slices), frame_truth, align=True)

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import load_case_stacks, run_scorer, true_slice_poses
+from bench_common import load_case_stacks, reconstruct_default, run_scorer, true_slice_poses
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.geometry.averaging import robust_mean_pose
@@ -43,8 +43,6 @@ from svr.image import save_nifti
 from svr.metrics import nearest_orbit_member, rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
 from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
-from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.pipeline import reconstruct
 from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -194,12 +192,7 @@ def recon_rows(case: Path, model, out: Path, scorer: Path) -> dict:
     row: dict = {"case": case.name}
     for registration in ("stack", "cnn"):
         start = time.perf_counter()
-        result = reconstruct(
-            stacks,
-            ReconstructionConfig(registration=registration),
-            model=model if registration == "cnn" else None,
-            progress=False,
-        )
+        result = reconstruct_default(stacks, registration, model)
         path = out / f"{case.name}-{registration}.nii.gz"
         save_nifti(result.volume, path, overwrite=True)
         quality = run_scorer(scorer, path, case)

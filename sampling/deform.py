@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from svr.geometry import hat
 from svr.image import Image, voxel_to_world
 from svr.sampling._validation import is_finite_number
 
@@ -59,16 +60,7 @@ def remove_rigid_part(displacement_mm: Tensor, positions_mm: Tensor) -> Tensor:
     x = positions_mm.to(torch.float64)
     d = displacement_mm.to(torch.float64)
     n = len(x)
-    # w x x = -[x]_x w: rows of the design matrix for the three components.
-    zero = torch.zeros(n, dtype=torch.float64, device=x.device)
-    skew = torch.stack(
-        [
-            torch.stack([zero, x[:, 2], -x[:, 1]], dim=-1),
-            torch.stack([-x[:, 2], zero, x[:, 0]], dim=-1),
-            torch.stack([x[:, 1], -x[:, 0], zero], dim=-1),
-        ],
-        dim=1,
-    )  # (N, 3, 3): d_k = t_k + (skew @ w)_k
+    skew = -hat(x)  # (N, 3, 3): w x x = -(x x w), so d_k = t_k + (skew @ w)_k
     eye = torch.eye(3, dtype=torch.float64, device=x.device).expand(n, 3, 3)
     design = torch.cat([eye, skew], dim=2).reshape(3 * n, 6)
     # Normal equations (6 x 6, well conditioned for a spread-out grid): bit-reproducible.

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from svr.geometry import quat_to_matrix
 from svr.image import Image, sample_world, voxel_centres
 from svr.sampling._validation import check_positive_range, is_finite_number
 from svr.sampling.volume import CanonicalVolume
@@ -145,15 +146,8 @@ def _ellipsoid(
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """A rotation matrix uniform on SO(3) (a normalised 4D Gaussian quaternion)."""
+    return quat_to_matrix(torch.from_numpy(rng.standard_normal(4))).numpy()
 
 
 def make_scene(
