@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import cast
 
@@ -22,12 +23,13 @@ import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from torch import Tensor
 
 from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, resample_to_grid
 from svr.reconstruction.config import ReconstructionResult
 
-__all__ = ["FIGURE_SUFFIXES", "qa_figure"]
+__all__ = ["FIGURE_SUFFIXES", "masks_figure", "qa_figure"]
 
 FIGURE_SUFFIXES = (".png", ".pdf")
 _AXES = ("x", "y", "z")
@@ -42,9 +44,9 @@ def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[
     return [volume[i, :, :].T, volume[:, j, :].T, volume[:, :, k].T]
 
 
-def _text(result: ReconstructionResult) -> str:
+def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     timings = result.timings_s
-    lines = ["time per phase (s)"]
+    lines = [*notes, "time per phase (s)"]
     lines += [f"  {name}: {seconds:.1f}" for name, seconds in timings.items()]
     lines.append(f"  total: {sum(timings.values()):.1f}")
     lines.append("initialisation per stack")
@@ -68,6 +70,7 @@ def qa_figure(
     path: str | os.PathLike[str],
     reference: Image | None = None,
     overwrite: bool = False,
+    notes: Sequence[str] = (),
 ) -> Path:
     """Draw the quality page of a reconstruction (see the module docstring), atomically.
 
@@ -77,6 +80,7 @@ def qa_figure(
         reference: A volume in the result's frame (e.g. the ground truth of a simulation), shown
             resampled onto the result's grid; ``None`` for none.
         overwrite: Whether an existing file may be replaced.
+        notes: Lines printed first in the text panel (e.g. where the brain masks came from).
 
     Returns:
         The written path.
@@ -135,8 +139,66 @@ def qa_figure(
 
     ax = figure.add_subplot(grid[len(volumes), 2])
     ax.axis("off")
-    ax.text(0.0, 1.0, _text(result), va="top", ha="left", family="monospace", fontsize=7)
+    ax.text(0.0, 1.0, _text(result, notes), va="top", ha="left", family="monospace", fontsize=7)
 
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format=p.suffix[1:], dpi=100)
+    return atomic_write_bytes(p, buffer.getvalue(), overwrite)
+
+
+def masks_figure(
+    stacks: Sequence[tuple[str, Image, Tensor]],
+    path: str | os.PathLike[str],
+    overwrite: bool = False,
+    title: str = "brain masks",
+) -> Path:
+    """Draw each stack with its brain mask's outline, for a person to check at a glance.
+
+    One row per stack: three slices (k-planes) at a quarter, half and three quarters of the
+    mask's extent through the stack, on a grey scale from 0 to the stack's 99.5th percentile,
+    the mask's outline in red.
+
+    Args:
+        stacks: ``(name, stack, mask)`` per stack; the mask is (I, J, K) on the stack's grid.
+        path: A ``.png`` or ``.pdf`` file name; the suffix chooses the format.
+        overwrite: Whether an existing file may be replaced.
+        title: The page's title.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ValueError: If the suffix is not ``.png`` or ``.pdf`` or there are no stacks.
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    p = Path(path)
+    if p.suffix not in FIGURE_SUFFIXES:
+        raise ValueError(f"{p}: QA figures are written as .png or .pdf")
+    if not stacks:
+        raise ValueError("masks_figure(): no stacks to draw")
+    check_output_path(p, overwrite)
+    figure = Figure(figsize=(8.27, 2.7 * len(stacks) + 0.4), layout="constrained")
+    FigureCanvasAgg(figure)
+    figure.suptitle(title, fontsize=10)
+    axes = figure.subplots(len(stacks), 3, squeeze=False)
+    for row, (name, stack, mask) in enumerate(stacks):
+        data = stack.data.detach().cpu().float().numpy()
+        brain = mask.detach().cpu().numpy() > 0
+        planes = np.nonzero(brain.any(axis=(0, 1)))[0]
+        first, last = (planes[0], planes[-1]) if planes.size else (0, data.shape[2] - 1)
+        vmax = float(np.percentile(data, 99.5)) or 1.0
+        volume_ml = float(brain.sum() * stack.spacing.prod()) / 1000.0
+        for col, fraction in enumerate((0.25, 0.5, 0.75)):
+            k = round(first + fraction * (last - first))
+            ax = axes[row, col]
+            ax.imshow(data[:, :, k].T, cmap="gray", origin="lower", vmin=0.0, vmax=vmax)
+            if brain[:, :, k].any():
+                ax.contour(brain[:, :, k].T.astype(float), [0.5], colors="red", linewidths=0.8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"k = {k}", fontsize=8)
+            if col == 0:
+                ax.set_ylabel(f"{Path(name).name}\n{volume_ml:.0f} ml", fontsize=8)
     buffer = io.BytesIO()
     figure.savefig(buffer, format=p.suffix[1:], dpi=100)
     return atomic_write_bytes(p, buffer.getvalue(), overwrite)

@@ -6,11 +6,13 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
 
 1. **Mask.** A given mask on another grid is resampled onto the stack's (nearest neighbour, by
    world position, as :mod:`svr.models.predict` does); it must overlap the stack. Without masks, an
-   automatic one: voxels above the stack's Otsu threshold, kept only inside the region that every
-   stack's field of view covers (each stack covering the boxes of its voxels), then the largest
-   3D connected component with its holes filled. This suits stacks already cropped around the
-   brain (the brain is the largest bright object seen by all stacks); for whole-uterus scans it
-   finds the uterus or maternal tissue, not the brain: give masks there.
+   automatic one, by ``StackConfig.auto_mask``: ``"network"`` runs the shipped brain-mask
+   networks (:func:`svr.models.brain_mask.segment_stack`: whole-uterus or cropped stacks; a stack
+   where no brain is found is an error naming it); ``"otsu"`` keeps voxels above the stack's Otsu
+   threshold inside the region that every stack's field of view covers (each stack covering the
+   boxes of its voxels), then the largest 3D connected component with its holes filled, which
+   suits only stacks already cropped around the brain (the brain is the largest bright object seen
+   by all stacks).
 2. **Crop.** In-plane (axes 0 and 1) to the mask's bounding box over all planes plus
    ``crop_margin_mm``, clipped to the array; along k to the planes from the first to the last
    with mask (a contiguous range; planes with an empty mask inside it are kept and dropped later
@@ -34,20 +36,28 @@ import numbers
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
 import torch
 from scipy import ndimage
 from skimage.filters import threshold_otsu
-from torch import Tensor
+from torch import Tensor, nn
 
 from svr.image import Image, ImageError, intensity_scale, load_nifti, mask_on_grid
 from svr.reconstruction.slices import Stack
 
-__all__ = ["StackConfig", "load_stacks", "prepare_stacks"]
+if TYPE_CHECKING:
+    from svr.models.brain_mask import BrainMasker
+
+__all__ = ["AUTO_MASKS", "AutoMask", "StackConfig", "load_stacks", "prepare_stacks"]
 
 log = logging.getLogger(__name__)
+
+AutoMask = Literal["otsu", "network"]
+AUTO_MASKS: tuple[str, ...] = ("network", "otsu")
+"""The automatic masks of stacks given without one (``StackConfig.auto_mask``)."""
 
 _SHEAR_TOLERANCE = 1e-3  # |cos| of the angle between the in-plane axes treated as orthogonal
 
@@ -66,14 +76,22 @@ class StackConfig:
             the slices are already thick, so k is not downsampled).
         n4_iterations: Maximum iterations per N4 fitting level; its length is the number of
             levels (SimpleITK's default).
+        auto_mask: How stacks without a mask get one: ``"otsu"`` or ``"network"`` (module
+            docstring). The ``svr`` commands default to ``"network"``.
     """
 
     crop_margin_mm: float = 5.0
     bias_correction: bool = False
     n4_shrink_factor: int = 2
     n4_iterations: tuple[int, ...] = (50, 50, 50, 50)
+    auto_mask: AutoMask = "otsu"
 
     def __post_init__(self) -> None:
+        if self.auto_mask not in AUTO_MASKS:
+            raise ValueError(
+                f"StackConfig: 'auto_mask' must be one of {', '.join(AUTO_MASKS)}, "
+                f"got {self.auto_mask!r}"
+            )
         if not (math.isfinite(self.crop_margin_mm) and self.crop_margin_mm >= 0):
             raise ValueError(
                 f"StackConfig: 'crop_margin_mm' must be >= 0, got {self.crop_margin_mm}"
@@ -94,6 +112,8 @@ def load_stacks(
     mask_paths: Sequence[str | os.PathLike[str]] | None = None,
     thicknesses: float | Sequence[float] | None = None,
     config: StackConfig | None = None,
+    masker: BrainMasker | str | os.PathLike[str] | None = None,
+    device: torch.device | str = "cpu",
 ) -> list[Stack]:
     """Read NIfTI stacks (and their masks) and prepare them for reconstruction.
 
@@ -104,6 +124,10 @@ def load_stacks(
         thicknesses: Slice thicknesses in mm: ``None`` (each stack's slice spacing, with a
             warning), one value for all stacks, or one per stack.
         config: Preparation settings; default :class:`StackConfig`'s.
+        masker: The brain-mask networks for ``config.auto_mask == "network"``, or the model to
+            load (:func:`svr.models.brain_mask.load_brain_masker`: ``"default"``, a folder),
+            loaded after the stacks are checked; ``None`` for ``"default"``.
+        device: Where those networks run.
 
     Returns:
         One :class:`~svr.reconstruction.slices.Stack` per file, in order, on the CPU: float32
@@ -128,6 +152,8 @@ def load_stacks(
         config,
         names=[str(path) for path in stack_paths],
         mask_names=None if mask_paths is None else [str(path) for path in mask_paths],
+        masker=masker,
+        device=device,
     )
 
 
@@ -138,6 +164,8 @@ def prepare_stacks(
     config: StackConfig | None = None,
     names: Sequence[str] | None = None,
     mask_names: Sequence[str] | None = None,
+    masker: BrainMasker | str | os.PathLike[str] | None = None,
+    device: torch.device | str = "cpu",
 ) -> list[Stack]:
     """Prepare stacks held in memory (e.g. simulated ones); :func:`load_stacks` for files.
 
@@ -148,6 +176,8 @@ def prepare_stacks(
         config: Preparation settings; default :class:`StackConfig`'s.
         names: The stacks' names for the results and messages; default ``"stack 0"``, ...
         mask_names: The masks' names for messages; default ``"mask of <stack name>"``.
+        masker: As in :func:`load_stacks`.
+        device: As in :func:`load_stacks`.
 
     Returns:
         One prepared :class:`~svr.reconstruction.slices.Stack` per image.
@@ -171,7 +201,20 @@ def prepare_stacks(
     for image, name in zip(images, names, strict=True):
         _check_stack(image, name)
     widths = _thicknesses(thicknesses, images, names)
-    if masks is None:
+    if masks is None and config.auto_mask == "network":
+        from svr.models.brain_mask import load_brain_masker, segment_stack
+
+        networks = (
+            masker
+            if isinstance(masker, nn.Module)
+            else load_brain_masker("default" if masker is None else masker, device)
+        )
+        brains = []
+        for image, name in zip(images, names, strict=True):
+            result = segment_stack(image, networks, name=name, device=device)
+            log.info("%s: automatic brain mask (network), %.0f ml", name, result.volume_ml)
+            brains.append(result.mask)
+    elif masks is None:
         brains = [
             _automatic_mask(image, images[:n] + images[n + 1 :], name)
             for n, (image, name) in enumerate(zip(images, names, strict=True))
@@ -285,6 +328,7 @@ def _automatic_mask(image: Image, others: Sequence[Image], name: str) -> Tensor:
         )
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
+    log.info("%s: automatic brain mask (otsu)", name)
     return torch.from_numpy(ndimage.binary_fill_holes(labels == sizes.argmax()))
 
 

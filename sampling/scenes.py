@@ -15,7 +15,8 @@ randomisation (SynthSeg-style: random shapes, random intensities) around a canon
    a random intensity per label and a smooth texture.
 
 The result is a :class:`~svr.sampling.volume.CanonicalVolume` whose ``image`` holds the whole
-scene (it is *not* zero outside the brain) and whose ``mask`` is the brain only, on a grid
+scene (it is *not* zero outside the brain) and whose ``mask`` is the brain only (or, with
+``intracranial_mask``, the brain and the CSF around it: all inside the skull), on a grid
 centred on the brain. :func:`svr.sampling.simulate.simulate_case` cuts motion-corrupted
 thick-slice stacks from it as from any volume (``margin_mm`` sets how much of the scene a stack
 sees; bias fields, noise and signal voids come from there), and each stack's brain mask is the
@@ -62,6 +63,15 @@ class SceneConfig:
         skull_intensity: Range of the skull intensity.
         tissue_intensity: Range of the scalp, body and maternal tissue intensities.
         texture: Relative standard deviation of the smooth multiplicative texture, >= 0.
+        distractors: Range (inclusive) of the number of random organs: ellipsoids of random size
+            and intensity in the maternal tissue and the fetal body, half of them with a rim of
+            another intensity (bowel, bladder, spine, kidneys: ring-like structures that are
+            not the brain).
+        distractor_mm: Range of an organ's semi-axes, mm.
+        body_scale: Range of the fetal body's semi-axes relative to the brain's radius (the
+            longest axis is 1.5 times longer).
+        intracranial_mask: Whether the scene's mask also holds the extra-axial CSF (everything
+            inside the skull, as manual fetal brain masks are drawn), not the brain alone.
 
     Raises:
         ValueError: On construction, naming the field, for an invalid value.
@@ -83,6 +93,10 @@ class SceneConfig:
     skull_intensity: tuple[float, float] = (0.02, 0.3)
     tissue_intensity: tuple[float, float] = (0.1, 1.2)
     texture: float = 0.1
+    distractors: tuple[int, int] = (0, 0)
+    distractor_mm: tuple[float, float] = (4.0, 30.0)
+    body_scale: tuple[float, float] = (0.9, 1.6)
+    intracranial_mask: bool = False
 
     def __post_init__(self) -> None:
         for name in ("extent_mm", "spacing_mm"):
@@ -103,14 +117,17 @@ class SceneConfig:
             "csf_intensity",
             "skull_intensity",
             "tissue_intensity",
+            "distractor_mm",
+            "body_scale",
         ):
             check_positive_range(getattr(self, name), "SceneConfig", name)
-        low, high = self.maternal_labels
-        if not (isinstance(low, int) and isinstance(high, int) and 1 <= low <= high):
-            raise ValueError(
-                "SceneConfig: 'maternal_labels' must be integers (low, high) with 1 <= low <= "
-                f"high, got {self.maternal_labels!r}"
-            )
+        for name, least in (("maternal_labels", 1), ("distractors", 0)):
+            low, high = getattr(self, name)
+            if not (isinstance(low, int) and isinstance(high, int) and least <= low <= high):
+                raise ValueError(
+                    f"SceneConfig: '{name}' must be integers (low, high) with {least} <= low <= "
+                    f"high, got {getattr(self, name)!r}"
+                )
         for name in ("texture", "irregularity"):
             value = getattr(self, name)
             if not (is_finite_number(value) and value >= 0):
@@ -150,6 +167,39 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     return quat_to_matrix(torch.from_numpy(rng.standard_normal(4))).numpy()
 
 
+def _paint_organs(
+    scene: np.ndarray,
+    xyz: np.ndarray,
+    region: np.ndarray,
+    count: int,
+    cfg: SceneConfig,
+    rng: np.random.Generator,
+) -> None:
+    """Paint ``count`` random ellipsoids (half with a rim) centred in ``region``, in place."""
+    inside = np.argwhere(region)
+    if count == 0 or len(inside) == 0:
+        return
+    spacing = cfg.spacing_mm
+    for _ in range(count):
+        centre_index = inside[int(rng.integers(len(inside)))]
+        radii = rng.uniform(*cfg.distractor_mm, size=3)
+        rim = float(rng.uniform(1.0, 4.0)) if rng.random() < 0.5 else 0.0
+        reach = math.ceil((radii.max() + rim) / spacing) + 1
+        box = tuple(
+            slice(max(int(c) - reach, 0), min(int(c) + reach + 1, n))
+            for c, n in zip(centre_index, scene.shape, strict=True)
+        )
+        local = xyz[box]
+        rotation = _random_rotation(rng)
+        centre = xyz[tuple(centre_index)]
+        core_value = float(rng.uniform(0.05, max(cfg.csf_intensity)))
+        if rim > 0:
+            outer = _ellipsoid(local, centre, radii + rim, rotation)
+            scene[box] = np.where(outer, _uniform(rng, cfg.skull_intensity), scene[box])
+        core = _ellipsoid(local, centre, radii, rotation)
+        scene[box] = np.where(core, core_value, scene[box])
+
+
 def make_scene(
     brain: CanonicalVolume, config: SceneConfig | None = None, seed: int = 0
 ) -> CanonicalVolume:
@@ -162,7 +212,8 @@ def make_scene(
 
     Returns:
         The scene: ``image`` (float32, the whole scene, brain 99th percentile ~1) and ``mask``
-        (the brain, bool) on a cubic grid of ``config.spacing_mm`` centred on the brain's
+        (the brain, or all inside the skull with ``intracranial_mask``; bool) on a cubic grid
+        of ``config.spacing_mm`` centred on the brain's
         canonical origin; ``centre_mm`` zero and ``intensity_scale`` 1.
 
     Raises:
@@ -202,7 +253,7 @@ def make_scene(
     # 3. Body and amniotic fluid.
     direction = rng.standard_normal(3)
     direction /= np.linalg.norm(direction)
-    body_radii = radius * rng.uniform(0.9, 1.6, size=3) * np.array([1.0, 1.0, 1.5])
+    body_radii = radius * rng.uniform(*cfg.body_scale, size=3) * np.array([1.0, 1.0, 1.5])
     body_centre = direction * (radius + scalp + body_radii[2] * rng.uniform(0.6, 0.9))
     body = _ellipsoid(xyz, body_centre, body_radii, _random_rotation(rng))
     margin = _uniform(rng, cfg.fluid_margin_mm)
@@ -226,8 +277,17 @@ def make_scene(
 
     # Paint from the outside in.
     scene = np.where(abdomen | fluid, scene, 0.0)
+    # (no draw without organs: scenes made before organs existed stay the same)
+    organs = (
+        int(rng.integers(cfg.distractors[0], cfg.distractors[1] + 1)) if cfg.distractors[1] else 0
+    )
     scene = np.where(fluid, _uniform(rng, cfg.csf_intensity), scene)
-    scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
+    if organs:  # a textured body (its own intensities on the label field) holding organs
+        body_values = rng.uniform(*cfg.tissue_intensity, size=labels)
+        scene = np.where(body, body_values[maternal_label], scene)
+        _paint_organs(scene, xyz, (abdomen | fluid) & (distance > scalp), organs, cfg, rng)
+    else:
+        scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= skull, _uniform(rng, cfg.skull_intensity), scene)
     scene = np.where(distance <= csf, _uniform(rng, cfg.csf_intensity), scene)
@@ -235,9 +295,10 @@ def make_scene(
         texture = 1.0 + cfg.texture * _smooth_noise(rng, (n, n, n), 2.0 / cfg.spacing_mm)
         scene = scene * np.clip(texture, 0.2, None)
     scene = np.where(brain_mask, intensity, scene)
+    mask = (brain_mask | (distance <= csf)) if cfg.intracranial_mask else brain_mask
     return CanonicalVolume(
         Image(torch.from_numpy(scene.astype(np.float32)), affine),
-        torch.from_numpy(brain_mask),
+        torch.from_numpy(mask),
         torch.zeros(3, dtype=torch.float64),
         1.0,
     )

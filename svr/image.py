@@ -205,6 +205,61 @@ def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = Fal
     return p
 
 
+def save_mask_like(
+    mask: Tensor | np.ndarray,
+    reference: str | os.PathLike[str],
+    path: str | os.PathLike[str],
+    overwrite: bool = False,
+) -> Path:
+    """Write a uint8 mask on a NIfTI file's grid with that file's header, atomically.
+
+    The reference's header is copied, so the mask's sform and qform (matrices and codes), voxel
+    sizes and units equal the reference's exactly (a trailing 4th dimension of size 1 is dropped,
+    as :func:`load_nifti` drops it); the data type becomes uint8 without scaling.
+
+    Args:
+        mask: (I, J, K) mask (nonzero = inside) on the reference's grid.
+        reference: The NIfTI file whose grid and header the mask takes (e.g. the stack).
+        path: A ``.nii`` or ``.nii.gz`` file name.
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ImageError: If the name does not end in .nii or .nii.gz, the reference cannot be read,
+            or the mask's shape is not the reference's (3D part).
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    p = check_output_path(path, overwrite)
+    if not str(p).endswith(NIFTI_SUFFIXES):
+        raise _fail(p, "output must end in .nii or .nii.gz")
+    ref = Path(reference)
+    try:
+        with _nibabel_messages(ref):
+            source = cast("nib.Nifti1Image", nib.load(str(ref)))  # NIfTI-1 or -2
+    except (OSError, ValueError, nib.filebasedimages.ImageFileError) as err:
+        raise _fail(ref, f"cannot read as NIfTI ({' '.join(str(err).split())})") from err
+    data = np.asarray(mask.detach().cpu().numpy() if isinstance(mask, Tensor) else mask)
+    shape = tuple(source.shape[:3])
+    if data.shape != shape:
+        raise _fail(p, f"mask shape {data.shape} is not the grid of {ref} {shape}")
+    header = source.header.copy()
+    header.set_data_dtype(np.uint8)
+    header.set_slope_inter(1.0, 0.0)
+    # Without an affine, nibabel keeps the copied header's sform and qform fields as stored
+    # (nothing is recomputed from a matrix, so quaternions and offsets stay bit for bit).
+    out = nib.Nifti1Image((data != 0).astype(np.uint8), None, header)
+    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp{''.join(p.suffixes)}")
+    try:
+        nib.save(out, str(tmp))
+        os.replace(tmp, p)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return p
+
+
 def voxel_to_world(affine: Tensor, voxels: Tensor) -> Tensor:
     """Map continuous voxel indices to world points (mm) of an image with ``affine``.
 

@@ -39,10 +39,12 @@ from synthetic import ellipsoid_brain
 import svr.apps.demo as recon_demo
 import svr.files
 import svr.image
+import svr.models.brain_mask as brain_mask
 import svr.reconstruction.pipeline as pipeline
 from svr.cli import SUBCOMMANDS, main
 from svr.image import save_nifti
 from svr.models.backbones import BackboneConfig
+from svr.models.brain_mask import BrainMaskConfig, BrainMasker, save_brain_masker
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CHECKPOINT_WEIGHTS,
@@ -51,6 +53,7 @@ from svr.models.checkpoint import (
     save_checkpoint,
 )
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
+from svr.models.segmentation import SegmentationConfig
 
 # --- the pickle payload: unpickling it creates a marker file -------------------------------------
 
@@ -118,6 +121,13 @@ def env(tmp_path_factory) -> dict[str, str]:
     stack = (inside * (1 + rng.random(STACK_SHAPE))).astype(np.float32)
     f["stack"] = _write(root / "stack.nii.gz", _nifti(stack))
     f["stack_mask"] = _write(root / "stack_mask.nii.gz", _nifti(inside))
+    tiny = BrainMaskConfig(
+        localiser_size=16,
+        segmenter_size=16,
+        localiser=SegmentationConfig(2, 1),
+        segmenter=SegmentationConfig(2, 1),
+    )
+    f["masker"] = str(save_brain_masker(BrainMasker(tiny), root / "masker"))
 
     # Bad NIfTI files: any image slot.
     good = _nifti(stack)
@@ -295,6 +305,8 @@ BASE = {
     "demo": "demo --quick --input-volume {brain} --input-mask {mask} --registration cnn "
     "--model {model} --output-dir {out}/demo --device cpu",
     "demo-loss": "demo --loss-only --num-poses 2 --steps 1 --output {out}/demo.json --device cpu",
+    "segment-stack": "segment-stack --input-stacks {stack} --output-stack-masks {out}/mask.nii.gz "
+    "--mask-model {masker} --output-qa {out}/masks.png --device cpu",
 }
 
 # command -> the options that take its image and its mask
@@ -363,6 +375,7 @@ EXISTING = {
     "reconstruct": ("srr.nii.gz", "--output-volume"),
     "demo": ("demo/", "--output-dir"),
     "demo-loss": ("demo.json", "--output"),
+    "segment-stack": ("mask.nii.gz", "--output-stack-masks"),
 }
 
 OUTPUT_OPTION = {
@@ -375,6 +388,7 @@ OUTPUT_OPTION = {
     "reconstruct": ("--output-volume", "srr.nii.gz"),
     "demo": ("--output-dir", "demo"),
     "demo-loss": ("--output", "demo.json"),
+    "segment-stack": ("--output-stack-masks", "mask.nii.gz"),
 }
 
 
@@ -485,6 +499,73 @@ def _cases() -> list[Case]:
                 )
             )
 
+    for bad, problem in BAD_FILES.items():
+        add(
+            Case(
+                f"segment-stack-input-stacks-{bad}",
+                "segment-stack",
+                ["--input-stacks", ref(bad)],
+                [ref(bad), problem],
+                setup="unreadable" if bad == "unreadable" else None,
+            )
+        )
+    add(
+        Case(
+            "segment-stack-count",
+            "segment-stack",
+            ["--input-stacks", "{stack}", "{stack}"],
+            ["--output-stack-masks: got 1 paths for 2 stacks"],
+        )
+    )
+    for option, path, message in (
+        ("--output-stack-masks", "{out}/mask.mgz", "must end in .nii or .nii.gz"),
+        ("--output-qa", "{out}/masks.txt", "must end in .png or .pdf"),
+        ("--output-stack-masks", "{stack}", "the same path is an input or another output"),
+    ):
+        add(
+            Case(
+                f"segment-stack-{option[2:]}-{Path(path).suffix or 'input'}",
+                "segment-stack",
+                [option, path],
+                [f"{option} {path}: {message}"],
+            )
+        )
+    add(
+        Case(
+            "segment-stack-qa-exists",
+            "segment-stack",
+            [],
+            ["{out}/masks.png", "output exists; pass --overwrite"],
+            setup="existing:masks.png",
+        )
+    )
+    for bad in ("ckpt_missing", "ckpt_empty", "ckpt_pickle_weights", "ckpt_stale_hash"):
+        add(
+            Case(
+                f"segment-stack-{bad}",
+                "segment-stack",
+                ["--mask-model", ref(bad)],
+                [ref(bad), BAD_CHECKPOINTS[bad][0]],
+            )
+        )
+    add(
+        Case(
+            "segment-stack-pose-model",
+            "segment-stack",
+            ["--mask-model", "{model}"],
+            ["{model}", "not a brain-mask model"],
+        )
+    )
+    for command in ("register", "reconstruct"):
+        add(
+            Case(
+                f"{command}-auto-mask-model-missing",
+                command,
+                ["--mask-model", "{ckpt_missing}"],
+                ["{ckpt_missing}", "checkpoint folder does not exist"],
+                drop=["--stack-masks"],
+            )
+        )
     for command in ("register", "reconstruct"):
         add(
             Case(
@@ -923,6 +1004,7 @@ def test_bad_input_is_refused_cleanly(case: Case, env, tmp_path, capsys, monkeyp
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(pipeline, "reconstruct", _never_called)  # register, reconstruct
     monkeypatch.setattr(recon_demo, "simulate_case", _never_called)  # demo
+    monkeypatch.setattr(brain_mask, "segment_stack", _never_called)  # segment-stack
     _setup(case, names, out, monkeypatch)
     argv = _argv(case, names)
     before, inputs_before = _snapshot(out), _snapshot(Path(env["root"]))
@@ -992,8 +1074,9 @@ def test_the_base_invocations_are_good(key, env, tmp_path, capsys, monkeypatch):
     names = {**env, "out": str(out)}
     monkeypatch.setattr(pipeline, "reconstruct", _never_called)
     monkeypatch.setattr(recon_demo, "simulate_case", _never_called)
+    monkeypatch.setattr(brain_mask, "segment_stack", _never_called)
     argv = _argv(Case("control", key, [], []), names)
-    if key in ("register", "reconstruct", "demo"):
+    if key in ("register", "reconstruct", "demo", "segment-stack"):
         with pytest.raises(AssertionError, match="the computation started"):
             main([*argv, "-q"])
     else:

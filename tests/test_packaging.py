@@ -94,11 +94,13 @@ def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
     installed = sorted(p.name for p in Path(site).iterdir())
     for name in ("models", "sampling", "reconstruction"):
         assert name not in installed
-    assert (Path(site) / "svr" / "models" / "pretrained" / "default" / "config.json").is_file()
+    for model in ("default", "brain_mask"):
+        for name in ("config.json", "model.safetensors", "README.md"):
+            assert (Path(site) / "svr" / "models" / "pretrained" / model / name).is_file()
     assert (Path(site) / "svr" / "py.typed").is_file()
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     out = _run([str(fresh / "bin" / "svr"), "--help"], cwd=tmp_path, env=env)
-    assert "reconstruct" in out
+    assert "reconstruct" in out and "segment-stack" in out
     where = _run(
         [
             str(python),

@@ -310,6 +310,8 @@ def test_argument_errors(tmp_path):
         StackConfig(crop_margin_mm=-1.0)
     with pytest.raises(ValueError, match="n4_shrink_factor"):
         StackConfig(n4_shrink_factor=0)
+    with pytest.raises(ValueError, match="'auto_mask' must be one of network, otsu, got 'unet'"):
+        StackConfig(auto_mask="unet")  # type: ignore[arg-type]
 
 
 # --- automatic mask -----------------------------------------------------------------------------

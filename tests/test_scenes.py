@@ -84,6 +84,10 @@ def test_stacks_cut_from_a_scene_show_the_surroundings(brain):
         ("brain_scale", (1.2, 0.8)),
         ("maternal_labels", (0, 3)),
         ("texture", -0.1),
+        ("distractors", (5, 2)),
+        ("distractors", (-1, 2)),
+        ("distractor_mm", (0.0, 3.0)),
+        ("body_scale", (2.0, 1.0)),
     ],
 )
 def test_config_errors_name_the_field(field, value):
@@ -109,3 +113,34 @@ def test_air_outside_the_abdomen(brain):
     assert float(image[0, 0, 0]) == 0.0 and float(image[-1, -1, -1]) == 0.0
     assert 0.2 < float((image == 0).float().mean()) < 0.95
     assert bool((image[scene.mask] > 0).any())
+
+
+def test_organs_change_only_the_surroundings(brain):
+    """Organs (distractors) are painted outside the head; the brain and its mask are kept, and
+    scenes without organs draw the same random numbers as before organs existed."""
+    plain = make_scene(brain, SMALL, seed=3)
+    busy = make_scene(brain, SMALL.__class__(**{**SMALL.__dict__, "distractors": (40, 40)}), seed=3)
+    assert torch.equal(plain.mask, busy.mask)
+    assert torch.equal(plain.image.data[plain.mask], busy.image.data[busy.mask])
+    changed = (plain.image.data != busy.image.data) & ~plain.mask
+    assert float(changed.float().mean()) > 0.02
+    from scipy import ndimage
+
+    distance = ndimage.distance_transform_edt(~plain.mask.numpy(), sampling=2.0)
+    assert not changed.numpy()[distance <= 1.5].any()  # the CSF shell next to the brain is kept
+    # the sum of this scene as the code before organs made it (commit 6ac7f6d)
+    assert float(plain.image.data.double().sum()) == pytest.approx(257755.41016155295, rel=1e-9)
+
+
+def test_intracranial_mask_adds_the_csf_shell_only(brain):
+    """The same scene; its mask grows by the CSF shell (inside the skull) and nothing else."""
+    plain = SceneConfig(**{**SMALL.__dict__, "texture": 0.0})
+    brain_only = make_scene(brain, plain, seed=8)
+    config = SceneConfig(**{**plain.__dict__, "intracranial_mask": True})
+    intracranial = make_scene(brain, config, seed=8)
+    assert torch.equal(brain_only.image.data, intracranial.image.data)
+    assert bool((intracranial.mask | ~brain_only.mask).all())  # a superset
+    added = intracranial.mask & ~brain_only.mask
+    assert int(added.sum()) > 0
+    values = intracranial.image.data[added]
+    assert float(values.min()) == float(values.max()) >= 1.0  # the CSF intensity, one value

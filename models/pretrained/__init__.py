@@ -18,7 +18,13 @@ from pathlib import Path
 
 from svr.models.checkpoint import CheckpointError
 
-__all__ = ["DEFAULT_MODEL", "MAX_MODEL_BYTES", "default_model_path"]
+__all__ = [
+    "BRAIN_MASK_FOLDER",
+    "DEFAULT_MODEL",
+    "MAX_MODEL_BYTES",
+    "brain_mask_model_path",
+    "default_model_path",
+]
 
 DEFAULT_MODEL = "default"
 """The name that stands for the shipped model wherever a checkpoint folder is accepted."""
@@ -34,7 +40,24 @@ def default_model_path() -> Path:
         CheckpointError: If the package is not installed as plain files (e.g. in a zip archive),
             so that the weights cannot be opened by path.
     """
-    folder = resources.files(__name__).joinpath(DEFAULT_MODEL)
+    return _shipped_folder(DEFAULT_MODEL)
+
+
+BRAIN_MASK_FOLDER = "brain_mask"
+"""The package-data folder of the shipped brain-mask model (:mod:`svr.models.brain_mask`)."""
+
+
+def brain_mask_model_path() -> Path:
+    """The folder of the shipped brain-mask model inside the installed package.
+
+    Raises:
+        CheckpointError: If the package is not installed as plain files.
+    """
+    return _shipped_folder(BRAIN_MASK_FOLDER)
+
+
+def _shipped_folder(name: str) -> Path:
+    folder = resources.files(__name__).joinpath(name)
     if not isinstance(folder, Path):
         raise CheckpointError(
             str(folder), "the package is not installed as files; cannot open the shipped model"

@@ -15,7 +15,17 @@ import traceback
 from collections.abc import Sequence
 
 from svr import __version__
-from svr.cli import demo, evaluate, predict, reconstruct, register, sample, simulate, train
+from svr.cli import (
+    demo,
+    evaluate,
+    predict,
+    reconstruct,
+    register,
+    sample,
+    segment_stack,
+    simulate,
+    train,
+)
 from svr.cli.common import CliError
 from svr.files import OutputExistsError
 
@@ -25,6 +35,7 @@ SUBCOMMANDS = {
     "train": train,
     "predict": predict,
     "evaluate": evaluate,
+    "segment-stack": segment_stack,
     "register": register,
     "reconstruct": reconstruct,
     "demo": demo,

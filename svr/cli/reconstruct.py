@@ -41,8 +41,9 @@ template stack; `none` keeps the scanner's poses), then outer rounds alternate s
 registration (skipped in the first round), EM outlier weighting, exclusion of slices whose NCC
 with their simulation is below --ncc-threshold, and edge-preserving super-resolution.
 
-Stacks are cropped to their brain masks and normalised; without --stack-masks an automatic mask
-is used (stacks cropped around the brain only; give masks for whole-uterus scans). The output
+Stacks are cropped to their brain masks and normalised; without --stack-masks each stack's brain
+is found automatically (--auto-masks network, as `svr segment-stack` does; the log and the QA
+figure say so) in whole-uterus or cropped stacks. The output
 volume is in canonical atlas space with --registration cnn and in the scanner's world frame
 otherwise. --output-transforms writes one row per slice (stack file, k index, pose of the file's
 k-plane as 6-vector and matrix, frame, NCC, EM weight, excluded); --output-slices a NeSVoR-style
@@ -99,7 +100,22 @@ def add_options(
         nargs="+",
         metavar="MASK",
         help="brain masks (NIfTI, any grid that overlaps the stack), one per stack in order "
-        "(default: automatic masks)",
+        "(default: automatic masks, see --auto-masks)",
+    )
+    inputs.add_argument(
+        "--auto-masks",
+        choices=["network", "otsu"],
+        default="network",
+        help="masks of stacks given without --stack-masks: network (the shipped brain-mask "
+        "networks of svr segment-stack; whole-uterus or cropped stacks) or otsu (the largest "
+        "bright region all stacks see; stacks cropped around the brain only)",
+    )
+    inputs.add_argument(
+        "--mask-model",
+        default="default",
+        metavar="CHECKPOINT_DIR",
+        help="brain-mask model for --auto-masks network: 'default' (shipped) or a folder "
+        "written by benchmarks/train_brain_masker.py",
     )
     inputs.add_argument(
         "--thicknesses",
@@ -213,8 +229,15 @@ def run(args: argparse.Namespace) -> int:
     if config.registration != "cnn" and args.model != "default":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
     with _captured_log() as captured:
-        stacks = load_stacks(args.input_stacks, args.stack_masks, args.thicknesses, stack_config)
         model = load_pose_model(args.model, device) if config.registration == "cnn" else None
+        stacks = load_stacks(
+            args.input_stacks,
+            args.stack_masks,
+            args.thicknesses,
+            stack_config,
+            args.mask_model,
+            device,
+        )
         result = reconstruct(stacks, config, model=model, device=device, progress=not args.quiet)
         _log_result(result)
         written = _write_outputs(args, result)
@@ -261,7 +284,7 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
         )
     if args.template is not None and not 0 <= args.template < count:
         raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
-    stack_config = StackConfig(bias_correction=args.bias_correction)
+    stack_config = StackConfig(bias_correction=args.bias_correction, auto_mask=args.auto_masks)
     try:
         config = ReconstructionConfig(
             output_resolution_mm=args.output_resolution,
@@ -356,8 +379,20 @@ def _write_outputs(args: argparse.Namespace, result: ReconstructionResult) -> li
             str(write_slices_folder(result.slices, args.output_slices, args.overwrite, keep))
         )
     if args.output_qa is not None:
-        written.append(str(qa_figure(result, args.output_qa, overwrite=args.overwrite)))
+        notes = [f"masks: {_mask_source(args)}"]
+        written.append(
+            str(qa_figure(result, args.output_qa, overwrite=args.overwrite, notes=notes))
+        )
     return written
+
+
+def _mask_source(args: argparse.Namespace) -> str:
+    """Where the brain masks came from, for the log and the QA figure."""
+    if args.stack_masks is not None:
+        return "given (--stack-masks)"
+    if args.auto_masks == "network":
+        return f"automatic (network, --mask-model {args.mask_model})"
+    return "automatic (otsu)"
 
 
 def _summary(
@@ -369,7 +404,7 @@ def _summary(
 ) -> str:
     """The settings, timings, initialisation and exclusions, as text for --output-log."""
     lines = [f"# svr {args.command} summary", "inputs:"]
-    masks = args.stack_masks or ["(automatic)"] * len(args.input_stacks)
+    masks = args.stack_masks or [_mask_source(args)] * len(args.input_stacks)
     lines += [
         f"  {stack} (mask {mask})" for stack, mask in zip(args.input_stacks, masks, strict=True)
     ]

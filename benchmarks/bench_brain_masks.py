@@ -1,0 +1,275 @@
+r"""Automatic brain masks against manual ones, and reconstruction with them (issue 14).
+
+Part ``masks``: the brain-mask model (``--mask-model``, default the shipped one) segments every
+stack of
+
+* the real clinical scan ``stacks/real-mialsrtk-sub01`` (6 whole-uterus stacks, manual masks);
+* ``stacks/sim-fabian`` (4 cropped stacks of 3 simulated subjects, their masks);
+* ``stacks/sim-svrtk-phantom`` (6 cropped stacks; the one mask, drawn on stack 2, is resampled
+  onto each stack by world position, nearest neighbour, as ``svr reconstruct`` resamples masks);
+* the bench cases ``bench/sb28-moderate`` and ``bench/sb24-large`` (their masks),
+
+and reports per stack Dice, recall (the fraction of the manual brain inside ours) and precision
+against the given masks, the wall time of :func:`svr.models.brain_mask.segment_stack` with
+``--threads`` torch threads, and the peak resident memory of a fresh process that loads the model
+and segments the first real stack (``ru_maxrss``, with the same process's peak before the call).
+The reference method is the toolkit's former automatic mask, Otsu (``--auto-masks otsu``), on
+the same stacks (ratio columns).
+
+Part ``recon``: ``svr reconstruct``'s pipeline (default settings, ``--registration stack``) on
+the real scan's 6 stacks, once with the manual masks and once with the automatic ones; slice
+consistency is the mean over slices of the NCC of each observed slice with its simulation from
+the volume (the transforms table's ``ncc`` column). A figure shows both volumes.
+
+Run from the repository root on 2 quiet cores::
+
+    python benchmarks/bench_brain_masks.py --threads 2 \\
+        --results benchmarks/results/brain-masks.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from svr.image import Image, load_nifti, mask_on_grid
+from svr.models.brain_mask import BrainNotFoundError, load_brain_masker, segment_stack
+
+MASK_SUFFIX = "T2w_desc-brain_mask.nii.gz"
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+
+
+def datasets(data: Path) -> dict[str, list[tuple[Path, Path]]]:
+    """Dataset name -> (stack, mask) files."""
+    real = data / "stacks" / "real-mialsrtk-sub01"
+    fabian = data / "stacks" / "sim-fabian"
+    phantom = data / "stacks" / "sim-svrtk-phantom"
+    out = {
+        "real-mialsrtk-sub01": [
+            (
+                real / f"sub-01_run-{n}_T2w.nii.gz",
+                real / f"sub-01_run-{n}_T2w_desc-brain_mask.nii.gz",
+            )
+            for n in range(1, 7)
+        ],
+        "sim-fabian": [
+            (fabian / f"{s}_T2w.nii.gz", fabian / f"{m}_mask.nii.gz")
+            for s, m in (
+                ("sub-simu005_ses-01_run-2", "sub-simu005_ses-01_run-2"),
+                ("sub-simu005_ses-01_run-6", "sub-simu005_ses-01_run-6"),
+                ("sub-simu009_ses-01_run-7", "sub-simu009_run-7"),
+                ("sub-simu038_ses-01_run-2", "sub-simu038_ses-01_run-2"),
+            )
+        ],
+        "sim-svrtk-phantom": [
+            (phantom / f"simulated-stack-d{n}.nii.gz", phantom / "mask-for-stack-2.nii.gz")
+            for n in range(6)
+        ],
+    }
+    for case in ("sb28-moderate", "sb24-large"):
+        folder = data / "bench" / case
+        out[case] = [
+            (stack, folder / "masks" / f"{stack.name[: -len('.nii.gz')]}_mask.nii.gz")
+            for stack in sorted((folder / "stacks").glob("stack*.nii.gz"))
+        ]
+    return out
+
+
+def scores(ours: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
+    overlap = float((ours & truth).sum())
+    return {
+        "dice": 2 * overlap / max(float(ours.sum() + truth.sum()), 1.0),
+        "recall": overlap / max(float(truth.sum()), 1.0),
+        "precision": overlap / max(float(ours.sum()), 1.0),
+    }
+
+
+def otsu_masks(stacks: list[Image], names: list[str]) -> list[torch.Tensor]:
+    """The former automatic masks (``StackConfig(auto_mask="otsu")``), on each stack's grid."""
+    from svr.reconstruction.stacks import _automatic_mask
+
+    out = []
+    for n, (image, name) in enumerate(zip(stacks, names, strict=True)):
+        try:
+            out.append(_automatic_mask(image, stacks[:n] + stacks[n + 1 :], name))
+        except ValueError:
+            out.append(torch.zeros(image.shape, dtype=torch.bool))
+    return out
+
+
+PEAK_SCRIPT = """
+import resource, sys, time, torch
+torch.set_num_threads(int(sys.argv[2]))
+from svr.image import load_nifti
+from svr.models.brain_mask import load_brain_masker, segment_stack
+masker = load_brain_masker(sys.argv[3])
+stack = load_nifti(sys.argv[1])
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+segment_stack(stack, masker)
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(before / 1024, after / 1024)
+"""
+
+
+def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
+    masker = load_brain_masker(args.mask_model)
+    lines = [
+        "| dataset | stack | shape | Dice | recall | precision | Otsu Dice | "
+        "Dice ratio (ours / Otsu) | time (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows = []
+    for dataset, pairs in datasets(args.data).items():
+        stacks = [load_nifti(s) for s, _ in pairs]
+        names = [str(s) for s, _ in pairs]
+        otsu = otsu_masks(stacks, names)
+        for (stack_path, mask_path), stack, otsu_mask in zip(pairs, stacks, otsu, strict=True):
+            truth = mask_on_grid(load_nifti(mask_path), stack)
+            began = time.perf_counter()
+            try:
+                mask = segment_stack(stack, masker, name=stack_path.name).mask
+                error = ""
+            except BrainNotFoundError as err:
+                mask, error = torch.zeros(stack.shape, dtype=torch.bool), str(err)
+            seconds = time.perf_counter() - began
+            ours, ref = scores(mask, truth), scores(otsu_mask, truth)
+            row = {
+                "dataset": dataset,
+                "stack": stack_path.name,
+                "shape": list(stack.shape),
+                **ours,
+                "otsu_dice": ref["dice"],
+                "seconds": seconds,
+                "error": error,
+            }
+            rows.append(row)
+            ratio = ours["dice"] / ref["dice"] if ref["dice"] > 0 else float("inf")
+            lines.append(
+                f"| {dataset} | {stack_path.name} | {'x'.join(map(str, stack.shape))} | "
+                f"{ours['dice']:.3f} | {ours['recall']:.3f} | {ours['precision']:.3f} | "
+                f"{ref['dice']:.3f} | {ratio:.2f} | {seconds:.2f} |"
+            )
+            print(lines[-1], flush=True)
+    report["stacks"] = rows
+    summary = ["", "| dataset | min Dice | mean Dice | min recall | mean time (s) |"]
+    summary.append("|---|---|---|---|---|")
+    for dataset in dict.fromkeys(r["dataset"] for r in rows):
+        part = [r for r in rows if r["dataset"] == dataset]
+        summary.append(
+            f"| {dataset} | {min(r['dice'] for r in part):.3f} | "
+            f"{np.mean([r['dice'] for r in part]):.3f} | {min(r['recall'] for r in part):.3f} | "
+            f"{np.mean([r['seconds'] for r in part]):.2f} |"
+        )
+    first = datasets(args.data)["real-mialsrtk-sub01"][0][0]
+    out = subprocess.run(
+        [sys.executable, "-c", PEAK_SCRIPT, str(first), str(args.threads), args.mask_model],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    before, after = float(out[0]), float(out[1])
+    report["peak_rss_mib"] = {"before_segmenting": before, "after_segmenting": after}
+    summary.append("")
+    summary.append(
+        f"Peak resident memory of a fresh process segmenting {first.name} (320x320x22) with "
+        f"{args.threads} threads: {after:.0f} MiB (the same process's peak before the call, "
+        f"after loading torch, the model and the stack: {before:.0f} MiB)."
+    )
+    print("\n".join(summary))
+    return lines + summary
+
+
+def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
+    from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.pipeline import reconstruct
+    from svr.reconstruction.qa import masks_figure
+    from svr.reconstruction.stacks import StackConfig, load_stacks
+
+    pairs = datasets(args.data)["real-mialsrtk-sub01"]
+    stack_paths = [s for s, _ in pairs]
+    config = ReconstructionConfig(registration="stack")
+    results = {}
+    for name, masks, stack_config in (
+        ("manual", [m for _, m in pairs], StackConfig()),
+        ("automatic", None, StackConfig(auto_mask="network")),
+    ):
+        began = time.perf_counter()
+        masker = load_brain_masker(args.mask_model) if masks is None else None
+        stacks = load_stacks(stack_paths, masks, 3.0, stack_config, masker)
+        result = reconstruct(stacks, config)
+        seconds = time.perf_counter() - began
+        ncc = result.slice_ncc.double()
+        results[name] = {
+            "mean_ncc": float(ncc.mean()),
+            "mean_ncc_kept": float(ncc[~result.excluded].mean()),
+            "slices": len(ncc),
+            "excluded": int(result.excluded.sum()),
+            "seconds": seconds,
+        }
+        if args.figures is not None:
+            from svr.reconstruction.qa import qa_figure
+
+            path = args.figures / f"real-scan-{name}-masks-qa.png"
+            qa_figure(result, path, overwrite=True, notes=[f"masks: {name}"])
+        print(name, results[name], flush=True)
+    if args.figures is not None:
+        masker = load_brain_masker(args.mask_model)
+        masks_figure(
+            [
+                (str(p), load_nifti(p), segment_stack(load_nifti(p), masker, name=p.name).mask)
+                for p in stack_paths
+            ],
+            args.figures / "real-scan-automatic-masks.png",
+            overwrite=True,
+            title="svr segment-stack on real-mialsrtk-sub01",
+        )
+    report["recon"] = results
+    manual, auto = results["manual"], results["automatic"]
+    return [
+        "",
+        "| masks | slices | excluded | mean NCC (all slices) | mean NCC (kept) | time (s) |",
+        "|---|---|---|---|---|---|",
+        *(
+            f"| {k} | {v['slices']} | {v['excluded']} | {v['mean_ncc']:.4f} | "
+            f"{v['mean_ncc_kept']:.4f} | {v['seconds']:.1f} |"
+            for k, v in results.items()
+        ),
+        "",
+        f"Slice consistency, automatic minus manual: {auto['mean_ncc'] - manual['mean_ncc']:+.4f} "
+        "(target: within 0.01).",
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--mask-model", default="default")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--part", choices=["masks", "recon", "all"], default="all")
+    parser.add_argument("--results", type=Path, help="markdown file to write (+ .json beside)")
+    parser.add_argument("--figures", type=Path, help="folder for the figures")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    if args.figures is not None:
+        args.figures.mkdir(parents=True, exist_ok=True)
+    report: dict = {"mask_model": args.mask_model, "threads": args.threads}
+    lines = [f"# Automatic brain masks (`{' '.join(sys.argv)}`)", ""]
+    if args.part in ("masks", "all"):
+        lines += part_masks(args, report)
+    if args.part in ("recon", "all"):
+        lines += part_recon(args, report)
+    if args.results is not None:
+        args.results.write_text("\n".join(lines) + "\n")
+        args.results.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

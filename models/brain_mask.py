@@ -1,0 +1,481 @@
+"""Automatic fetal brain masks for thick-slice stacks: localise, then segment (issue 14).
+
+A clinical stack shows the whole maternal abdomen; the brain is a small part of it. A
+:class:`BrainMasker` holds two small 2D U-Nets (:class:`~svr.models.segmentation.BrainUNet`) and
+:func:`segment_stack` runs them on each slice of a stack:
+
+1. **Localise.** Every slice is resampled in-plane onto a square canvas of
+   ``localiser_size`` pixels of ``localiser_mm`` (the whole field of view, coarse), the localiser
+   predicts a brain probability, the probabilities go back onto the stack grid and the largest 3D
+   connected component above ``threshold`` is the brain's rough extent. None (or one smaller than
+   ``min_volume_ml``) is a :class:`BrainNotFoundError` naming the stack, never an empty mask.
+2. **Segment.** Every slice the brain may touch (``slice_margin`` beyond the localised extent)
+   is resampled onto a finer canvas (``segmenter_size`` pixels of ``segmenter_mm``) centred on
+   the brain, the segmenter predicts the brain there (averaged with its prediction on the
+   left-right flipped canvas) and the probabilities go back onto the stack grid.
+3. **Clean up.** The largest 3D component is kept, holes are filled slice by slice, and a slice's
+   pieces that do not touch the brain in a neighbouring slice are dropped (per-slice
+   consistency: the brain is one body through the stack).
+
+Canvases are cut with the same function (:func:`slices_to_canvas`) at inference and when the
+training examples are made (:mod:`svr.models.brain_mask_train`), so both see the same pixels.
+Intensities are divided by the stack's 99th percentile of its positive voxels
+(:func:`normalise_stack`). Frames: the canvas axes are the stack's array axes 0 and 1
+(voxel i, j); its centre is a point of the stack's voxel grid.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch import Tensor, nn
+from torch.nn import functional
+
+from svr.image import Image, intensity_scale
+from svr.models.checkpoint import load_checkpoint, resolve_model_path, save_checkpoint
+from svr.models.segmentation import BrainUNet, SegmentationConfig
+
+__all__ = [
+    "BRAIN_MASK_MODEL",
+    "BrainMaskConfig",
+    "BrainMasker",
+    "BrainNotFoundError",
+    "MaskResult",
+    "canvas_to_slices",
+    "load_brain_masker",
+    "normalise_stack",
+    "save_brain_masker",
+    "segment_stack",
+    "slices_to_canvas",
+]
+
+BRAIN_MASK_MODEL = "brain_mask"
+"""The name of the shipped brain-mask model (``--mask-model default`` resolves to it)."""
+
+_ARCHITECTURE = "brain_masker"
+log = logging.getLogger(__name__)
+
+
+class BrainNotFoundError(ValueError):
+    """No brain was found in a stack (the message names the stack)."""
+
+
+@dataclass(frozen=True)
+class BrainMaskConfig:
+    """Canvases and thresholds of :func:`segment_stack` and the two networks' shapes.
+
+    Attributes:
+        localiser_mm: Pixel size of the localiser's canvas, mm, > 0.
+        localiser_size: Side of the localiser's canvas, pixels (a multiple of 16).
+        segmenter_mm: Pixel size of the segmenter's canvas, mm, > 0.
+        segmenter_size: Side of the segmenter's canvas, pixels (a multiple of 16).
+        localiser: The localiser U-Net's shape.
+        segmenter: The segmenter U-Net's shape.
+        threshold: Probability above which a voxel is brain, in (0, 1).
+        min_volume_ml: Smallest brain accepted by the localiser, millilitres (cm^3), >= 0.
+        slice_margin: Slices beyond the localised brain's first and last that are segmented
+            too, >= 0.
+        percentile: Percentile of a stack's positive voxels that is mapped to 1, in (0, 100].
+
+    Raises:
+        ValueError: On construction, naming the field, for an invalid value.
+    """
+
+    localiser_mm: float = 3.0
+    localiser_size: int = 128
+    segmenter_mm: float = 1.25
+    segmenter_size: int = 128
+    localiser: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(8, 4))
+    segmenter: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(8, 4))
+    threshold: float = 0.5
+    min_volume_ml: float = 5.0
+    slice_margin: int = 2
+    percentile: float = 99.0
+
+    def __post_init__(self) -> None:
+        for name in ("localiser_mm", "segmenter_mm"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and value > 0):
+                raise ValueError(f"BrainMaskConfig: '{name}' must be a number > 0, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"BrainMaskConfig: '{name}' must be finite, got {value!r}")
+        for name, net in (("localiser", self.localiser), ("segmenter", self.segmenter)):
+            size = getattr(self, f"{name}_size")
+            step = 2**net.depth
+            if isinstance(size, bool) or not isinstance(size, int) or size < step or size % step:
+                raise ValueError(
+                    f"BrainMaskConfig: '{name}_size' must be a positive multiple of {step} "
+                    f"(2 ** {name}.depth), got {size!r}"
+                )
+        if not 0 < self.threshold < 1:
+            raise ValueError(
+                f"BrainMaskConfig: 'threshold' must be in (0, 1), got {self.threshold!r}"
+            )
+        if isinstance(self.slice_margin, bool) or not (
+            isinstance(self.slice_margin, int) and self.slice_margin >= 0
+        ):
+            raise ValueError(
+                "BrainMaskConfig: 'slice_margin' must be an integer >= 0, "
+                f"got {self.slice_margin!r}"
+            )
+        if not self.min_volume_ml >= 0:
+            raise ValueError(
+                f"BrainMaskConfig: 'min_volume_ml' must be >= 0, got {self.min_volume_ml!r}"
+            )
+        if not 0 < self.percentile <= 100:
+            raise ValueError(
+                f"BrainMaskConfig: 'percentile' must be in (0, 100], got {self.percentile!r}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The config as JSON-serialisable data."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> BrainMaskConfig:
+        """The config written by :meth:`to_dict`.
+
+        Raises:
+            ValueError: For unknown or invalid fields.
+        """
+        values = dict(data)
+        for name in ("localiser", "segmenter"):
+            if name in values:
+                values[name] = SegmentationConfig(**values[name])
+        try:
+            return cls(**values)
+        except TypeError as exc:
+            raise ValueError(f"BrainMaskConfig: {exc}") from exc
+
+
+class BrainMasker(nn.Module):
+    """The localiser and the segmenter U-Nets with their :class:`BrainMaskConfig`.
+
+    Args:
+        config: Canvases and network shapes; ``None`` for ``BrainMaskConfig()``.
+
+    Attributes:
+        config: The configuration.
+        localiser: Brain logits on the coarse whole-slice canvas.
+        segmenter: Brain logits on the fine canvas centred on the brain.
+    """
+
+    def __init__(self, config: BrainMaskConfig | None = None) -> None:
+        super().__init__()
+        self.config = BrainMaskConfig() if config is None else config
+        self.localiser = BrainUNet(self.config.localiser)
+        self.segmenter = BrainUNet(self.config.segmenter)
+
+
+@dataclass(frozen=True)
+class MaskResult:
+    """A stack's automatic brain mask.
+
+    Attributes:
+        mask: (I, J, K) bool brain mask on the stack's grid.
+        probability: (I, J, K) float32 segmenter probability on the stack's grid.
+        centre_voxel: (2,) float64 in-plane centre (voxel i, j) of the segmenter's canvases.
+        volume_ml: The mask's volume, millilitres.
+    """
+
+    mask: Tensor
+    probability: Tensor
+    centre_voxel: Tensor
+    volume_ml: float
+
+
+def normalise_stack(data: Tensor, name: str, percentile: float = 99.0) -> Tensor:
+    """A stack's intensities divided by the ``percentile``-th percentile of its positive voxels.
+
+    Args:
+        data: (I, J, K) intensities.
+        name: The stack's name, for errors.
+        percentile: In (0, 100].
+
+    Returns:
+        (I, J, K) float32.
+
+    Raises:
+        ValueError: Naming ``name``, if no voxel is positive.
+    """
+    values = data[data > 0]
+    if values.numel() > 1_000_000:  # a fixed subsample: the same value every run
+        values = values[:: values.numel() // 1_000_000 + 1]
+    return (data / intensity_scale(values, name, percentile)).float()
+
+
+def _canvas_axis(centre: Tensor, size: int, pixel_mm: float, spacing: Tensor) -> Tensor:
+    """(2, size) stack voxel coordinates (i, j) of a canvas's pixel rows and columns."""
+    offsets = (torch.arange(size, dtype=torch.float64) - (size - 1) / 2) * pixel_mm
+    return centre.to(torch.float64)[:, None] + offsets[None] / spacing.to(torch.float64)[:, None]
+
+
+def slices_to_canvas(
+    slices: Tensor,
+    spacing: Tensor,
+    centre: Tensor,
+    size: int,
+    pixel_mm: float,
+    mode: str = "bilinear",
+) -> Tensor:
+    """Resample stack slices in-plane onto square canvases of ``size`` pixels of ``pixel_mm``.
+
+    Shrinking by a factor f >= 1.5 first averages f x f neighbourhoods (anti-aliasing).
+
+    Args:
+        slices: (K, C, I, J) slices (array axes 0 and 1 of the stack), I, J >= 2.
+        spacing: (2,) in-plane voxel size of the stack (axes 0 and 1), mm.
+        centre: (2,) or (K, 2) canvas centre in stack voxel coordinates (i, j).
+        size: Canvas side, pixels.
+        pixel_mm: Canvas pixel size, mm.
+        mode: ``"bilinear"`` or ``"nearest"``.
+
+    Returns:
+        (K, C, size, size); zeros outside the stack. Canvas row a, column b is stack voxel
+        ``(i, j) = centre + ((a, b) - (size - 1) / 2) * pixel_mm / spacing``.
+
+    Raises:
+        ValueError: If ``slices`` is not (K, C, I, J) with I, J >= 2.
+    """
+    if slices.dim() != 4 or slices.shape[2] < 2 or slices.shape[3] < 2:
+        raise ValueError(
+            f"slices_to_canvas(): 'slices' must be (K, C, I, J) with I, J >= 2, "
+            f"got {tuple(slices.shape)}"
+        )
+    k, _, rows, cols = slices.shape
+    factor = pixel_mm / float(spacing.min())
+    if factor >= 1.5 and mode == "bilinear":
+        kernel = int(factor)
+        slices = functional.avg_pool2d(
+            slices, kernel, stride=1, padding=kernel // 2, count_include_pad=False
+        )[..., :rows, :cols]
+    grids = []
+    for c in centre.reshape(-1, 2):
+        i, j = _canvas_axis(c, size, pixel_mm, spacing)
+        y = (2 * i / (rows - 1) - 1)[:, None].expand(size, size)
+        x = (2 * j / (cols - 1) - 1)[None, :].expand(size, size)
+        grids.append(torch.stack([x, y], dim=-1))
+    grid = torch.stack(grids).to(slices.dtype).to(slices.device).expand(k, size, size, 2)
+    return functional.grid_sample(slices, grid, mode=mode, padding_mode="zeros", align_corners=True)
+
+
+def canvas_to_slices(
+    canvas: Tensor,
+    spacing: Tensor,
+    centre: Tensor,
+    pixel_mm: float,
+    shape: tuple[int, int],
+) -> Tensor:
+    """Map canvases made by :func:`slices_to_canvas` back onto the stack's in-plane grid.
+
+    Args:
+        canvas: (K, C, S, S) values on the canvases (bilinear interpolation; zeros outside).
+        spacing: (2,) in-plane voxel size of the stack, mm.
+        centre: (2,) or (K, 2) canvas centre in stack voxel coordinates (i, j).
+        pixel_mm: Canvas pixel size, mm.
+        shape: (I, J) of the stack.
+
+    Returns:
+        (K, C, I, J).
+    """
+    k, _, size, _ = canvas.shape
+    rows, cols = shape
+    centres = centre.reshape(-1, 2).to(torch.float64).expand(k, 2)
+    spacing = spacing.to(torch.float64)
+    i = torch.arange(rows, dtype=torch.float64)
+    j = torch.arange(cols, dtype=torch.float64)
+    a = (i[None] - centres[:, :1]) * spacing[0] / pixel_mm + (size - 1) / 2  # (K, I)
+    b = (j[None] - centres[:, 1:]) * spacing[1] / pixel_mm + (size - 1) / 2  # (K, J)
+    y = (2 * a / (size - 1) - 1)[:, :, None].expand(k, rows, cols)
+    x = (2 * b / (size - 1) - 1)[:, None, :].expand(k, rows, cols)
+    grid = torch.stack([x, y], dim=-1).to(canvas.dtype).to(canvas.device)
+    return functional.grid_sample(
+        canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=True
+    )
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest 3D connected component (6-connectivity) of a bool mask (empty if none)."""
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return mask
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return labels == int(sizes.argmax())
+
+
+def _consistent_slices(mask: np.ndarray) -> np.ndarray:
+    """Holes filled per slice; pieces of a slice not touching the brain in a neighbour dropped."""
+    out = np.zeros_like(mask)
+    filled = np.stack(
+        [ndimage.binary_fill_holes(mask[:, :, k]) for k in range(mask.shape[2])], axis=2
+    )
+    for k in range(mask.shape[2]):
+        labels, count = ndimage.label(filled[:, :, k])
+        if count <= 1:
+            out[:, :, k] = filled[:, :, k]
+            continue
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        neighbours = np.zeros(mask.shape[:2], dtype=bool)
+        for n in (k - 1, k + 1):
+            if 0 <= n < mask.shape[2]:
+                neighbours |= filled[:, :, n]
+        keep = np.zeros(count + 1, dtype=bool)
+        keep[int(sizes.argmax())] = True
+        touching = np.unique(labels[neighbours & (labels > 0)])
+        keep[touching] = True
+        out[:, :, k] = keep[labels]
+    return _largest_component(out)
+
+
+@torch.no_grad()
+def _predict(net: BrainUNet, canvases: Tensor, flip: bool, batch: int = 32) -> Tensor:
+    """Sigmoid probabilities of (K, 1, S, S) canvases, optionally averaged with the flipped ones."""
+    out = []
+    for start in range(0, canvases.shape[0], batch):
+        x = canvases[start : start + batch]
+        p = torch.sigmoid(net(x))
+        if flip:
+            p = 0.5 * (p + torch.sigmoid(net(x.flip(-1))).flip(-1))
+        out.append(p)
+    return torch.cat(out) if out else canvases.new_zeros(canvases.shape)
+
+
+def segment_stack(
+    stack: Image,
+    masker: BrainMasker,
+    name: str = "stack",
+    device: torch.device | str | None = None,
+) -> MaskResult:
+    """The brain mask of one stack (module docstring: localise, segment, clean up).
+
+    Args:
+        stack: The stack (I, J, K), I, J >= 2; any intensity scale.
+        masker: The networks and their config (moved to ``device`` for the call).
+        name: The stack's name (its file), for errors and logs.
+        device: Where the networks run; ``None`` for the masker's device.
+
+    Returns:
+        The mask on the stack's grid and the probabilities behind it.
+
+    Raises:
+        ValueError: Naming ``name``, if the stack has non-finite voxels, no positive voxel or an
+            in-plane side below 2.
+        BrainNotFoundError: Naming ``name``, if the localiser finds no brain of at least
+            ``config.min_volume_ml`` or the segmenter finds nothing where it was localised.
+    """
+    cfg = masker.config
+    data = stack.data
+    if data.dim() != 3 or data.shape[0] < 2 or data.shape[1] < 2:
+        raise ValueError(f"{name}: expected a 3D stack with in-plane sides >= 2, got {data.shape}")
+    if not bool(torch.isfinite(data).all()):
+        raise ValueError(f"{name}: the stack has non-finite voxels (NaN or Inf)")
+    if device is None:
+        device = next(masker.parameters()).device
+    masker = masker.to(device).eval()
+    normalised = normalise_stack(data.cpu(), name, cfg.percentile)
+    spacing = stack.spacing[:2].cpu().double()
+    voxel_ml = float(stack.spacing.prod()) / 1000.0
+    shape = (data.shape[0], data.shape[1])
+    slices = normalised.permute(2, 0, 1)[:, None].to(device)  # (K, 1, I, J)
+
+    # 1. Localise on the whole field of view.
+    middle = torch.tensor([(shape[0] - 1) / 2, (shape[1] - 1) / 2], dtype=torch.float64)
+    canvas = slices_to_canvas(slices, spacing, middle, cfg.localiser_size, cfg.localiser_mm)
+    coarse = _predict(masker.localiser, canvas, flip=False)
+    coarse = canvas_to_slices(coarse, spacing, middle, cfg.localiser_mm, shape)
+    found = _largest_component(coarse[:, 0].permute(1, 2, 0).cpu().numpy() > cfg.threshold)
+    if found.sum() * voxel_ml < max(cfg.min_volume_ml, voxel_ml):
+        raise BrainNotFoundError(
+            f"{name}: no fetal brain found (the localiser's largest region is "
+            f"{found.sum() * voxel_ml:.1f} ml, expected at least {cfg.min_volume_ml:g} ml); "
+            "pass a mask with --stack-masks"
+        )
+    where = np.argwhere(found)
+    centre = torch.from_numpy(where[:, :2].mean(axis=0)).double()
+    first = max(int(where[:, 2].min()) - cfg.slice_margin, 0)
+    last = min(int(where[:, 2].max()) + cfg.slice_margin, data.shape[2] - 1)
+
+    # 2. Segment on fine canvases centred on the brain.
+    chosen = slices[first : last + 1]
+    canvas = slices_to_canvas(chosen, spacing, centre, cfg.segmenter_size, cfg.segmenter_mm)
+    fine = _predict(masker.segmenter, canvas, flip=True)
+    fine = canvas_to_slices(fine, spacing, centre, cfg.segmenter_mm, shape)
+    probability = torch.zeros(data.shape, dtype=torch.float32)
+    probability[:, :, first : last + 1] = fine[:, 0].permute(1, 2, 0).float().cpu()
+
+    # 3. Clean up.
+    mask = _consistent_slices(_largest_component(probability.numpy() > cfg.threshold))
+    volume_ml = float(mask.sum()) * voxel_ml
+    if volume_ml < max(cfg.min_volume_ml, voxel_ml):
+        raise BrainNotFoundError(
+            f"{name}: no fetal brain found (the segmented brain is {volume_ml:.1f} ml, expected "
+            f"at least {cfg.min_volume_ml:g} ml); pass a mask with --stack-masks"
+        )
+    log.info("%s: automatic brain mask of %.1f ml", name, volume_ml)
+    return MaskResult(torch.from_numpy(mask), probability, centre, volume_ml)
+
+
+def save_brain_masker(
+    masker: BrainMasker,
+    path: str | os.PathLike[str],
+    provenance: dict[str, Any] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write a masker as a checkpoint folder (float16 safetensors + JSON config).
+
+    Args:
+        masker: The networks.
+        path: The checkpoint folder to create.
+        provenance: JSON data recorded beside the config (training command, data, figures).
+        overwrite: Whether an existing folder may be replaced.
+
+    Returns:
+        The folder.
+    """
+    config = {"architecture": _ARCHITECTURE, "brain_mask": masker.config.to_dict()}
+    if provenance is not None:
+        config["provenance"] = provenance
+    state = {k: v.detach().cpu() for k, v in masker.state_dict().items()}
+    return save_checkpoint(path, state, config, half_precision=True, overwrite=overwrite)
+
+
+def load_brain_masker(
+    path_or_name: str | os.PathLike[str] = "default", device: torch.device | str = "cpu"
+) -> BrainMasker:
+    """Load a masker: ``"default"`` (the shipped one), a checkpoint folder or a run folder.
+
+    Loading reads safetensors and JSON only; no code runs.
+
+    Raises:
+        CheckpointError: If the folder is missing, modified, or not a brain-mask model.
+    """
+    from svr.models.checkpoint import CheckpointError
+    from svr.models.pretrained import DEFAULT_MODEL, brain_mask_model_path
+
+    if str(path_or_name) == DEFAULT_MODEL:
+        folder = brain_mask_model_path()
+    else:
+        folder = resolve_model_path(path_or_name)
+    checkpoint = load_checkpoint(folder, device)
+    if checkpoint.config.get("architecture") != _ARCHITECTURE:
+        raise CheckpointError(
+            folder,
+            f"not a brain-mask model (architecture {checkpoint.config.get('architecture')!r}, "
+            f"expected {_ARCHITECTURE!r})",
+        )
+    try:
+        masker = BrainMasker(BrainMaskConfig.from_dict(checkpoint.config["brain_mask"]))
+        masker.load_state_dict(checkpoint.state_dict)
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(folder, f"invalid brain-mask model: {exc}") from exc
+    return masker.to(device).eval()

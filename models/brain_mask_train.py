@@ -1,0 +1,379 @@
+"""Training the brain-mask networks on simulated whole-uterus scenes only (issue 14).
+
+No real scan is used. Each training case is an atlas brain at a random age, either inside a random
+whole-uterus scene (:func:`svr.sampling.scenes.make_scene`) or alone on an empty background (as in
+stacks that were cropped and masked already), cut into motion-corrupted thick-slice stacks by the
+project's acquisition model (:func:`svr.sampling.simulate.simulate_case`: random orientations,
+slice thickness, in-plane spacing, field of view, noise, bias field, signal voids). The stacks'
+slices are resampled onto the canvases that :func:`svr.models.brain_mask.segment_stack` uses
+(:func:`svr.models.brain_mask.slices_to_canvas`), with each stack's brain mask as the target:
+
+- ``"localiser"``: the coarse whole-slice canvas, centred near the stack's middle (shifted at
+  random so the brain is not always central); all slices through the brain and as many without;
+- ``"segmenter"``: the fine canvas centred on the brain's centroid plus a random error (as the
+  localiser's), for the slices through the brain and one beyond each end.
+
+:func:`make_examples` builds them, :func:`train_network` fits one U-Net (soft Dice + binary cross
+entropy, Adam, random flips, gamma and contrast), checkpointing and resuming, and
+``benchmarks/train_brain_masker.py`` runs both stages and writes the model.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.nn import functional
+
+from svr.models.brain_mask import BrainMaskConfig, normalise_stack, slices_to_canvas
+from svr.models.checkpoint import (
+    checkpoint_name,
+    latest_checkpoint,
+    load_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+)
+from svr.models.segmentation import BrainUNet, SegmentationConfig
+from svr.sampling.scenes import SceneConfig, make_scene
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import CanonicalVolume
+
+__all__ = [
+    "BrainMaskTrainingConfig",
+    "Stage",
+    "StageData",
+    "TrainingExamples",
+    "dice_bce_loss",
+    "make_examples",
+    "stage_data",
+    "train_network",
+]
+
+Stage = Literal["localiser", "segmenter"]
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class BrainMaskTrainingConfig:
+    """How one network of the masker is trained.
+
+    Attributes:
+        cases: Number of simulated cases (each 2 or 3 stacks), >= 1.
+        bare_fraction: Fraction of cases with the brain alone on an empty background, in [0, 1].
+        steps: Optimiser steps, >= 1.
+        batch_size: Canvases per step, >= 1.
+        learning_rate: Adam's learning rate (cosine decay to 5 % of it), > 0.
+        checkpoint_every: Steps between checkpoints, >= 1.
+        seed: Seed of the data and of the training.
+    """
+
+    cases: int = 80
+    bare_fraction: float = 0.25
+    steps: int = 5000
+    batch_size: int = 16
+    learning_rate: float = 2e-3
+    checkpoint_every: int = 250
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("cases", "steps", "batch_size", "checkpoint_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(
+                    f"BrainMaskTrainingConfig: '{name}' must be an integer >= 1, got {value!r}"
+                )
+        if not 0 <= self.bare_fraction <= 1:
+            raise ValueError(
+                "BrainMaskTrainingConfig: 'bare_fraction' must be in [0, 1], "
+                f"got {self.bare_fraction!r}"
+            )
+        if not self.learning_rate > 0:
+            raise ValueError(
+                f"BrainMaskTrainingConfig: 'learning_rate' must be > 0, got {self.learning_rate!r}"
+            )
+
+
+@dataclass
+class TrainingExamples:
+    """Canvases and their brain targets.
+
+    Attributes:
+        inputs: (N, 1, S, S) float16 normalised canvases.
+        targets: (N, 1, S, S) bool brain masks on the same canvases.
+    """
+
+    inputs: Tensor
+    targets: Tensor
+
+
+@dataclass(frozen=True)
+class StageData:
+    """The scenes and acquisitions one network's examples are simulated from.
+
+    Attributes:
+        scene: The whole-uterus scenes (:func:`svr.sampling.scenes.make_scene`).
+        in_plane_mm: Range of the stacks' in-plane spacing, mm.
+        margin_mm: Range of the field of view beyond the brain in scenes, mm.
+        bare_margin_mm: The same for bare brains, mm.
+    """
+
+    scene: SceneConfig
+    in_plane_mm: tuple[float, float]
+    margin_mm: tuple[float, float]
+    bare_margin_mm: tuple[float, float] = (2.0, 20.0)
+
+
+# The head as it looks on fetal T2 stacks: a wide, bright extra-axial CSF space and a thin skull
+# (thick dark skulls taught the first networks a cue that real stacks do not show).
+_CSF_MM = (2.0, 9.0)
+_SKULL_MM = (0.8, 3.0)
+_SKULL_INTENSITY = (0.02, 0.5)
+
+
+def stage_data(stage: Stage) -> StageData:
+    """The simulation behind the shipped networks.
+
+    Coarse, wide scenes with many distracting organs for the localiser (its canvas has 3 mm
+    pixels, so finer stacks would only cost time); fine scenes with a field of view of a few
+    centimetres around the head for the segmenter.
+    """
+    if stage == "localiser":
+        scene = SceneConfig(
+            extent_mm=400.0,
+            spacing_mm=2.5,
+            csf_mm=_CSF_MM,
+            skull_mm=_SKULL_MM,
+            skull_intensity=_SKULL_INTENSITY,
+            fluid_margin_mm=(3.0, 30.0),
+            body_scale=(1.2, 2.2),
+            distractors=(30, 80),
+            distractor_mm=(3.0, 25.0),
+            intracranial_mask=True,
+        )
+        return StageData(scene, (1.5, 2.5), (40.0, 130.0))
+    return StageData(
+        SceneConfig(
+            extent_mm=200.0,
+            spacing_mm=1.25,
+            csf_mm=_CSF_MM,
+            skull_mm=_SKULL_MM,
+            skull_intensity=_SKULL_INTENSITY,
+            fluid_margin_mm=(5.0, 40.0),
+            abdomen_margin_mm=(10.0, 60.0),
+            body_scale=(1.2, 2.2),
+            distractors=(10, 30),
+            distractor_mm=(3.0, 20.0),
+            intracranial_mask=True,
+        ),
+        (0.8, 1.5),
+        (30.0, 50.0),
+    )
+
+
+def _case_simulation(
+    data: StageData, bare: bool, rng: np.random.Generator, seed: int
+) -> SimulationConfig:
+    """A random acquisition for one case."""
+    thickness = float(rng.uniform(2.5, 4.5))
+    margin = float(rng.uniform(*(data.bare_margin_mm if bare else data.margin_mm)))
+    return SimulationConfig(
+        num_stacks=int(rng.integers(2, 4)),
+        thickness_mm=thickness,
+        spacing_mm=thickness * float(rng.uniform(0.9, 1.1)),
+        in_plane_mm=float(rng.uniform(*data.in_plane_mm)),
+        margin_mm=margin,
+        random_walk_rotation_deg=float(rng.uniform(0.0, 15.0)),
+        random_walk_translation_mm=float(rng.uniform(0.0, 5.0)),
+        noise=float(rng.uniform(0.005, 0.06)),
+        bias_field=float(rng.uniform(0.0, 0.4)),
+        signal_void_probability=float(rng.uniform(0.0, 0.15)),
+        seed=seed,
+    )
+
+
+def make_examples(
+    brains: Sequence[CanonicalVolume],
+    stage: Stage,
+    mask_config: BrainMaskConfig,
+    config: BrainMaskTrainingConfig,
+    data: StageData | None = None,
+    progress: bool = False,
+) -> TrainingExamples:
+    """Simulated canvases and targets for one network (module docstring).
+
+    Args:
+        brains: Canonical brain volumes to draw from (e.g. the atlas ages).
+        stage: ``"localiser"`` or ``"segmenter"``.
+        mask_config: The canvases (sizes and pixel sizes) of the masker being trained.
+        config: Number of cases, fraction of bare brains and seed.
+        data: The scenes and acquisitions; ``None`` for :func:`stage_data` of ``stage``.
+        progress: Show a progress bar over cases.
+
+    Returns:
+        The examples (CPU).
+
+    Raises:
+        ValueError: If ``brains`` is empty or ``stage`` is unknown.
+    """
+    from tqdm import tqdm
+
+    if not brains:
+        raise ValueError("make_examples(): 'brains' is empty")
+    if stage not in ("localiser", "segmenter"):
+        raise ValueError(f"make_examples(): 'stage' must be localiser or segmenter, got {stage!r}")
+    data = stage_data(stage) if data is None else data
+    rng = np.random.default_rng([config.seed, 0 if stage == "localiser" else 1])
+    size = mask_config.localiser_size if stage == "localiser" else mask_config.segmenter_size
+    pixel = mask_config.localiser_mm if stage == "localiser" else mask_config.segmenter_mm
+    inputs, targets = [], []
+    for case in tqdm(range(config.cases), desc=f"{stage} cases", disable=not progress):
+        brain = brains[int(rng.integers(len(brains)))]
+        bare = bool(rng.random() < config.bare_fraction)
+        seed = int(rng.integers(2**31))
+        scene = brain if bare else make_scene(brain, data.scene, seed=seed)
+        simulated = simulate_case(scene, _case_simulation(data, bare, rng, seed))
+        for stack in simulated.stacks:
+            image = normalise_stack(stack.image.data, f"case {case}")
+            mask = stack.mask.data > 0.5
+            spacing = stack.image.spacing[:2].double()
+            through = mask.flatten(0, 1).any(0)  # (K,) slices through the brain
+            brain_slices = torch.nonzero(through)[:, 0]
+            if brain_slices.numel() == 0:
+                continue
+            shape = torch.tensor(image.shape[:2], dtype=torch.float64)
+            if stage == "localiser":
+                others = torch.nonzero(~through)[:, 0]
+                others = others[torch.randperm(len(others))[: len(brain_slices)]]
+                chosen = torch.cat([brain_slices, others])
+                shift = torch.from_numpy(rng.uniform(-60.0, 60.0, 2)) / spacing
+                centre = (shape - 1) / 2 + shift
+            else:
+                first = max(int(brain_slices.min()) - 1, 0)
+                last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
+                chosen = torch.arange(first, last + 1)
+                where = torch.nonzero(mask).double()
+                error = torch.from_numpy(rng.normal(0.0, 5.0, 2)) / spacing
+                centre = where[:, :2].mean(0) + error
+            slices = image.permute(2, 0, 1)[chosen, None]
+            labels = mask.permute(2, 0, 1)[chosen, None].float()
+            inputs.append(slices_to_canvas(slices, spacing, centre, size, pixel).half())
+            targets.append(slices_to_canvas(labels, spacing, centre, size, pixel) > 0.5)
+    return TrainingExamples(torch.cat(inputs), torch.cat(targets))
+
+
+def _augment(x: Tensor, generator: torch.Generator) -> Tensor:
+    """Random gamma, contrast and noise per canvas (flips are applied with the targets)."""
+    b = x.shape[0]
+    gamma = torch.exp(torch.empty(b, 1, 1, 1).uniform_(-0.4, 0.4, generator=generator))
+    scale = torch.exp(0.2 * torch.randn(b, 1, 1, 1, generator=generator))
+    noise = 0.02 * torch.rand(b, 1, 1, 1, generator=generator)
+    x = x.clamp(min=0) ** gamma * scale
+    return x + noise * torch.randn(x.shape, generator=generator)
+
+
+def dice_bce_loss(logits: Tensor, targets: Tensor) -> Tensor:
+    """Binary cross entropy plus (1 - soft Dice) per canvas, averaged; (B, 1, H, W) inputs."""
+    probability = torch.sigmoid(logits)
+    overlap = (probability * targets).sum((1, 2, 3))
+    total = (probability + targets).sum((1, 2, 3))
+    dice = (2 * overlap + 1.0) / (total + 1.0)
+    return functional.binary_cross_entropy_with_logits(logits, targets) + (1 - dice).mean()
+
+
+def train_network(
+    examples: TrainingExamples,
+    net_config: SegmentationConfig,
+    config: BrainMaskTrainingConfig,
+    folder: str | Path | None = None,
+    progress: bool = False,
+) -> BrainUNet:
+    """Fit a :class:`BrainUNet` to examples, checkpointing into ``folder`` and resuming from it.
+
+    Args:
+        examples: The canvases and targets (:func:`make_examples`).
+        net_config: The U-Net's shape.
+        config: Steps, batch size, learning rate, checkpoint interval, seed.
+        folder: Where ``step_NNNNNNNNN`` checkpoints go (the newest is resumed); ``None`` for
+            no checkpoints.
+        progress: Log the loss every checkpoint interval.
+
+    Returns:
+        The trained network (eval mode).
+    """
+    torch.manual_seed(config.seed)
+    generator = torch.Generator().manual_seed(config.seed)
+    net = BrainUNet(net_config)
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimiser,
+        lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(s / config.steps, 1.0))),
+    )
+    start = 0
+    if folder is not None:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        newest = latest_checkpoint(folder)
+        if newest is not None:
+            checkpoint = load_checkpoint(newest, with_training_state=True)
+            assert checkpoint.training_state is not None
+            net.load_state_dict(checkpoint.state_dict)
+            optimiser.load_state_dict(checkpoint.training_state["optimizer"])
+            schedule.load_state_dict(checkpoint.training_state["scheduler"])
+            generator.set_state(checkpoint.training_state["generator"])
+            start = int(checkpoint.training_state["step"])
+            log.info("resuming from %s (step %d)", newest, start)
+    net.train()
+    n = examples.inputs.shape[0]
+    running, began = 0.0, time.time()
+    for step in range(start, config.steps):
+        index = torch.randint(n, (config.batch_size,), generator=generator)
+        x = examples.inputs[index].float()
+        y = examples.targets[index].float()
+        flips = torch.rand(2, generator=generator)
+        if flips[0] < 0.5:
+            x, y = x.flip(-1), y.flip(-1)
+        if flips[1] < 0.5:
+            x, y = x.flip(-2), y.flip(-2)
+        loss = dice_bce_loss(net(_augment(x, generator)), y)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        running += float(loss.detach())
+        done = step + 1
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            if progress:
+                log.info(
+                    "step %d/%d loss %.4f (%.1f steps/s)",
+                    done,
+                    config.steps,
+                    running / config.checkpoint_every,
+                    (done - start) / (time.time() - began),
+                )
+            running = 0.0
+            if folder is not None:
+                state = {
+                    "optimizer": optimiser.state_dict(),
+                    "scheduler": schedule.state_dict(),
+                    "generator": generator.get_state(),
+                    "step": done,
+                }
+                save_checkpoint(
+                    Path(folder) / checkpoint_name(done),
+                    net.state_dict(),
+                    {
+                        "architecture": "brain_unet",
+                        "net": asdict(net_config),
+                        "train": asdict(config),
+                    },
+                    training_state=state,
+                )
+                prune_checkpoints(folder, keep=2)
+    return net.eval()

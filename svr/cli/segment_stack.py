@@ -1,0 +1,134 @@
+"""``svr segment-stack``: automatic fetal brain masks of thick-slice stacks."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+from tqdm import tqdm
+
+from svr.cli.common import CliError, HelpFormatter, add_common_options, resolve_device
+
+DESCRIPTION = """\
+Find the fetal brain in each stack and write its mask: one uint8 NIfTI per stack on the stack's
+own grid, with the stack's header (sform and qform as in the stack), so that the next command
+(`svr reconstruct --stack-masks`, NeSVoR, SVRTK) reads it as is. Whole-uterus stacks and stacks
+already cropped around the brain both work. The network is shipped in the package (no download)
+and runs on a CPU: a small 2D U-Net finds the brain in each slice of the whole field of view,
+a second one segments it on a finer grid centred on it, and the largest 3D region is kept with
+holes filled. A stack in which no brain is found is an error naming the stack (no mask is
+written). All inputs are checked and all masks computed before any file is written.
+
+examples:
+  svr segment-stack --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
+      --output-stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --output-qa masks.png
+  svr segment-stack --input-stacks run1.nii.gz --output-stack-masks run1_mask.nii.gz \\
+      --device cuda --overwrite
+"""
+
+log = logging.getLogger(__name__)
+
+_VOLUME_SUFFIXES = (".nii", ".nii.gz")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svr segment-stack``."""
+    p = subparsers.add_parser(
+        "segment-stack",
+        help="automatic fetal brain masks of stacks (shipped network, CPU)",
+        description=DESCRIPTION,
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "--input-stacks", nargs="+", required=True, metavar="STACK", help="stacks (NIfTI)"
+    )
+    p.add_argument(
+        "--output-stack-masks",
+        nargs="+",
+        required=True,
+        metavar="MASK",
+        help="masks to write (.nii or .nii.gz), one per stack in order",
+    )
+    p.add_argument(
+        "--output-qa", metavar="FILE", help="figure of each stack with its mask (.png or .pdf)"
+    )
+    p.add_argument(
+        "--mask-model",
+        default="default",
+        metavar="CHECKPOINT_DIR",
+        help="brain-mask model: 'default' (shipped) or a folder written by "
+        "benchmarks/train_brain_masker.py",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    add_common_options(p)
+
+
+def check_outputs(masks: list[str], qa: str | None, overwrite: bool, inputs: list[str]) -> None:
+    """Check the output paths before any work: suffixes, existence, folders, no repeats.
+
+    Raises:
+        CliError: For a wrong suffix, a repeated path or an output that is also an input.
+        OutputExistsError, FileNotFoundError, PermissionError: From
+            :func:`svr.files.check_output_path`.
+    """
+    from svr.files import check_output_path
+    from svr.reconstruction.qa import FIGURE_SUFFIXES
+
+    seen: set[Path] = {Path(p).resolve() for p in inputs}
+    for option, path, suffixes in [
+        *(("--output-stack-masks", m, _VOLUME_SUFFIXES) for m in masks),
+        *((("--output-qa", qa, FIGURE_SUFFIXES),) if qa is not None else ()),
+    ]:
+        if not path.endswith(suffixes):
+            raise CliError(f"{option} {path}: must end in {' or '.join(suffixes)}")
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise CliError(f"{option} {path}: the same path is an input or another output")
+        seen.add(resolved)
+        check_output_path(path, overwrite)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``svr segment-stack``."""
+    from svr.image import load_nifti, save_mask_like
+    from svr.models.brain_mask import load_brain_masker, segment_stack
+    from svr.reconstruction.qa import masks_figure
+
+    if len(args.output_stack_masks) != len(args.input_stacks):
+        raise CliError(
+            f"--output-stack-masks: got {len(args.output_stack_masks)} paths for "
+            f"{len(args.input_stacks)} stacks; give one per stack"
+        )
+    check_outputs(args.output_stack_masks, args.output_qa, args.overwrite, args.input_stacks)
+    device = resolve_device(args.device)
+    stacks = [load_nifti(path) for path in args.input_stacks]  # every input checked first
+    masker = load_brain_masker(args.mask_model, device)
+    results = []
+    for path, stack in tqdm(
+        list(zip(args.input_stacks, stacks, strict=True)),
+        desc="stacks",
+        unit="stack",
+        disable=args.quiet,
+    ):
+        began = time.perf_counter()
+        results.append(segment_stack(stack, masker, name=str(path), device=device))
+        log.info("%s: %.2f s", path, time.perf_counter() - began)
+    for path, out, result in zip(args.input_stacks, args.output_stack_masks, results, strict=True):
+        save_mask_like(result.mask, path, out, args.overwrite)
+    written = list(args.output_stack_masks)
+    if args.output_qa is not None:
+        figure = masks_figure(
+            [
+                (str(path), stack, result.mask)
+                for path, stack, result in zip(args.input_stacks, stacks, results, strict=True)
+            ],
+            args.output_qa,
+            args.overwrite,
+            title="automatic brain masks (svr segment-stack)",
+        )
+        written.append(str(figure))
+    volumes = ", ".join(f"{r.volume_ml:.0f}" for r in results)
+    print(f"wrote {', '.join(written)}: brain volumes {volumes} ml")
+    return 0

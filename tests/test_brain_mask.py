@@ -1,0 +1,384 @@
+"""Automatic brain masks (svr.models.brain_mask, svr segment-stack): geometry, files, a tiny model.
+
+The tiny model is trained here, on simulated scenes around the procedural phantom, in about 20 s;
+it must find the brain of an unseen scene with Dice >= 0.8 (issue 14).
+"""
+
+from __future__ import annotations
+
+import builtins
+import logging
+import pickle
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+import SimpleITK as sitk  # noqa: N813
+import torch
+
+from svr.cli import main
+from svr.image import Image, save_mask_like
+from svr.models.brain_mask import (
+    BrainMaskConfig,
+    BrainMasker,
+    BrainNotFoundError,
+    canvas_to_slices,
+    load_brain_masker,
+    save_brain_masker,
+    segment_stack,
+    slices_to_canvas,
+)
+from svr.models.brain_mask_train import (
+    BrainMaskTrainingConfig,
+    StageData,
+    dice_bce_loss,
+    make_examples,
+    train_network,
+)
+from svr.models.checkpoint import CheckpointError
+from svr.models.pretrained import MAX_MODEL_BYTES, brain_mask_model_path
+from svr.models.segmentation import SegmentationConfig
+from svr.sampling.scenes import SceneConfig, make_scene
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import load_volumes
+
+TINY = BrainMaskConfig(
+    localiser_mm=6.0,
+    localiser_size=32,
+    segmenter_mm=3.0,
+    segmenter_size=48,
+    localiser=SegmentationConfig(4, 2),
+    segmenter=SegmentationConfig(4, 2),
+    min_volume_ml=1.0,
+)
+TINY_DATA = StageData(SceneConfig(extent_mm=240.0, spacing_mm=4.0), (2.0, 3.0), (30.0, 60.0))
+
+
+def dice(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(2 * (a & b).sum() / (a.sum() + b.sum()))
+
+
+@pytest.fixture(scope="module")
+def phantom():
+    volumes, _ = load_volumes([], phantom_ages=(28.0,))
+    return volumes[0]
+
+
+@pytest.fixture(scope="module")
+def tiny_masker(phantom) -> BrainMasker:
+    """Both networks trained on six simulated scenes each (no bare brains)."""
+    masker = BrainMasker(TINY)
+    config = BrainMaskTrainingConfig(
+        cases=6, bare_fraction=0.0, steps=300, batch_size=8, learning_rate=5e-3
+    )
+    for stage in ("localiser", "segmenter"):
+        examples = make_examples([phantom], stage, TINY, config, TINY_DATA)
+        net = train_network(examples, getattr(TINY, stage), config)
+        getattr(masker, stage).load_state_dict(net.state_dict())
+    return masker.eval()
+
+
+@pytest.fixture(scope="module")
+def unseen_stack(phantom):
+    """A stack of a scene the tiny model was not trained on, and its true brain mask."""
+    scene = make_scene(phantom, TINY_DATA.scene, seed=99)
+    config = SimulationConfig(num_stacks=1, in_plane_mm=2.5, thickness_mm=3.5, margin_mm=45.0)
+    stack = simulate_case(scene, config).stacks[0]
+    return stack.image, stack.mask.data > 0.5
+
+
+# --- canvases ------------------------------------------------------------------------------------
+
+
+def test_canvas_geometry_matches_the_closed_form():
+    """A single bright voxel lands on the canvas pixel (i - c) * spacing / pixel + (S - 1) / 2."""
+    slices = torch.zeros(1, 1, 40, 50)
+    slices[0, 0, 30, 13] = 1.0
+    spacing = torch.tensor([1.5, 0.75], dtype=torch.float64)
+    centre = torch.tensor([20.0, 25.0], dtype=torch.float64)
+    canvas = slices_to_canvas(slices, spacing, centre, size=49, pixel_mm=1.5, mode="nearest")
+    assert float(canvas.sum()) == 1.0
+    a, b = np.unravel_index(int(canvas[0, 0].argmax()), (49, 49))
+    assert (a, b) == ((30 - 20) * 1.5 / 1.5 + 24, (13 - 25) * 0.75 / 1.5 + 24)
+
+
+def test_canvas_round_trip_is_the_identity_where_covered():
+    slices = torch.rand(3, 1, 24, 30, dtype=torch.float64)
+    spacing = torch.tensor([1.2, 1.2], dtype=torch.float64)
+    centre = torch.tensor([11.5, 14.5], dtype=torch.float64)
+    canvas = slices_to_canvas(slices, spacing, centre, size=32, pixel_mm=1.2)
+    back = canvas_to_slices(canvas, spacing, centre, 1.2, (24, 30))
+    torch.testing.assert_close(back, slices)
+
+
+def test_per_slice_centres_shift_each_canvas():
+    slices = torch.zeros(2, 1, 20, 20)
+    slices[:, 0, 10, 10] = 1.0
+    centres = torch.tensor([[10.0, 10.0], [6.0, 10.0]], dtype=torch.float64)
+    canvas = slices_to_canvas(
+        slices, torch.ones(2, dtype=torch.float64), centres, 16, 1.0, mode="nearest"
+    )
+    peaks = [np.unravel_index(int(c.argmax()), (16, 16)) for c in canvas[:, 0]]
+    assert peaks[0][0] - peaks[1][0] == -4
+
+
+def test_canvas_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="'slices' must be"):
+        slices_to_canvas(torch.zeros(1, 1, 1, 5), torch.ones(2), torch.zeros(2), 16, 1.0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("localiser_mm", 0.0, "'localiser_mm' must be a number > 0"),
+        ("segmenter_mm", float("nan"), "'segmenter_mm'"),
+        ("localiser_size", 100, "'localiser_size' must be a positive multiple of 16"),
+        ("threshold", 1.0, "'threshold' must be in"),
+        ("min_volume_ml", -1.0, "'min_volume_ml'"),
+        ("percentile", 0.0, "'percentile'"),
+    ],
+)
+def test_config_names_the_bad_field(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        BrainMaskConfig(**{field: value})
+
+
+def test_loss_is_low_for_a_perfect_prediction_and_high_for_its_opposite():
+    target = torch.zeros(2, 1, 8, 8)
+    target[:, :, 2:6, 2:6] = 1
+    good = dice_bce_loss(20 * (2 * target - 1), target)
+    bad = dice_bce_loss(-20 * (2 * target - 1), target)
+    assert float(good) < 0.05 < 1.5 < float(bad)
+
+
+# --- the tiny model ------------------------------------------------------------------------------
+
+
+def test_tiny_model_finds_the_brain_of_an_unseen_scene(tiny_masker, unseen_stack):
+    image, truth = unseen_stack
+    result = segment_stack(image, tiny_masker, name="unseen")
+    assert result.mask.shape == truth.shape and result.mask.dtype == torch.bool
+    assert dice(result.mask, truth) >= 0.8
+    assert result.volume_ml == pytest.approx(float(result.mask.sum() * image.spacing.prod()) / 1000)
+
+
+def test_no_brain_is_an_error_naming_the_stack(tiny_masker, unseen_stack):
+    """Whether the localiser or the segmenter finds nothing: an error, never an empty mask."""
+    image, _ = unseen_stack
+    for stage, message in (("localiser", "the localiser's"), ("segmenter", "the segmented")):
+        blind = BrainMasker(TINY)
+        blind.load_state_dict(tiny_masker.state_dict())
+        with torch.no_grad():
+            getattr(blind, stage).head.bias.fill_(-30.0)
+        with pytest.raises(
+            BrainNotFoundError, match=rf"^scan\.nii\.gz: no fetal brain found \({message}"
+        ):
+            segment_stack(image, blind, name="scan.nii.gz")
+
+
+def test_bad_stacks_are_refused(tiny_masker, unseen_stack):
+    image, _ = unseen_stack
+    data = image.data.clone()
+    data[3, 3, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"s\.nii: the stack has non-finite voxels"):
+        segment_stack(Image(data, image.affine), tiny_masker, name="s.nii")
+    with pytest.raises(ValueError, match=r"s\.nii: all voxels are zero"):
+        segment_stack(Image(torch.zeros(8, 8, 3), image.affine), tiny_masker, name="s.nii")
+
+
+def test_saved_masker_round_trips(tiny_masker, tmp_path):
+    folder = save_brain_masker(tiny_masker, tmp_path / "m", {"note": "test"})
+    loaded = load_brain_masker(folder)
+    assert loaded.config == TINY
+    for key, value in tiny_masker.state_dict().items():
+        torch.testing.assert_close(
+            loaded.state_dict()[key].float(), value.float(), atol=1e-2, rtol=1e-3
+        )
+
+
+# --- files and the command -----------------------------------------------------------------------
+
+OBLIQUE = np.array(
+    [
+        [0.0, -1.1, 0.2, 40.5],
+        [1.12, 0.0, 0.0, -20.25],
+        [0.0, 0.05, 3.3, 7.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
+
+
+def _stack_file(path: Path, data: np.ndarray, four_d: bool = False) -> Path:
+    image = nib.Nifti1Image(data[..., None] if four_d else data, OBLIQUE)
+    image.set_qform(OBLIQUE @ np.diag([1.0, 1.0, 1.0, 1.0]), code=1)
+    sform = OBLIQUE.copy()
+    sform[:3, 3] += 0.001  # sform and qform differ slightly: both must be copied, not derived
+    image.set_sform(sform, code=2)
+    image.header.set_xyzt_units("mm", "sec")
+    nib.save(image, path)
+    return path
+
+
+@pytest.mark.parametrize("four_d", [False, True])
+def test_mask_header_equals_the_stack_header(tmp_path, four_d):
+    stack = _stack_file(tmp_path / "s.nii.gz", np.random.rand(12, 10, 5).astype(np.float32), four_d)
+    mask = np.zeros((12, 10, 5), dtype=bool)
+    mask[3:7, 2:5, 1:4] = True
+    out = save_mask_like(torch.from_numpy(mask), stack, tmp_path / "m.nii.gz")
+    ref, got = nib.load(stack), nib.load(out)
+    assert got.get_data_dtype() == np.uint8 and got.shape == (12, 10, 5)
+    np.testing.assert_array_equal(np.asarray(got.dataobj), mask.astype(np.uint8))
+    for code in (True,):
+        s_ref, s_code_ref = ref.header.get_sform(coded=code)
+        s_got, s_code_got = got.header.get_sform(coded=code)
+        q_ref, q_code_ref = ref.header.get_qform(coded=code)
+        q_got, q_code_got = got.header.get_qform(coded=code)
+        np.testing.assert_array_equal(s_got, s_ref)
+        np.testing.assert_array_equal(q_got, q_ref)
+        assert (s_code_got, q_code_got) == (s_code_ref, q_code_ref) == (2, 1)
+    for field in ("quatern_b", "quatern_c", "quatern_d", "qoffset_x", "qoffset_y", "qoffset_z"):
+        assert ref.header[field] == got.header[field]
+    np.testing.assert_array_equal(ref.header["pixdim"][1:4], got.header["pixdim"][1:4])
+    a, b = sitk.ReadImage(str(stack)), sitk.ReadImage(str(out))
+    assert b.GetOrigin() == a.GetOrigin()[:3]
+    assert b.GetSpacing() == a.GetSpacing()[:3]
+    assert np.allclose(
+        np.reshape(b.GetDirection(), (3, 3)),
+        np.reshape(a.GetDirection(), (a.GetDimension(),) * 2)[:3, :3],
+        atol=0,
+    )
+
+
+def test_mask_of_the_wrong_shape_writes_nothing(tmp_path):
+    stack = _stack_file(tmp_path / "s.nii.gz", np.random.rand(12, 10, 5).astype(np.float32))
+    with pytest.raises(ValueError, match=r"mask shape \(4, 4, 4\) is not the grid"):
+        save_mask_like(np.zeros((4, 4, 4)), stack, tmp_path / "m.nii.gz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.nii.gz"]
+
+
+def test_segment_stack_command_writes_masks_and_a_figure(tiny_masker, unseen_stack, tmp_path):
+    image, truth = unseen_stack
+    from svr.image import save_nifti
+
+    stack = save_nifti(image, tmp_path / "stack.nii.gz")
+    model = save_brain_masker(tiny_masker, tmp_path / "model")
+    argv = [
+        "segment-stack",
+        "--input-stacks",
+        str(stack),
+        "--output-stack-masks",
+        str(tmp_path / "mask.nii.gz"),
+        "--output-qa",
+        str(tmp_path / "qa.png"),
+        "--mask-model",
+        str(model),
+        "--device",
+        "cpu",
+        "-q",
+    ]
+    assert main(argv) == 0
+    written = nib.load(tmp_path / "mask.nii.gz")
+    assert written.get_data_dtype() == np.uint8
+    np.testing.assert_array_equal(written.affine, nib.load(stack).affine)
+    assert dice(torch.from_numpy(np.asarray(written.dataobj) > 0), truth) >= 0.8
+    assert (tmp_path / "qa.png").stat().st_size > 10_000
+    before = (tmp_path / "mask.nii.gz").read_bytes()
+    assert main(argv) == 1  # exists without --overwrite
+    assert (tmp_path / "mask.nii.gz").read_bytes() == before
+    assert main([*argv, "--overwrite"]) == 0
+
+
+def test_no_brain_in_one_stack_writes_no_mask(
+    tiny_masker, unseen_stack, tmp_path, capsys, monkeypatch
+):
+    """The second stack has no brain (its localiser sees none): no mask is written at all."""
+    import svr.models.brain_mask as module
+
+    image, _ = unseen_stack
+    from svr.image import save_nifti
+
+    good = save_nifti(image, tmp_path / "good.nii.gz")
+    empty = save_nifti(Image(image.data.flip(0), image.affine), tmp_path / "empty.nii.gz")
+    blind = BrainMasker(TINY)
+    blind.load_state_dict(tiny_masker.state_dict())
+    with torch.no_grad():
+        blind.localiser.head.bias.fill_(-30.0)
+    real = module.segment_stack
+
+    def segment(stack, masker, name, device=None):
+        return real(stack, blind if name == str(empty) else masker, name, device)
+
+    monkeypatch.setattr(module, "segment_stack", segment)
+    model = save_brain_masker(tiny_masker, tmp_path / "model")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code = main(
+        [
+            "segment-stack",
+            "--input-stacks",
+            str(good),
+            str(empty),
+            "--output-stack-masks",
+            str(tmp_path / "a.nii.gz"),
+            str(tmp_path / "b.nii.gz"),
+            "--mask-model",
+            str(model),
+            "-q",
+        ]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1
+    assert err[0].startswith(f"svr segment-stack: error: {empty}: no fetal brain found")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_reconstruct_uses_automatic_masks_and_says_so(tiny_masker, phantom, tmp_path, caplog):
+    """`svr register` without --stack-masks runs the masker; the log and QA name the source."""
+    caplog.set_level(logging.INFO)  # as the command sets it outside pytest
+    scene = make_scene(phantom, TINY_DATA.scene, seed=7)
+    config = SimulationConfig(num_stacks=2, in_plane_mm=2.5, thickness_mm=3.5, margin_mm=45.0)
+    from svr.image import save_nifti
+
+    stacks = [
+        str(save_nifti(s.image, tmp_path / f"s{n}.nii.gz"))
+        for n, s in enumerate(simulate_case(scene, config).stacks)
+    ]
+    model = save_brain_masker(tiny_masker, tmp_path / "model")
+    argv = ["register", "--input-stacks", *stacks, "--thicknesses", "3.5", "--iterations", "1"]
+    argv += ["--sr-iterations", "1", "--output-resolution", "3", "--mask-model", str(model)]
+    argv += ["--output-transforms", str(tmp_path / "t.csv"), "--output-log", str(tmp_path / "l")]
+    argv += ["--output-qa", str(tmp_path / "qa.png"), "--registration", "stack"]
+    assert main(argv) == 0
+    log = (tmp_path / "l").read_text()
+    assert "automatic brain mask (network)" in log
+    assert f"(mask automatic (network, --mask-model {model}))" in log
+
+
+# --- the shipped model ---------------------------------------------------------------------------
+
+SHIPPED = brain_mask_model_path()
+
+
+@pytest.mark.skipif(not SHIPPED.is_dir(), reason="no shipped brain-mask model")
+def test_shipped_model_is_small_and_loads_without_running_code(monkeypatch):
+    size = sum(p.stat().st_size for p in SHIPPED.iterdir() if p.name != "README.md")
+    assert size <= MAX_MODEL_BYTES
+    assert (SHIPPED / "README.md").is_file()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("loading the shipped model unpickled something")
+
+    monkeypatch.setattr(pickle, "load", refuse)
+    monkeypatch.setattr(pickle, "loads", refuse)
+    monkeypatch.setattr(torch, "load", refuse)
+    real_import = builtins.__import__
+    masker = load_brain_masker("default")
+    assert builtins.__import__ is real_import
+    assert isinstance(masker, BrainMasker) and not masker.training
+
+
+def test_loading_a_pose_model_as_a_masker_is_refused():
+    from svr.models.pretrained import default_model_path
+
+    with pytest.raises(CheckpointError, match="not a brain-mask model"):
+        load_brain_masker(default_model_path())
