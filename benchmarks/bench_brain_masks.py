@@ -12,14 +12,16 @@ stack of
 and reports per stack Dice, recall (the fraction of the manual brain inside ours) and precision
 against the given masks, the wall time of :func:`svr.models.brain_mask.segment_stack` with
 ``--threads`` torch threads, and the peak resident memory of a fresh process that loads the model
-and segments the first real stack (``ru_maxrss``, with the same process's peak before the call).
+and segments the first real stack in which a brain was found (``ru_maxrss``, with the same
+process's peak before the call).
 The reference method is the toolkit's former automatic mask, Otsu (``--auto-masks otsu``), on
 the same stacks (ratio columns).
 
 Part ``recon``: ``svr reconstruct``'s pipeline (default settings, ``--registration stack``) on
-the real scan's 6 stacks, once with the manual masks and once with the automatic ones; slice
-consistency is the mean over slices of the NCC of each observed slice with its simulation from
-the volume (the transforms table's ``ncc`` column). A figure shows both volumes.
+the real scan's stacks in which the model finds a brain, once with the manual masks and once
+with the automatic ones; slice consistency is the mean over slices of the NCC of each observed
+slice with its simulation from the volume (the transforms table's ``ncc`` column). QA figures
+show both reconstructions and the automatic masks.
 
 Run from the repository root on 2 quiet cores::
 
@@ -112,7 +114,10 @@ from svr.models.brain_mask import load_brain_masker, segment_stack
 masker = load_brain_masker(sys.argv[3])
 stack = load_nifti(sys.argv[1])
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-segment_stack(stack, masker)
+try:
+    segment_stack(stack, masker)
+except ValueError:  # no brain found: the work up to that point is measured
+    pass
 after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print(before / 1024, after / 1024)
 """
@@ -167,7 +172,9 @@ def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
             f"{np.mean([r['dice'] for r in part]):.3f} | {min(r['recall'] for r in part):.3f} | "
             f"{np.mean([r['seconds'] for r in part]):.2f} |"
         )
-    first = datasets(args.data)["real-mialsrtk-sub01"][0][0]
+    real = [r for r in rows if r["dataset"] == "real-mialsrtk-sub01"]
+    segmented = [r["stack"] for r in real if not r["error"]] or [real[0]["stack"]]
+    first = args.data / "stacks" / "real-mialsrtk-sub01" / segmented[0]
     out = subprocess.run(
         [sys.executable, "-c", PEAK_SCRIPT, str(first), str(args.threads), args.mask_model],
         capture_output=True,
@@ -189,20 +196,41 @@ def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
 def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
     from svr.reconstruction.config import ReconstructionConfig
     from svr.reconstruction.pipeline import reconstruct
-    from svr.reconstruction.qa import masks_figure
-    from svr.reconstruction.stacks import StackConfig, load_stacks
+    from svr.reconstruction.qa import masks_figure, qa_figure
+    from svr.reconstruction.stacks import prepare_stacks
 
     pairs = datasets(args.data)["real-mialsrtk-sub01"]
-    stack_paths = [s for s, _ in pairs]
+    masker = load_brain_masker(args.mask_model)
+    images = [load_nifti(s) for s, _ in pairs]
+    found, failed = [], []
+    for (stack_path, mask_path), image in zip(pairs, images, strict=True):
+        try:
+            auto = segment_stack(image, masker, name=stack_path.name).mask
+            found.append((stack_path, mask_path, image, auto))
+        except BrainNotFoundError as err:
+            failed.append(str(err))
+    report["recon_not_found"] = failed
+    lines = ["", f"Stacks where no brain was found (left out of both runs): {len(failed)}"]
+    lines += [f"- {message}" for message in failed]
+    if args.figures is not None and found:
+        masks_figure(
+            [(str(p), image, auto) for p, _, image, auto in found],
+            args.figures / "real-scan-automatic-masks.png",
+            overwrite=True,
+            title="svr segment-stack on real-mialsrtk-sub01 (stacks where a brain was found)",
+        )
+    if len(found) < 2:
+        lines.append("Fewer than 2 stacks with an automatic mask: no reconstruction compared.")
+        return lines
     config = ReconstructionConfig(registration="stack")
+    names = [str(p) for p, _, _, _ in found]
     results = {}
-    for name, masks, stack_config in (
-        ("manual", [m for _, m in pairs], StackConfig()),
-        ("automatic", None, StackConfig(auto_mask="network")),
+    for name, masks in (
+        ("manual", [load_nifti(m) for _, m, _, _ in found]),
+        ("automatic", [Image(auto.float(), image.affine) for _, _, image, auto in found]),
     ):
         began = time.perf_counter()
-        masker = load_brain_masker(args.mask_model) if masks is None else None
-        stacks = load_stacks(stack_paths, masks, 3.0, stack_config, masker)
+        stacks = prepare_stacks([f[2] for f in found], masks, 3.0, names=names)
         result = reconstruct(stacks, config)
         seconds = time.perf_counter() - began
         ncc = result.slice_ncc.double()
@@ -214,25 +242,16 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
             "seconds": seconds,
         }
         if args.figures is not None:
-            from svr.reconstruction.qa import qa_figure
-
             path = args.figures / f"real-scan-{name}-masks-qa.png"
             qa_figure(result, path, overwrite=True, notes=[f"masks: {name}"])
         print(name, results[name], flush=True)
-    if args.figures is not None:
-        masker = load_brain_masker(args.mask_model)
-        masks_figure(
-            [
-                (str(p), load_nifti(p), segment_stack(load_nifti(p), masker, name=p.name).mask)
-                for p in stack_paths
-            ],
-            args.figures / "real-scan-automatic-masks.png",
-            overwrite=True,
-            title="svr segment-stack on real-mialsrtk-sub01",
-        )
     report["recon"] = results
     manual, auto = results["manual"], results["automatic"]
     return [
+        *lines,
+        "",
+        f"`svr reconstruct` (stack registration, default settings, thickness 3 mm) on the "
+        f"{len(found)} stacks with an automatic mask ({', '.join(p.name for p, *_ in found)}):",
         "",
         "| masks | slices | excluded | mean NCC (all slices) | mean NCC (kept) | time (s) |",
         "|---|---|---|---|---|---|",

@@ -1,7 +1,8 @@
 r"""Train the shipped brain-mask model (svr.models.brain_mask) on simulated scenes only.
 
 Each network is one process (one core each; run the two stages side by side), then ``assemble``
-puts the two into one model folder:
+puts the two into one model folder; the defaults reproduce the shipped model (about 12 min of
+simulation and 30 min of training per network on one core):
 
     OMP_NUM_THREADS=1 python benchmarks/train_brain_masker.py localiser --out runs/brainmask &
     OMP_NUM_THREADS=1 python benchmarks/train_brain_masker.py segmenter --out runs/brainmask &
@@ -35,6 +36,35 @@ from svr.models.brain_mask_train import (
 from svr.models.checkpoint import latest_checkpoint, load_checkpoint
 from svr.sampling.volume import atlas_volume_paths, load_volumes
 
+MODEL_CARD = """\
+# Shipped brain-mask model (`svr segment-stack`)
+
+Two 2D U-Nets (`svr.models.segmentation.BrainUNet`, width 8, depth 4; float16 safetensors and a
+JSON config, loaded by `svr.models.brain_mask.load_brain_masker("default")` without running
+code): a localiser on 3 mm whole-slice canvases and a segmenter on 1.25 mm canvases centred on
+the brain (`svr.models.brain_mask`). Masks are intracranial (the brain and the CSF around it).
+
+**Training data.** Simulated only; no real scan was used. Brains: the 15 volumes of the
+sb-fidon2021 atlas (GA 21-34, `../shared/data/atlas/sb-fidon2021`, CC0), placed in random
+whole-uterus scenes (`svr.sampling.scenes.make_scene`, settings in
+`svr.models.brain_mask_train.stage_data`) or alone, cut by the project's stack simulator.
+{config.cases} cases per network (seed {config.seed}), {config.steps} steps of
+{config.batch_size} canvases each, one CPU thread per network.
+
+**Reproduce** (from the repository root; each stage resumes from its newest checkpoint):
+
+    OMP_NUM_THREADS=1 python benchmarks/train_brain_masker.py localiser --out {out} \\
+        --cases {config.cases} --steps {config.steps} &
+    OMP_NUM_THREADS=1 python benchmarks/train_brain_masker.py segmenter --out {out} \\
+        --cases {config.cases} --steps {config.steps} &
+    wait
+    python benchmarks/train_brain_masker.py assemble --out {out} \\
+        --model models/pretrained/brain_mask --overwrite
+
+**Evaluation.** `benchmarks/bench_brain_masks.py`; figures in
+`benchmarks/results/brain-masks.md`.
+"""
+
 ATLAS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "atlas" / "sb-fidon2021"
 
 
@@ -58,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("assemble needs --model")
         masker = BrainMasker(mask_config)
         provenance: dict[str, object] = {"command": " ".join(sys.argv)}
+        trained = []
         for stage in ("localiser", "segmenter"):
             newest = latest_checkpoint(args.out / stage)
             if newest is None:
@@ -65,7 +96,12 @@ def main(argv: list[str] | None = None) -> int:
             checkpoint = load_checkpoint(newest)
             getattr(masker, stage).load_state_dict(checkpoint.state_dict)
             provenance[stage] = {"checkpoint": newest.name, "train": checkpoint.config["train"]}
+            trained.append(BrainMaskTrainingConfig(**checkpoint.config["train"]))
+        if trained[0] != trained[1]:
+            parser.error(f"the stages were trained differently: {trained[0]} and {trained[1]}")
         save_brain_masker(masker, args.model, provenance, overwrite=args.overwrite)
+        card = MODEL_CARD.format(config=trained[0], out=args.out)
+        (args.model / "README.md").write_text(card)
         print(f"wrote {args.model}")
         return 0
 

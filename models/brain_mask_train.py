@@ -75,9 +75,9 @@ class BrainMaskTrainingConfig:
         seed: Seed of the data and of the training.
     """
 
-    cases: int = 80
+    cases: int = 100
     bare_fraction: float = 0.25
-    steps: int = 5000
+    steps: int = 4000
     batch_size: int = 16
     learning_rate: float = 2e-3
     checkpoint_every: int = 250

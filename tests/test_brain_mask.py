@@ -32,6 +32,7 @@ from svr.models.brain_mask import (
 from svr.models.brain_mask_train import (
     BrainMaskTrainingConfig,
     StageData,
+    TrainingExamples,
     dice_bce_loss,
     make_examples,
     train_network,
@@ -382,3 +383,24 @@ def test_loading_a_pose_model_as_a_masker_is_refused():
 
     with pytest.raises(CheckpointError, match="not a brain-mask model"):
         load_brain_masker(default_model_path())
+
+
+def test_training_resumes_exactly_from_its_checkpoint(tmp_path):
+    """A run interrupted after step 4 and resumed ends where an uninterrupted run ends."""
+    import shutil
+
+    generator = torch.Generator().manual_seed(0)
+    inputs = torch.rand(10, 1, 16, 16, generator=generator).half()
+    examples = TrainingExamples(inputs, inputs.float() > 0.6)
+    net_config = SegmentationConfig(2, 1)
+    config = BrainMaskTrainingConfig(steps=6, batch_size=3, checkpoint_every=2)
+
+    straight = train_network(examples, net_config, config, tmp_path / "run")
+    assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [
+        "step_000000004",
+        "step_000000006",
+    ]
+    shutil.rmtree(tmp_path / "run" / "step_000000006")  # as if stopped after step 4
+    resumed = train_network(examples, net_config, config, tmp_path / "run")
+    for key, value in straight.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[key], value, rtol=0, atol=0)
