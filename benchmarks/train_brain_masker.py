@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from svr.image import load_nifti
 from svr.models.brain_mask import BrainMaskConfig, BrainMasker, save_brain_masker
 from svr.models.brain_mask_train import (
     BrainMaskTrainingConfig,
@@ -76,6 +77,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", type=int, default=BrainMaskTrainingConfig.cases)
     parser.add_argument("--steps", type=int, default=BrainMaskTrainingConfig.steps)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--label-intensities",
+        action="store_true",
+        help="give half of the scenes' brains a random intensity per parcellation label",
+    )
     parser.add_argument("--model", type=Path, help="assemble: the model folder to write")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
@@ -114,8 +120,16 @@ def main(argv: list[str] | None = None) -> int:
         examples = TrainingExamples(data["inputs"], data["targets"])
     else:
         began = time.time()
-        brains, _ = load_volumes(atlas_volume_paths(args.atlas))
-        examples = make_examples(brains, stage, mask_config, config, progress=True)
+        pairs = atlas_volume_paths(args.atlas)
+        brains, _ = load_volumes(pairs)
+        tissue_labels = None
+        if args.label_intensities:
+            tissue_labels = [
+                load_nifti(v.parent / "parcellation.nii.gz").data.round().long() for v, _ in pairs
+            ]
+        examples = make_examples(
+            brains, stage, mask_config, config, progress=True, tissue_labels=tissue_labels
+        )
         torch.save({"inputs": examples.inputs, "targets": examples.targets}, cache)
         logging.info(
             "%d %s examples (brain %.2f %% of pixels) in %.0f s",

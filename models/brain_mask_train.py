@@ -206,6 +206,7 @@ def make_examples(
     config: BrainMaskTrainingConfig,
     data: StageData | None = None,
     progress: bool = False,
+    tissue_labels: Sequence[Tensor] | None = None,
 ) -> TrainingExamples:
     """Simulated canvases and targets for one network (module docstring).
 
@@ -216,6 +217,8 @@ def make_examples(
         config: Number of cases, fraction of bare brains and seed.
         data: The scenes and acquisitions; ``None`` for :func:`stage_data` of ``stage``.
         progress: Show a progress bar over cases.
+        tissue_labels: Tissue labels of each brain (e.g. the atlas parcellations); when given,
+            half of the scenes give the brain a random intensity per label (SynthSeg-style).
 
     Returns:
         The examples (CPU).
@@ -235,10 +238,14 @@ def make_examples(
     pixel = mask_config.localiser_mm if stage == "localiser" else mask_config.segmenter_mm
     inputs, targets = [], []
     for case in tqdm(range(config.cases), desc=f"{stage} cases", disable=not progress):
-        brain = brains[int(rng.integers(len(brains)))]
+        which = int(rng.integers(len(brains)))
+        brain = brains[which]
         bare = bool(rng.random() < config.bare_fraction)
         seed = int(rng.integers(2**31))
-        scene = brain if bare else make_scene(brain, data.scene, seed=seed)
+        tissue = None
+        if tissue_labels is not None and rng.random() < 0.5:  # (no draw without labels)
+            tissue = tissue_labels[which]
+        scene = brain if bare else make_scene(brain, data.scene, seed=seed, tissue_labels=tissue)
         simulated = simulate_case(scene, _case_simulation(data, bare, rng, seed))
         for stack in simulated.stacks:
             image = normalise_stack(stack.image.data, f"case {case}")

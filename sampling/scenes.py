@@ -201,7 +201,10 @@ def _paint_organs(
 
 
 def make_scene(
-    brain: CanonicalVolume, config: SceneConfig | None = None, seed: int = 0
+    brain: CanonicalVolume,
+    config: SceneConfig | None = None,
+    seed: int = 0,
+    tissue_labels: torch.Tensor | None = None,
 ) -> CanonicalVolume:
     """A random whole-uterus scene around ``brain`` (module docstring).
 
@@ -209,6 +212,9 @@ def make_scene(
         brain: A canonical brain volume (e.g. an atlas age, :func:`load_canonical_volume`).
         config: The scene's ranges; ``None`` for ``SceneConfig()``.
         seed: Seed of every random choice (a scene is a pure function of its inputs and seed).
+        tissue_labels: Optional (I, J, K) tissue labels on ``brain``'s grid (e.g. the atlas
+            parcellation): the brain's intensities are then replaced by a random intensity per
+            label (SynthSeg-style domain randomisation), slightly blurred.
 
     Returns:
         The scene: ``image`` (float32, the whole scene, brain 99th percentile ~1) and ``mask``
@@ -241,6 +247,13 @@ def make_scene(
         > 0.5
     )
     intensity = np.clip(intensity, 0.0, None) ** _uniform(rng, cfg.gamma)
+    if tissue_labels is not None:  # SynthSeg-style: a random intensity per label, own stream
+        label_rng = np.random.default_rng([seed, 1])
+        sampled = sample_world(Image(tissue_labels.float(), source.image.affine), moved, "nearest")
+        tissue = sampled.numpy().astype(np.int64)
+        values = label_rng.uniform(0.1, 1.0, size=int(tissue.max()) + 1)
+        synthetic = ndimage.gaussian_filter(values[tissue], 0.5)
+        intensity = np.where(brain_mask, synthetic, intensity)
 
     # 2. The head: shells by distance from the brain surface.
     distance = ndimage.distance_transform_edt(~brain_mask, sampling=cfg.spacing_mm)

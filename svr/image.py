@@ -195,14 +195,7 @@ def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = Fal
     nii = nib.Nifti1Image(image.data.detach().cpu().numpy().astype(np.float32), affine)
     nii.set_sform(affine, code=1)
     nii.set_qform(affine, code=1)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp{''.join(p.suffixes)}")
-    try:
-        nib.save(nii, str(tmp))
-        os.replace(tmp, p)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return p
+    return _save_atomically(nii, p)
 
 
 def save_mask_like(
@@ -249,15 +242,19 @@ def save_mask_like(
     header.set_slope_inter(1.0, 0.0)
     # Without an affine, nibabel keeps the copied header's sform and qform fields as stored
     # (nothing is recomputed from a matrix, so quaternions and offsets stay bit for bit).
-    out = nib.Nifti1Image((data != 0).astype(np.uint8), None, header)
-    tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp{''.join(p.suffixes)}")
+    return _save_atomically(nib.Nifti1Image((data != 0).astype(np.uint8), None, header), p)
+
+
+def _save_atomically(image: nib.Nifti1Image, path: Path) -> Path:
+    """Write ``image`` to a temporary file beside ``path``, then rename it (atomic on POSIX)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{''.join(path.suffixes)}")
     try:
-        nib.save(out, str(tmp))
-        os.replace(tmp, p)
+        nib.save(image, str(tmp))
+        os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    return p
+    return path
 
 
 def voxel_to_world(affine: Tensor, voxels: Tensor) -> Tensor:

@@ -404,3 +404,24 @@ def test_training_resumes_exactly_from_its_checkpoint(tmp_path):
     resumed = train_network(examples, net_config, config, tmp_path / "run")
     for key, value in straight.state_dict().items():
         torch.testing.assert_close(resumed.state_dict()[key], value, rtol=0, atol=0)
+
+
+def test_examples_pass_each_brain_its_own_tissue_labels(phantom, monkeypatch):
+    """With tissue labels, scenes get the labels of the brain drawn for them (about half)."""
+    import svr.models.brain_mask_train as module
+
+    labels = [torch.ones(phantom.image.shape, dtype=torch.long) * (n + 1) for n in range(2)]
+    brains = [phantom, phantom]
+    passed = []
+    real = module.make_scene
+
+    def spy(brain, config, seed, tissue_labels=None):
+        passed.append(tissue_labels)
+        return real(brain, config, seed, tissue_labels)
+
+    monkeypatch.setattr(module, "make_scene", spy)
+    config = BrainMaskTrainingConfig(cases=6, bare_fraction=0.0)
+    make_examples(brains, "segmenter", TINY, config, TINY_DATA, tissue_labels=labels)
+    assert len(passed) == 6
+    assert all(t is None or any(t is label for label in labels) for t in passed)
+    assert 0 < sum(t is not None for t in passed) < 6

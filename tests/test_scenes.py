@@ -144,3 +144,18 @@ def test_intracranial_mask_adds_the_csf_shell_only(brain):
     assert int(added.sum()) > 0
     values = intracranial.image.data[added]
     assert float(values.min()) == float(values.max()) >= 1.0  # the CSF intensity, one value
+
+
+def test_tissue_labels_randomise_only_the_brain(brain):
+    """With labels, the brain gets one random intensity per label (blurred); the rest of the
+    scene, drawn from the main random stream, is unchanged."""
+    labels = (brain.image.data > float(brain.image.data[brain.mask].median())).long() + 1
+    labels[~brain.mask] = 0
+    plain = make_scene(brain, SMALL, seed=9)
+    synthetic = make_scene(brain, SMALL, seed=9, tissue_labels=labels)
+    assert torch.equal(plain.mask, synthetic.mask)
+    outside = ~plain.mask
+    assert torch.equal(plain.image.data[outside], synthetic.image.data[outside])
+    inside = synthetic.image.data[plain.mask]
+    assert not torch.allclose(inside, plain.image.data[plain.mask])
+    assert float(inside.min()) >= 0.0 and float(inside.max()) <= 1.0  # values in [0.1, 1], blurred

@@ -34,6 +34,16 @@ MODEL_HELP = (
 """A model argument's one meaning (:func:`svr.models.checkpoint.resolve_model_path`)."""
 
 
+MASK_MODEL_HELP = (
+    "brain-mask model: 'default' (shipped with the package) or a folder written by "
+    "benchmarks/train_brain_masker.py"
+)
+"""The meaning of ``--mask-model`` (:func:`svr.models.brain_mask.load_brain_masker`)."""
+
+VOLUME_SUFFIXES = (".nii", ".nii.gz")
+"""The file names a NIfTI output may have."""
+
+
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """Add ``--device``, ``--seed``, ``--verbose`` and ``--quiet``."""
     parser.add_argument(

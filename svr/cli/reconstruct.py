@@ -16,7 +16,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from svr.cli.common import (
+    MASK_MODEL_HELP,
     MODEL_HELP,
+    VOLUME_SUFFIXES,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -60,7 +62,6 @@ examples:
       --output-transforms slices.csv --output-slices slices/ --output-log srr.log --device cuda
 """
 
-VOLUME_SUFFIXES = (".nii", ".nii.gz")
 TABLE_SUFFIXES = (".csv", ".json")
 LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
@@ -114,8 +115,7 @@ def add_options(
         "--mask-model",
         default="default",
         metavar="CHECKPOINT_DIR",
-        help="brain-mask model for --auto-masks network: 'default' (shipped) or a folder "
-        "written by benchmarks/train_brain_masker.py",
+        help=f"{MASK_MODEL_HELP} (for --auto-masks network)",
     )
     inputs.add_argument(
         "--thicknesses",

@@ -9,7 +9,14 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from svr.cli.common import CliError, HelpFormatter, add_common_options, resolve_device
+from svr.cli.common import (
+    MASK_MODEL_HELP,
+    VOLUME_SUFFIXES,
+    CliError,
+    HelpFormatter,
+    add_common_options,
+    resolve_device,
+)
 
 DESCRIPTION = """\
 Find the fetal brain in each stack and write its mask: one uint8 NIfTI per stack on the stack's
@@ -29,8 +36,6 @@ examples:
 """
 
 log = logging.getLogger(__name__)
-
-_VOLUME_SUFFIXES = (".nii", ".nii.gz")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -58,8 +63,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--mask-model",
         default="default",
         metavar="CHECKPOINT_DIR",
-        help="brain-mask model: 'default' (shipped) or a folder written by "
-        "benchmarks/train_brain_masker.py",
+        help=MASK_MODEL_HELP,
     )
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_common_options(p)
@@ -78,7 +82,7 @@ def check_outputs(masks: list[str], qa: str | None, overwrite: bool, inputs: lis
 
     seen: set[Path] = {Path(p).resolve() for p in inputs}
     for option, path, suffixes in [
-        *(("--output-stack-masks", m, _VOLUME_SUFFIXES) for m in masks),
+        *(("--output-stack-masks", m, VOLUME_SUFFIXES) for m in masks),
         *((("--output-qa", qa, FIGURE_SUFFIXES),) if qa is not None else ()),
     ]:
         if not path.endswith(suffixes):
