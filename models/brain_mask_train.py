@@ -258,7 +258,8 @@ def make_examples(
             shape = torch.tensor(image.shape[:2], dtype=torch.float64)
             if stage == "localiser":
                 others = torch.nonzero(~through)[:, 0]
-                others = others[torch.randperm(len(others))[: len(brain_slices)]]
+                keep = torch.from_numpy(rng.permutation(len(others))[: len(brain_slices)])
+                others = others[keep]
                 chosen = torch.cat([brain_slices, others])
                 shift = torch.from_numpy(rng.uniform(-60.0, 60.0, 2)) / spacing
                 centre = (shape - 1) / 2 + shift
