@@ -13,8 +13,8 @@ A clinical stack shows the whole maternal abdomen; the brain is a small part of 
    is resampled onto a finer canvas (``segmenter_size`` pixels of ``segmenter_mm``) centred on
    the brain, the segmenter predicts the brain there (averaged with its prediction on the
    left-right flipped canvas) and the probabilities go back onto the stack grid.
-3. **Clean up.** The largest 3D component is kept, holes are filled slice by slice, and a slice's
-   pieces that do not touch the brain in a neighbouring slice are dropped (per-slice
+3. **Clean up.** The largest 3D component is kept and holes are filled slice by slice; a piece
+   of a slice stays only if it joins the brain through the neighbouring slices (per-slice
    consistency: the brain is one body through the stack).
 
 Canvases are cut with the same function (:func:`slices_to_canvas`) at inference and when the
@@ -39,12 +39,17 @@ from scipy import ndimage
 from torch import Tensor, nn
 from torch.nn import functional
 
-from svr.image import Image, intensity_scale
-from svr.models.checkpoint import load_checkpoint, resolve_model_path, save_checkpoint
+from svr.image import Image, intensity_scale, largest_component
+from svr.models.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    resolve_model_path,
+    save_checkpoint,
+)
+from svr.models.pretrained import DEFAULT_MODEL, brain_mask_model_path
 from svr.models.segmentation import BrainUNet, SegmentationConfig
 
 __all__ = [
-    "BRAIN_MASK_MODEL",
     "BrainMaskConfig",
     "BrainMasker",
     "BrainNotFoundError",
@@ -56,9 +61,6 @@ __all__ = [
     "segment_stack",
     "slices_to_canvas",
 ]
-
-BRAIN_MASK_MODEL = "brain_mask"
-"""The name of the shipped brain-mask model (``--mask-model default`` resolves to it)."""
 
 _ARCHITECTURE = "brain_masker"
 log = logging.getLogger(__name__)
@@ -302,39 +304,16 @@ def canvas_to_slices(
     )
 
 
-def _largest_component(mask: np.ndarray) -> np.ndarray:
-    """The largest 3D connected component (6-connectivity) of a bool mask (empty if none)."""
-    labels, count = ndimage.label(mask)
-    if count == 0:
-        return mask
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
-    return labels == int(sizes.argmax())
+def _clean_up(brain: np.ndarray) -> np.ndarray:
+    """The largest 3D component of a bool mask with the holes of each slice filled.
 
-
-def _consistent_slices(mask: np.ndarray) -> np.ndarray:
-    """Holes filled per slice; pieces of a slice not touching the brain in a neighbour dropped."""
-    out = np.zeros_like(mask)
-    filled = np.stack(
-        [ndimage.binary_fill_holes(mask[:, :, k]) for k in range(mask.shape[2])], axis=2
-    )
-    for k in range(mask.shape[2]):
-        labels, count = ndimage.label(filled[:, :, k])
-        if count <= 1:
-            out[:, :, k] = filled[:, :, k]
-            continue
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        neighbours = np.zeros(mask.shape[:2], dtype=bool)
-        for n in (k - 1, k + 1):
-            if 0 <= n < mask.shape[2]:
-                neighbours |= filled[:, :, n]
-        keep = np.zeros(count + 1, dtype=bool)
-        keep[int(sizes.argmax())] = True
-        touching = np.unique(labels[neighbours & (labels > 0)])
-        keep[touching] = True
-        out[:, :, k] = keep[labels]
-    return _largest_component(out)
+    Keeping one face-connected body is the per-slice consistency: a piece of a slice stays only
+    if it joins the brain through the neighbouring slices.
+    """
+    body = largest_component(brain)
+    for k in range(body.shape[2]):
+        body[:, :, k] = ndimage.binary_fill_holes(body[:, :, k])
+    return body
 
 
 @torch.no_grad()
@@ -393,7 +372,7 @@ def segment_stack(
     canvas = slices_to_canvas(slices, spacing, middle, cfg.localiser_size, cfg.localiser_mm)
     coarse = _predict(masker.localiser, canvas, flip=False)
     coarse = canvas_to_slices(coarse, spacing, middle, cfg.localiser_mm, shape)
-    found = _largest_component(coarse[:, 0].permute(1, 2, 0).cpu().numpy() > cfg.threshold)
+    found = largest_component(coarse[:, 0].permute(1, 2, 0).cpu().numpy() > cfg.threshold)
     if found.sum() * voxel_ml < max(cfg.min_volume_ml, voxel_ml):
         raise BrainNotFoundError(
             f"{name}: no fetal brain found (the localiser's largest region is "
@@ -414,7 +393,7 @@ def segment_stack(
     probability[:, :, first : last + 1] = fine[:, 0].permute(1, 2, 0).float().cpu()
 
     # 3. Clean up.
-    mask = _consistent_slices(_largest_component(probability.numpy() > cfg.threshold))
+    mask = _clean_up(probability.numpy() > cfg.threshold)
     volume_ml = float(mask.sum()) * voxel_ml
     if volume_ml < max(cfg.min_volume_ml, voxel_ml):
         raise BrainNotFoundError(
@@ -459,9 +438,6 @@ def load_brain_masker(
     Raises:
         CheckpointError: If the folder is missing, modified, or not a brain-mask model.
     """
-    from svr.models.checkpoint import CheckpointError
-    from svr.models.pretrained import DEFAULT_MODEL, brain_mask_model_path
-
     if str(path_or_name) == DEFAULT_MODEL:
         folder = brain_mask_model_path()
     else:

@@ -26,7 +26,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -131,11 +131,16 @@ class StageData:
     bare_margin_mm: tuple[float, float] = (2.0, 20.0)
 
 
-# The head as it looks on fetal T2 stacks: a wide, bright extra-axial CSF space and a thin skull
-# (thick dark skulls taught the first networks a cue that real stacks do not show).
-_CSF_MM = (2.0, 9.0)
-_SKULL_MM = (0.8, 3.0)
-_SKULL_INTENSITY = (0.02, 0.5)
+# Shared by both networks' scenes: the head as it looks on fetal T2 stacks (a wide, bright
+# extra-axial CSF space and a thin skull; thick dark skulls taught the first networks a cue that
+# real stacks do not show), a large textured fetal body, intracranial masks.
+_HEAD: dict[str, Any] = {
+    "csf_mm": (2.0, 9.0),
+    "skull_mm": (0.8, 3.0),
+    "skull_intensity": (0.02, 0.5),
+    "body_scale": (1.2, 2.2),
+    "intracranial_mask": True,
+}
 
 
 def stage_data(stage: Stage) -> StageData:
@@ -149,33 +154,22 @@ def stage_data(stage: Stage) -> StageData:
         scene = SceneConfig(
             extent_mm=400.0,
             spacing_mm=2.5,
-            csf_mm=_CSF_MM,
-            skull_mm=_SKULL_MM,
-            skull_intensity=_SKULL_INTENSITY,
             fluid_margin_mm=(3.0, 30.0),
-            body_scale=(1.2, 2.2),
             distractors=(30, 80),
             distractor_mm=(3.0, 25.0),
-            intracranial_mask=True,
+            **_HEAD,
         )
         return StageData(scene, (1.5, 2.5), (40.0, 130.0))
-    return StageData(
-        SceneConfig(
-            extent_mm=200.0,
-            spacing_mm=1.25,
-            csf_mm=_CSF_MM,
-            skull_mm=_SKULL_MM,
-            skull_intensity=_SKULL_INTENSITY,
-            fluid_margin_mm=(5.0, 40.0),
-            abdomen_margin_mm=(10.0, 60.0),
-            body_scale=(1.2, 2.2),
-            distractors=(10, 30),
-            distractor_mm=(3.0, 20.0),
-            intracranial_mask=True,
-        ),
-        (0.8, 1.5),
-        (30.0, 50.0),
+    scene = SceneConfig(
+        extent_mm=200.0,
+        spacing_mm=1.25,
+        fluid_margin_mm=(5.0, 40.0),
+        abdomen_margin_mm=(10.0, 60.0),
+        distractors=(10, 30),
+        distractor_mm=(3.0, 20.0),
+        **_HEAD,
     )
+    return StageData(scene, (0.8, 1.5), (30.0, 50.0))
 
 
 def _case_simulation(
@@ -255,15 +249,15 @@ def make_examples(
             brain_slices = torch.nonzero(through)[:, 0]
             if brain_slices.numel() == 0:
                 continue
-            shape = torch.tensor(image.shape[:2], dtype=torch.float64)
             if stage == "localiser":
                 others = torch.nonzero(~through)[:, 0]
                 keep = torch.from_numpy(rng.permutation(len(others))[: len(brain_slices)])
                 others = others[keep]
                 chosen = torch.cat([brain_slices, others])
                 shift = torch.from_numpy(rng.uniform(-60.0, 60.0, 2)) / spacing
-                centre = (shape - 1) / 2 + shift
-            else:
+                centre = (torch.tensor(image.shape[:2], dtype=torch.float64) - 1) / 2 + shift
+            else:  # the brain's slices and one beyond each end (inference segments a margin of
+                # BrainMaskConfig.slice_margin beyond the localised ones, to spare its errors)
                 first = max(int(brain_slices.min()) - 1, 0)
                 last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
                 chosen = torch.arange(first, last + 1)

@@ -7,8 +7,9 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
 1. **Mask.** A given mask on another grid is resampled onto the stack's (nearest neighbour, by
    world position, as :mod:`svr.models.predict` does); it must overlap the stack. Without masks, an
    automatic one, by ``StackConfig.auto_mask``: ``"network"`` runs the shipped brain-mask
-   networks (:func:`svr.models.brain_mask.segment_stack`: whole-uterus or cropped stacks; a stack
-   where no brain is found is an error naming it); ``"otsu"`` keeps voxels above the stack's Otsu
+   networks (:func:`svr.models.brain_mask.segment_stack`, meant for whole-uterus and cropped
+   stacks; the shipped model is accurate on cropped ones only; a stack where no brain is found
+   is an error naming it); ``"otsu"`` keeps voxels above the stack's Otsu
    threshold inside the region that every stack's field of view covers (each stack covering the
    boxes of its voxels), then the largest 3D connected component with its holes filled, which
    suits only stacks already cropped around the brain (the brain is the largest bright object seen
@@ -43,9 +44,16 @@ import SimpleITK as sitk  # noqa: N813 (the usual alias)
 import torch
 from scipy import ndimage
 from skimage.filters import threshold_otsu
-from torch import Tensor, nn
+from torch import Tensor
 
-from svr.image import Image, ImageError, intensity_scale, load_nifti, mask_on_grid
+from svr.image import (
+    Image,
+    ImageError,
+    intensity_scale,
+    largest_component,
+    load_nifti,
+    mask_on_grid,
+)
 from svr.reconstruction.slices import Stack
 
 if TYPE_CHECKING:
@@ -202,11 +210,11 @@ def prepare_stacks(
         _check_stack(image, name)
     widths = _thicknesses(thicknesses, images, names)
     if masks is None and config.auto_mask == "network":
-        from svr.models.brain_mask import load_brain_masker, segment_stack
+        from svr.models.brain_mask import BrainMasker, load_brain_masker, segment_stack
 
         networks = (
             masker
-            if isinstance(masker, nn.Module)
+            if isinstance(masker, BrainMasker)
             else load_brain_masker("default" if masker is None else masker, device)
         )
         brains = []
@@ -320,16 +328,13 @@ def _automatic_mask(image: Image, others: Sequence[Image], name: str) -> Tensor:
     foreground = (data > threshold_otsu(data.ravel())) & _inside_fields_of_view(
         image, others
     ).numpy()
-    labels, count = ndimage.label(foreground)
-    if count == 0:
+    if not foreground.any():
         raise ImageError(
             f"{name}: the automatic mask is empty (no voxel above the Otsu threshold inside the "
             "region all stacks cover); give a brain mask"
         )
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
     log.info("%s: automatic brain mask (otsu)", name)
-    return torch.from_numpy(ndimage.binary_fill_holes(labels == sizes.argmax()))
+    return torch.from_numpy(ndimage.binary_fill_holes(largest_component(foreground)))
 
 
 def _span(present: Tensor, margin: int) -> tuple[int, int]:

@@ -23,6 +23,7 @@ from typing import cast
 import nibabel as nib
 import numpy as np
 import torch
+from scipy import ndimage
 from torch import Tensor
 
 from svr.files import check_output_path
@@ -436,6 +437,23 @@ def same_grid(a: Image, b: Image, atol_mm: float = GRID_ATOL_MM) -> bool:
     return a.shape == b.shape and torch.allclose(
         a.affine.to(b.affine), b.affine, atol=atol_mm, rtol=0
     )
+
+
+def largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest connected component of a bool array (face connectivity), or ``mask`` if empty.
+
+    Args:
+        mask: Bool array, 2D or 3D.
+
+    Returns:
+        Bool array of the same shape.
+    """
+    labels, count = ndimage.label(mask)
+    if count == 0:
+        return mask
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return labels == int(sizes.argmax())
 
 
 def mask_on_grid(mask: Image, like: Image) -> Tensor:

@@ -520,7 +520,7 @@ def _cases() -> list[Case]:
     for option, path, message in (
         ("--output-stack-masks", "{out}/mask.mgz", "must end in .nii or .nii.gz"),
         ("--output-qa", "{out}/masks.txt", "must end in .png or .pdf"),
-        ("--output-stack-masks", "{stack}", "the same path is an input or another output"),
+        ("--output-stack-masks", "{stack}", "the same path as --input-stacks"),
     ):
         add(
             Case(

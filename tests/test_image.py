@@ -194,3 +194,19 @@ def test_intensity_scale_percentile_and_errors():
         intensity_scale(torch.zeros(0), "stack.nii")
     with pytest.raises(ValueError, match=r"stack\.nii: the 99th percentile .* is 0\.0"):
         intensity_scale(torch.zeros(10), "stack.nii")
+
+
+def test_largest_component_keeps_the_biggest_face_connected_piece():
+    from svr.image import largest_component
+
+    mask = np.zeros((8, 8, 3), dtype=bool)
+    mask[0:3, 0:3, 0] = True  # 9 voxels
+    mask[5:8, 5:8, :] = True  # 27 voxels
+    mask[4, 4, 1] = True  # touches the big piece only along an edge: not face-connected
+    assert np.array_equal(
+        largest_component(mask), np.pad(np.ones((3, 3, 3), bool), ((5, 0),) * 2 + ((0, 0),))
+    )
+    flat = mask[:, :, 0]
+    assert largest_component(flat).sum() == 9
+    empty = np.zeros((4, 4), dtype=bool)
+    assert not largest_component(empty).any()

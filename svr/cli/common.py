@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,6 +43,39 @@ MASK_MODEL_HELP = (
 
 VOLUME_SUFFIXES = (".nii", ".nii.gz")
 """The file names a NIfTI output may have."""
+
+
+def check_outputs(
+    outputs: Sequence[tuple[str, str | None, tuple[str, ...] | None]],
+    overwrite: bool,
+    inputs: Sequence[tuple[str, str]] = (),
+) -> None:
+    """Check output paths before any computation: suffix, existence, folder, no repeats.
+
+    Args:
+        outputs: ``(option, path, suffixes)`` per output; a ``None`` path (not given) is
+            skipped, ``None`` suffixes accept any name.
+        overwrite: Whether existing outputs may be replaced.
+        inputs: ``(option, path)`` of input files that no output may be.
+
+    Raises:
+        CliError: For a wrong suffix, or a path given twice (naming the other option).
+        OutputExistsError, FileNotFoundError, PermissionError: From
+            :func:`svr.files.check_output_path`.
+    """
+    from svr.files import check_output_path
+
+    seen = {Path(path).resolve(): option for option, path in inputs}
+    for option, path, suffixes in outputs:
+        if path is None:
+            continue
+        if suffixes is not None and not path.endswith(suffixes):
+            raise CliError(f"{option} {path}: must end in {' or '.join(suffixes)}")
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise CliError(f"{option} {path}: the same path as {seen[resolved]}")
+        seen[resolved] = option
+        check_output_path(path, overwrite)
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:

@@ -12,7 +12,6 @@ import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from svr.cli.common import (
@@ -22,12 +21,13 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_outputs,
     positive_float,
     positive_int,
     resolve_device,
 )
 from svr.errors import ConfigFieldError
-from svr.files import atomic_write_text, check_output_path
+from svr.files import atomic_write_text
 
 if TYPE_CHECKING:
     from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
@@ -45,7 +45,8 @@ with their simulation is below --ncc-threshold, and edge-preserving super-resolu
 
 Stacks are cropped to their brain masks and normalised; without --stack-masks each stack's brain
 is found automatically (--auto-masks network, as `svr segment-stack` does; the log and the QA
-figure say so) in whole-uterus or cropped stacks. The output
+figure say so; accurate on stacks cropped around the brain, not yet on whole-uterus scans,
+where a stack without a found brain stops the command with an error). The output
 volume is in canonical atlas space with --registration cnn and in the scanner's world frame
 otherwise. --output-transforms writes one row per slice (stack file, k index, pose of the file's
 k-plane as 6-vector and matrix, frame, NCC, EM weight, excluded); --output-slices a NeSVoR-style
@@ -108,7 +109,7 @@ def add_options(
         choices=["network", "otsu"],
         default="network",
         help="masks of stacks given without --stack-masks: network (the shipped brain-mask "
-        "networks of svr segment-stack; whole-uterus or cropped stacks) or otsu (the largest "
+        "networks of svr segment-stack; reliable on cropped stacks) or otsu (the largest "
         "bright region all stacks see; stacks cropped around the brain only)",
     )
     inputs.add_argument(
@@ -307,24 +308,14 @@ def _check_outputs(args: argparse.Namespace) -> None:
     """Check every output path before the computation: suffix, existence, folder, no repeats."""
     from svr.reconstruction.qa import FIGURE_SUFFIXES
 
-    outputs = {
-        "--output-volume": (args.output_volume, VOLUME_SUFFIXES),
-        "--output-slices": (args.output_slices, None),
-        "--output-transforms": (args.output_transforms, TABLE_SUFFIXES),
-        "--output-qa": (args.output_qa, FIGURE_SUFFIXES),
-        "--output-log": (args.output_log, None),
-    }
-    seen: dict[Path, str] = {}
-    for option, (path, suffixes) in outputs.items():
-        if path is None:
-            continue
-        if suffixes is not None and not path.endswith(suffixes):
-            raise CliError(f"{option} {path}: must end in {' or '.join(suffixes)}")
-        resolved = Path(path).resolve()
-        if resolved in seen:
-            raise CliError(f"{option} {path}: the same path as {seen[resolved]}")
-        seen[resolved] = option
-        check_output_path(path, args.overwrite)
+    outputs = [
+        ("--output-volume", args.output_volume, VOLUME_SUFFIXES),
+        ("--output-slices", args.output_slices, None),
+        ("--output-transforms", args.output_transforms, TABLE_SUFFIXES),
+        ("--output-qa", args.output_qa, FIGURE_SUFFIXES),
+        ("--output-log", args.output_log, None),
+    ]
+    check_outputs(outputs, args.overwrite)
 
 
 @contextmanager

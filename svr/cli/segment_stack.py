@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from pathlib import Path
 
 from tqdm import tqdm
 
@@ -15,18 +14,20 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_outputs,
     resolve_device,
 )
 
 DESCRIPTION = """\
 Find the fetal brain in each stack and write its mask: one uint8 NIfTI per stack on the stack's
 own grid, with the stack's header (sform and qform as in the stack), so that the next command
-(`svr reconstruct --stack-masks`, NeSVoR, SVRTK) reads it as is. Whole-uterus stacks and stacks
-already cropped around the brain both work. The network is shipped in the package (no download)
-and runs on a CPU: a small 2D U-Net finds the brain in each slice of the whole field of view,
-a second one segments it on a finer grid centred on it, and the largest 3D region is kept with
-holes filled. A stack in which no brain is found is an error naming the stack (no mask is
-written). All inputs are checked and all masks computed before any file is written.
+(`svr reconstruct --stack-masks`, NeSVoR, SVRTK) reads it as is. The shipped model is accurate on
+stacks cropped around the brain; on whole-uterus stacks it often finds no brain (then it stops
+with an error) or misses part of it: check the --output-qa figure. It is shipped in the package
+(no download) and runs on a CPU: a small 2D U-Net finds the brain in each slice of the whole
+field of view, a second one segments it on a finer grid centred on it, and the largest 3D region
+is kept with holes filled. A stack in which no brain is found is an error naming the stack (no
+mask is written). All inputs are checked and all masks computed before any file is written.
 
 examples:
   svr segment-stack --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
@@ -69,43 +70,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
-def check_outputs(masks: list[str], qa: str | None, overwrite: bool, inputs: list[str]) -> None:
-    """Check the output paths before any work: suffixes, existence, folders, no repeats.
-
-    Raises:
-        CliError: For a wrong suffix, a repeated path or an output that is also an input.
-        OutputExistsError, FileNotFoundError, PermissionError: From
-            :func:`svr.files.check_output_path`.
-    """
-    from svr.files import check_output_path
-    from svr.reconstruction.qa import FIGURE_SUFFIXES
-
-    seen: set[Path] = {Path(p).resolve() for p in inputs}
-    for option, path, suffixes in [
-        *(("--output-stack-masks", m, VOLUME_SUFFIXES) for m in masks),
-        *((("--output-qa", qa, FIGURE_SUFFIXES),) if qa is not None else ()),
-    ]:
-        if not path.endswith(suffixes):
-            raise CliError(f"{option} {path}: must end in {' or '.join(suffixes)}")
-        resolved = Path(path).resolve()
-        if resolved in seen:
-            raise CliError(f"{option} {path}: the same path is an input or another output")
-        seen.add(resolved)
-        check_output_path(path, overwrite)
-
-
 def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
     from svr.image import load_nifti, save_mask_like
     from svr.models.brain_mask import load_brain_masker, segment_stack
-    from svr.reconstruction.qa import masks_figure
+    from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure
 
     if len(args.output_stack_masks) != len(args.input_stacks):
         raise CliError(
             f"--output-stack-masks: got {len(args.output_stack_masks)} paths for "
             f"{len(args.input_stacks)} stacks; give one per stack"
         )
-    check_outputs(args.output_stack_masks, args.output_qa, args.overwrite, args.input_stacks)
+    check_outputs(
+        [
+            *(("--output-stack-masks", path, VOLUME_SUFFIXES) for path in args.output_stack_masks),
+            ("--output-qa", args.output_qa, FIGURE_SUFFIXES),
+        ],
+        args.overwrite,
+        [("--input-stacks", path) for path in args.input_stacks],
+    )
     device = resolve_device(args.device)
     stacks = [load_nifti(path) for path in args.input_stacks]  # every input checked first
     masker = load_brain_masker(args.mask_model, device)
