@@ -7,9 +7,13 @@ A clinical stack shows the whole maternal abdomen; the brain is a small part of 
 1. **Localise.** Every slice is resampled in-plane onto a square canvas of
    ``localiser_size`` pixels of ``localiser_mm`` (the whole field of view, coarse), the localiser
    predicts a brain probability, the probabilities go back onto the stack grid and the largest 3D
-   connected component above ``threshold`` is the brain's rough extent. None (or one smaller than
+   connected component above ``threshold`` is the brain's rough extent. With
+   ``localiser_tiles`` the canvases are tiles overlapping by half that cover the field of view
+   (finer pixels than one canvas could hold) and their probabilities are blended with weights
+   falling towards each tile's edge. None (or one smaller than
    ``min_volume_ml``) is a :class:`BrainNotFoundError` naming the stack, never an empty mask.
-2. **Segment.** Every slice the brain may touch (``slice_margin`` beyond the localised extent)
+2. **Segment.** Every slice the brain may touch (``slice_margin`` beyond the localised extent,
+   or every slice of the stack)
    is resampled onto a finer canvas (``segmenter_size`` pixels of ``segmenter_mm``) centred on
    the brain, the segmenter predicts the brain there (averaged with its prediction on the
    left-right flipped canvas) and the probabilities go back onto the stack grid.
@@ -60,6 +64,7 @@ __all__ = [
     "save_brain_masker",
     "segment_stack",
     "slices_to_canvas",
+    "tile_centres",
 ]
 
 _ARCHITECTURE = "brain_masker"
@@ -77,6 +82,8 @@ class BrainMaskConfig:
     Attributes:
         localiser_mm: Pixel size of the localiser's canvas, mm, > 0.
         localiser_size: Side of the localiser's canvas, pixels (a multiple of 16).
+        localiser_tiles: Whether the localiser's canvases are tiles covering the field of view
+            (overlapping by half) rather than one canvas centred on it.
         segmenter_mm: Pixel size of the segmenter's canvas, mm, > 0.
         segmenter_size: Side of the segmenter's canvas, pixels (a multiple of 16).
         localiser: The localiser U-Net's shape.
@@ -84,7 +91,8 @@ class BrainMaskConfig:
         threshold: Probability above which a voxel is brain, in (0, 1).
         min_volume_ml: Smallest brain accepted by the localiser, millilitres (cm^3), >= 0.
         slice_margin: Slices beyond the localised brain's first and last that are segmented
-            too, >= 0.
+            too, >= 0; ``None`` segments every slice (for a segmenter trained to find no
+            brain in slices without one).
         percentile: Percentile of a stack's positive voxels that is mapped to 1, in (0, 100].
 
     Raises:
@@ -99,10 +107,16 @@ class BrainMaskConfig:
     segmenter: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(8, 4))
     threshold: float = 0.5
     min_volume_ml: float = 5.0
-    slice_margin: int = 2
+    slice_margin: int | None = 2
     percentile: float = 99.0
+    localiser_tiles: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.localiser_tiles, bool):
+            raise ValueError(
+                "BrainMaskConfig: 'localiser_tiles' must be true or false, "
+                f"got {self.localiser_tiles!r}"
+            )
         for name in ("localiser_mm", "segmenter_mm"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and value > 0):
@@ -121,11 +135,12 @@ class BrainMaskConfig:
             raise ValueError(
                 f"BrainMaskConfig: 'threshold' must be in (0, 1), got {self.threshold!r}"
             )
-        if isinstance(self.slice_margin, bool) or not (
-            isinstance(self.slice_margin, int) and self.slice_margin >= 0
+        if self.slice_margin is not None and (
+            isinstance(self.slice_margin, bool)
+            or not (isinstance(self.slice_margin, int) and self.slice_margin >= 0)
         ):
             raise ValueError(
-                "BrainMaskConfig: 'slice_margin' must be an integer >= 0, "
+                "BrainMaskConfig: 'slice_margin' must be an integer >= 0 or null, "
                 f"got {self.slice_margin!r}"
             )
         if not self.min_volume_ml >= 0:
@@ -166,7 +181,7 @@ class BrainMasker(nn.Module):
 
     Attributes:
         config: The configuration.
-        localiser: Brain logits on the coarse whole-slice canvas.
+        localiser: Brain logits on the coarse whole-slice canvas (or its tiles).
         segmenter: Brain logits on the fine canvas centred on the brain.
     """
 
@@ -329,6 +344,53 @@ def _predict(net: BrainUNet, canvases: Tensor, flip: bool, batch: int = 32) -> T
     return torch.cat(out) if out else canvases.new_zeros(canvases.shape)
 
 
+def tile_centres(shape: tuple[int, int], spacing: Tensor, tile_mm: float) -> Tensor:
+    """Centres of square tiles overlapping by half that cover a slice's field of view.
+
+    Args:
+        shape: (I, J) of the stack.
+        spacing: (2,) in-plane voxel size, mm.
+        tile_mm: Side of a tile, mm, > 0.
+
+    Returns:
+        (T, 2) float64 centres in stack voxel coordinates (i, j): along each axis, the fewest
+        centres spaced at most ``tile_mm / 2`` apart whose tiles reach both edges (one centre,
+        the middle, where a tile covers the axis).
+    """
+    axes = []
+    for n, step in zip(shape, spacing.tolist(), strict=True):
+        extent = n * step  # voxel edges at -0.5 and n - 0.5
+        count = max(math.ceil(2 * (extent - tile_mm) / tile_mm), 0) + 1
+        if count == 1:
+            axes.append(torch.tensor([(n - 1) / 2], dtype=torch.float64))
+        else:
+            first = tile_mm / 2 / step - 0.5
+            axes.append(torch.linspace(first, n - 1 - first, count, dtype=torch.float64))
+    return torch.cartesian_prod(*axes).reshape(-1, 2)
+
+
+def _localise(net: BrainUNet, slices: Tensor, spacing: Tensor, cfg: BrainMaskConfig) -> Tensor:
+    """(K, 1, I, J) localiser probabilities of (K, 1, I, J) normalised slices."""
+    shape = (slices.shape[2], slices.shape[3])
+    size, pixel = cfg.localiser_size, cfg.localiser_mm
+    if not cfg.localiser_tiles:
+        middle = torch.tensor([(shape[0] - 1) / 2, (shape[1] - 1) / 2], dtype=torch.float64)
+        canvas = slices_to_canvas(slices, spacing, middle, size, pixel)
+        return canvas_to_slices(_predict(net, canvas, flip=False), spacing, middle, pixel, shape)
+    # Blending weights: a tent falling from 1 at a tile's centre to a small floor at its edge.
+    ramp = 1.0 - (torch.arange(size, dtype=torch.float32) - (size - 1) / 2).abs() / (size / 2)
+    ramp = ramp.clamp(min=0.05).to(slices.device)
+    weight = (ramp[:, None] * ramp[None, :])[None, None]
+    total = slices.new_zeros(slices.shape)
+    norm = slices.new_zeros((1, 1, *shape))
+    for centre in tile_centres(shape, spacing, size * pixel):
+        canvas = slices_to_canvas(slices, spacing, centre, size, pixel)
+        p = _predict(net, canvas, flip=False)
+        total += canvas_to_slices(p * weight, spacing, centre, pixel, shape)
+        norm += canvas_to_slices(weight, spacing, centre, pixel, shape)
+    return total / norm.clamp(min=1e-6)
+
+
 def segment_stack(
     stack: Image,
     masker: BrainMasker,
@@ -368,10 +430,7 @@ def segment_stack(
     slices = normalised.permute(2, 0, 1)[:, None].to(device)  # (K, 1, I, J)
 
     # 1. Localise on the whole field of view.
-    middle = torch.tensor([(shape[0] - 1) / 2, (shape[1] - 1) / 2], dtype=torch.float64)
-    canvas = slices_to_canvas(slices, spacing, middle, cfg.localiser_size, cfg.localiser_mm)
-    coarse = _predict(masker.localiser, canvas, flip=False)
-    coarse = canvas_to_slices(coarse, spacing, middle, cfg.localiser_mm, shape)
+    coarse = _localise(masker.localiser, slices, spacing, cfg)
     found = largest_component(coarse[:, 0].permute(1, 2, 0).cpu().numpy() > cfg.threshold)
     if found.sum() * voxel_ml < max(cfg.min_volume_ml, voxel_ml):
         raise BrainNotFoundError(
@@ -381,8 +440,9 @@ def segment_stack(
         )
     where = np.argwhere(found)
     centre = torch.from_numpy(where[:, :2].mean(axis=0)).double()
-    first = max(int(where[:, 2].min()) - cfg.slice_margin, 0)
-    last = min(int(where[:, 2].max()) + cfg.slice_margin, data.shape[2] - 1)
+    margin = data.shape[2] if cfg.slice_margin is None else cfg.slice_margin
+    first = max(int(where[:, 2].min()) - margin, 0)
+    last = min(int(where[:, 2].max()) + margin, data.shape[2] - 1)
 
     # 2. Segment on fine canvases centred on the brain.
     chosen = slices[first : last + 1]

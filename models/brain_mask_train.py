@@ -73,6 +73,8 @@ class BrainMaskTrainingConfig:
         learning_rate: Adam's learning rate (cosine decay to 5 % of it), > 0.
         checkpoint_every: Steps between checkpoints, >= 1.
         seed: Seed of the data and of the training.
+        intensity_curves: Fraction of the training canvases given a random increasing
+            intensity map (:func:`intensity_curve`), in [0, 1].
     """
 
     cases: int = 100
@@ -82,6 +84,7 @@ class BrainMaskTrainingConfig:
     learning_rate: float = 2e-3
     checkpoint_every: int = 250
     seed: int = 0
+    intensity_curves: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("cases", "steps", "batch_size", "checkpoint_every"):
@@ -90,6 +93,11 @@ class BrainMaskTrainingConfig:
                 raise ValueError(
                     f"BrainMaskTrainingConfig: '{name}' must be an integer >= 1, got {value!r}"
                 )
+        if not 0 <= self.intensity_curves <= 1:
+            raise ValueError(
+                "BrainMaskTrainingConfig: 'intensity_curves' must be in [0, 1], "
+                f"got {self.intensity_curves!r}"
+            )
         if not 0 <= self.bare_fraction <= 1:
             raise ValueError(
                 "BrainMaskTrainingConfig: 'bare_fraction' must be in [0, 1], "
@@ -123,12 +131,21 @@ class StageData:
         in_plane_mm: Range of the stacks' in-plane spacing, mm.
         margin_mm: Range of the field of view beyond the brain in scenes, mm.
         bare_margin_mm: The same for bare brains, mm.
+        centre_shift_mm: The localiser's canvas centres are drawn uniformly within this
+            distance of the stack's middle along each in-plane axis, mm.
+        shift_per_slice: Whether each localiser canvas gets its own centre (else one per stack).
+        segment_all_slices: Whether the segmenter's canvases come from every slice of a stack
+            (those without brain teach it to find none there), not only from the brain's
+            slices and one beyond each end.
     """
 
     scene: SceneConfig
     in_plane_mm: tuple[float, float]
     margin_mm: tuple[float, float]
     bare_margin_mm: tuple[float, float] = (2.0, 20.0)
+    centre_shift_mm: float = 60.0
+    shift_per_slice: bool = False
+    segment_all_slices: bool = False
 
 
 # Shared by both networks' scenes: the head as it looks on fetal T2 stacks (a wide, bright
@@ -143,13 +160,34 @@ _HEAD: dict[str, Any] = {
 }
 
 
-def stage_data(stage: Stage) -> StageData:
+def stage_data(stage: Stage, tiles: bool = False) -> StageData:
     """The simulation behind the shipped networks.
 
     Coarse, wide scenes with many distracting organs for the localiser (its canvas has 3 mm
     pixels, so finer stacks would only cost time); fine scenes with a field of view of a few
     centimetres around the head for the segmenter.
+
+    Args:
+        stage: ``"localiser"`` or ``"segmenter"``.
+        tiles: The recipe of the masker with a localiser on tiles
+            (``BrainMaskConfig.localiser_tiles``). Localiser: finer wide scenes and stacks,
+            heads that may touch the uterine wall (little or no fluid beyond them), canvas
+            centres anywhere in the field of view. Segmenter: heads that may touch the wall,
+            masks up to the skull's outer edge (as the manual masks of clinical stacks are
+            drawn around the skull's dark rim).
     """
+    if stage == "localiser" and tiles:
+        scene = SceneConfig(
+            extent_mm=320.0,
+            spacing_mm=1.6,
+            fluid_margin_mm=(0.5, 30.0),
+            distractors=(30, 80),
+            distractor_mm=(3.0, 25.0),
+            **_HEAD,
+        )
+        return StageData(
+            scene, (1.0, 1.8), (40.0, 130.0), centre_shift_mm=120.0, shift_per_slice=True
+        )
     if stage == "localiser":
         scene = SceneConfig(
             extent_mm=400.0,
@@ -163,10 +201,11 @@ def stage_data(stage: Stage) -> StageData:
     scene = SceneConfig(
         extent_mm=200.0,
         spacing_mm=1.25,
-        fluid_margin_mm=(5.0, 40.0),
+        fluid_margin_mm=(0.5, 40.0) if tiles else (5.0, 40.0),
         abdomen_margin_mm=(10.0, 60.0),
         distractors=(10, 30),
         distractor_mm=(3.0, 20.0),
+        skull_in_mask=tiles,
         **_HEAD,
     )
     return StageData(scene, (0.8, 1.5), (30.0, 50.0))
@@ -209,7 +248,8 @@ def make_examples(
         stage: ``"localiser"`` or ``"segmenter"``.
         mask_config: The canvases (sizes and pixel sizes) of the masker being trained.
         config: Number of cases, fraction of bare brains and seed.
-        data: The scenes and acquisitions; ``None`` for :func:`stage_data` of ``stage``.
+        data: The scenes and acquisitions; ``None`` for :func:`stage_data` of ``stage`` (and
+            of ``mask_config.localiser_tiles``).
         progress: Show a progress bar over cases.
         tissue_labels: Tissue labels of each brain (e.g. the atlas parcellations); when given,
             half of the scenes give the brain a random intensity per label (SynthSeg-style).
@@ -226,7 +266,8 @@ def make_examples(
         raise ValueError("make_examples(): 'brains' is empty")
     if stage not in ("localiser", "segmenter"):
         raise ValueError(f"make_examples(): 'stage' must be localiser or segmenter, got {stage!r}")
-    data = stage_data(stage) if data is None else data
+    if data is None:
+        data = stage_data(stage, tiles=mask_config.localiser_tiles)
     rng = np.random.default_rng([config.seed, 0 if stage == "localiser" else 1])
     size = mask_config.localiser_size if stage == "localiser" else mask_config.segmenter_size
     pixel = mask_config.localiser_mm if stage == "localiser" else mask_config.segmenter_mm
@@ -254,12 +295,16 @@ def make_examples(
                 keep = torch.from_numpy(rng.permutation(len(others))[: len(brain_slices)])
                 others = others[keep]
                 chosen = torch.cat([brain_slices, others])
-                shift = torch.from_numpy(rng.uniform(-60.0, 60.0, 2)) / spacing
+                reach = data.centre_shift_mm
+                draws = (len(chosen), 2) if data.shift_per_slice else 2
+                shift = torch.from_numpy(rng.uniform(-reach, reach, draws)) / spacing
                 centre = (torch.tensor(image.shape[:2], dtype=torch.float64) - 1) / 2 + shift
             else:  # the brain's slices and one beyond each end (inference segments a margin of
                 # BrainMaskConfig.slice_margin beyond the localised ones, to spare its errors)
                 first = max(int(brain_slices.min()) - 1, 0)
                 last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
+                if data.segment_all_slices:
+                    first, last = 0, image.shape[2] - 1
                 chosen = torch.arange(first, last + 1)
                 where = torch.nonzero(mask).double()
                 error = torch.from_numpy(rng.normal(0.0, 5.0, 2)) / spacing
@@ -271,9 +316,39 @@ def make_examples(
     return TrainingExamples(torch.cat(inputs), torch.cat(targets))
 
 
-def _augment(x: Tensor, generator: torch.Generator) -> Tensor:
-    """Random gamma, contrast and noise per canvas (flips are applied with the targets)."""
+def intensity_curve(x: Tensor, knots: Tensor) -> Tensor:
+    """A piecewise-linear intensity map per canvas.
+
+    Args:
+        x: (B, 1, H, W) intensities (about 0 to 1.5 after :func:`normalise_stack`).
+        knots: (B, N) values of the map at N intensities evenly spaced from 0 to 2 (linear
+            extrapolation beyond 2, constant below 0).
+
+    Returns:
+        (B, 1, H, W) mapped intensities.
+    """
+    b, n = knots.shape
+    position = (x.clamp(min=0) * (n - 1) / 2).reshape(b, -1)
+    index = position.floor().clamp(max=n - 2).long()
+    fraction = position - index
+    low = knots.gather(1, index)
+    high = knots.gather(1, index + 1)
+    return (low + fraction * (high - low)).reshape(x.shape)
+
+
+def _augment(x: Tensor, generator: torch.Generator, curves: float = 0.0) -> Tensor:
+    """Random gamma, contrast and noise per canvas (flips are applied with the targets).
+
+    With ``curves`` > 0, that fraction of the canvases also gets a random increasing
+    piecewise-linear intensity map (:func:`intensity_curve`, 8 knots) before the rest.
+    """
     b = x.shape[0]
+    if curves > 0:
+        steps = torch.rand(b, 7, generator=generator) + 0.1
+        knots = torch.cat([torch.zeros(b, 1), steps.cumsum(1)], 1)
+        knots = knots / knots[:, 4:5] * (8 / 7)  # knot 4 (at 8/7) stays in place
+        use = torch.rand(b, 1, 1, 1, generator=generator) < curves
+        x = torch.where(use, intensity_curve(x, knots), x)
     gamma = torch.exp(torch.empty(b, 1, 1, 1).uniform_(-0.4, 0.4, generator=generator))
     scale = torch.exp(0.2 * torch.randn(b, 1, 1, 1, generator=generator))
     noise = 0.02 * torch.rand(b, 1, 1, 1, generator=generator)
@@ -343,7 +418,7 @@ def train_network(
             x, y = x.flip(-1), y.flip(-1)
         if flips[1] < 0.5:
             x, y = x.flip(-2), y.flip(-2)
-        loss = dice_bce_loss(net(_augment(x, generator)), y)
+        loss = dice_bce_loss(net(_augment(x, generator, config.intensity_curves)), y)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

@@ -72,6 +72,8 @@ class SceneConfig:
             longest axis is 1.5 times longer).
         intracranial_mask: Whether the scene's mask also holds the extra-axial CSF (everything
             inside the skull, as manual fetal brain masks are drawn), not the brain alone.
+        skull_in_mask: Whether the intracranial mask reaches the skull's outer edge (manual
+            masks drawn around the skull's dark rim); needs ``intracranial_mask``.
 
     Raises:
         ValueError: On construction, naming the field, for an invalid value.
@@ -97,6 +99,7 @@ class SceneConfig:
     distractor_mm: tuple[float, float] = (4.0, 30.0)
     body_scale: tuple[float, float] = (0.9, 1.6)
     intracranial_mask: bool = False
+    skull_in_mask: bool = False
 
     def __post_init__(self) -> None:
         for name in ("extent_mm", "spacing_mm"):
@@ -132,6 +135,8 @@ class SceneConfig:
             value = getattr(self, name)
             if not (is_finite_number(value) and value >= 0):
                 raise ValueError(f"SceneConfig: '{name}' must be a number >= 0, got {value!r}")
+        if self.skull_in_mask and not self.intracranial_mask:
+            raise ValueError("SceneConfig: 'skull_in_mask' needs 'intracranial_mask'")
 
 
 def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
@@ -308,7 +313,8 @@ def make_scene(
         texture = 1.0 + cfg.texture * _smooth_noise(rng, (n, n, n), 2.0 / cfg.spacing_mm)
         scene = scene * np.clip(texture, 0.2, None)
     scene = np.where(brain_mask, intensity, scene)
-    mask = (brain_mask | (distance <= csf)) if cfg.intracranial_mask else brain_mask
+    reach = skull if cfg.skull_in_mask else csf
+    mask = (brain_mask | (distance <= reach)) if cfg.intracranial_mask else brain_mask
     return CanonicalVolume(
         Image(torch.from_numpy(scene.astype(np.float32)), affine),
         torch.from_numpy(mask),

@@ -22,18 +22,22 @@ from svr.models.brain_mask import (
     BrainMaskConfig,
     BrainMasker,
     BrainNotFoundError,
+    _localise,
     canvas_to_slices,
     load_brain_masker,
     save_brain_masker,
     segment_stack,
     slices_to_canvas,
+    tile_centres,
 )
 from svr.models.brain_mask_train import (
     BrainMaskTrainingConfig,
     StageData,
     TrainingExamples,
     dice_bce_loss,
+    intensity_curve,
     make_examples,
+    stage_data,
     train_network,
 )
 from svr.models.checkpoint import CheckpointError
@@ -123,6 +127,122 @@ def test_per_slice_centres_shift_each_canvas():
     assert peaks[0][0] - peaks[1][0] == -4
 
 
+@pytest.mark.parametrize(
+    ("n", "step", "tile", "expected"),
+    [
+        # 320 voxels of 1.125 mm (360 mm) with 192 mm tiles: 3 centres, the outer tiles' edges
+        # on the field of view's edges (voxel -0.5 and 319.5), the centres 84 mm apart.
+        (320, 1.125, 192.0, [192 / 2 / 1.125 - 0.5, 159.5, 319 - (192 / 2 / 1.125 - 0.5)]),
+        (100, 1.0, 192.0, [49.5]),  # the tile holds the field of view: one, in the middle
+        (100, 2.0, 100.0, [24.5, 49.5, 74.5]),  # 200 mm: 3 tiles of 100 mm, 50 mm apart
+    ],
+)
+def test_tile_centres_match_the_closed_form(n, step, tile, expected):
+    spacing = torch.tensor([step, 1.0], dtype=torch.float64)
+    centres = tile_centres((n, 1), spacing, tile)
+    torch.testing.assert_close(centres[:, 0], torch.tensor(expected, dtype=torch.float64))
+    if len(expected) > 1:  # neighbours overlap by at least half a tile
+        assert float(centres[:, 0].diff().max()) * step <= tile / 2 + 1e-9
+
+
+class _Threshold(torch.nn.Module):
+    """A stand-in localiser: logits 40 (x - 0.5), i.e. brain where the canvas is above 0.5."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 40 * (x - 0.5)
+
+
+def test_tiled_localiser_maps_each_tile_back_to_its_place():
+    """A bright square in one corner of a wide field of view comes back where it is."""
+    slices = torch.zeros(2, 1, 300, 200)
+    slices[:, :, 250:280, 20:50] = 1.0
+    spacing = torch.tensor([1.2, 1.2], dtype=torch.float64)
+    config = BrainMaskConfig(localiser_mm=1.2, localiser_size=64, localiser_tiles=True)
+    assert len(tile_centres((300, 200), spacing, 64 * 1.2)) > 20
+    found = _localise(_Threshold(), slices, spacing, config) > 0.5
+    expected = slices > 0.5
+    assert int((found != expected).sum()) <= 2 * 4 * 30  # at most the square's rim differs
+    assert bool(found[:, :, 252:278, 22:48].all())
+    assert not bool(found[:, :, :240].any()) and not bool(found[:, :, :, 60:].any())
+
+
+def test_tiled_localiser_blends_to_the_tiles_common_value():
+    class Constant(torch.nn.Module):
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return torch.full_like(x, 0.3)
+
+    slices = torch.rand(3, 1, 90, 70)
+    spacing = torch.tensor([2.0, 1.5], dtype=torch.float64)
+    config = BrainMaskConfig(localiser_mm=2.0, localiser_size=32, localiser_tiles=True)
+    out = _localise(Constant(), slices, spacing, config)
+    torch.testing.assert_close(out, torch.full_like(out, float(torch.sigmoid(torch.tensor(0.3)))))
+
+
+def test_intensity_curve_matches_numpy_interp():
+    generator = torch.Generator().manual_seed(0)
+    x = 1.8 * torch.rand(3, 1, 8, 8, generator=generator)
+    knots = torch.rand(3, 8, generator=generator).cumsum(1)
+    out = intensity_curve(x, knots)
+    grid = np.linspace(0.0, 2.0, 8)
+    for b in range(3):
+        expected = np.interp(x[b].numpy(), grid, knots[b].numpy())
+        np.testing.assert_allclose(out[b].numpy(), expected, rtol=1e-5, atol=1e-6)
+    identity = torch.linspace(0.0, 2.0, 8).expand(3, 8)
+    torch.testing.assert_close(intensity_curve(x, identity), x)
+
+
+def test_tiled_stage_data_spreads_the_localiser_canvases():
+    plain, tiled = stage_data("localiser"), stage_data("localiser", tiles=True)
+    assert not plain.shift_per_slice and plain.centre_shift_mm == 60.0
+    assert tiled.shift_per_slice and tiled.centre_shift_mm > plain.centre_shift_mm
+    assert tiled.scene.spacing_mm < plain.scene.spacing_mm
+    segmenter = stage_data("segmenter", tiles=True)
+    assert segmenter.scene.skull_in_mask and not stage_data("segmenter").scene.skull_in_mask
+
+
+class _Above(torch.nn.Module):
+    """A stand-in network: brain where the canvas is above ``level``."""
+
+    def __init__(self, level: float) -> None:
+        super().__init__()
+        self.level = level
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 200 * (x - self.level)
+
+
+@pytest.mark.parametrize(("margin", "slices"), [(2, (6, 12)), (None, (2, 17))])
+def test_slice_margin_sets_the_segmented_slices(margin, slices):
+    """The localiser sees the brightest slices 8-10; the segmenter segments ``margin`` beyond
+    them, or every slice with ``None``."""
+    data = torch.zeros(64, 64, 20)
+    disc = (torch.arange(64)[:, None] - 32) ** 2 + (torch.arange(64)[None, :] - 32) ** 2 < 15**2
+    data[(*disc.nonzero(as_tuple=True), slice(2, 18))] = 0.5
+    data[(*disc.nonzero(as_tuple=True), slice(8, 11))] = 1.0
+    data[0, 0, :] = 0.01  # positive background voxels for the normalisation
+    config = BrainMaskConfig(
+        localiser_mm=2.0,
+        localiser_size=64,
+        segmenter_mm=2.0,
+        segmenter_size=64,
+        slice_margin=margin,
+    )
+    masker = BrainMasker(config)
+    masker.localiser, masker.segmenter = _Above(0.75), _Above(0.3)  # type: ignore[assignment]
+    affine = torch.diag(torch.tensor([2.0, 2.0, 3.0, 1.0], dtype=torch.float64))
+    mask = segment_stack(Image(data, affine), masker, device="cpu").mask
+    found = mask.any(0).any(0).nonzero()[:, 0]
+    assert (int(found.min()), int(found.max())) == slices
+
+
+def test_config_without_tiles_loads_as_one_canvas():
+    data = BrainMaskConfig().to_dict()
+    del data["localiser_tiles"]  # configs written before tiles existed
+    assert BrainMaskConfig.from_dict(data).localiser_tiles is False
+    every = BrainMaskConfig(slice_margin=None)
+    assert BrainMaskConfig.from_dict(every.to_dict()) == every
+
+
 def test_canvas_rejects_bad_shapes():
     with pytest.raises(ValueError, match="'slices' must be"):
         slices_to_canvas(torch.zeros(1, 1, 1, 5), torch.ones(2), torch.zeros(2), 16, 1.0)
@@ -137,6 +257,8 @@ def test_canvas_rejects_bad_shapes():
         ("threshold", 1.0, "'threshold' must be in"),
         ("min_volume_ml", -1.0, "'min_volume_ml'"),
         ("percentile", 0.0, "'percentile'"),
+        ("localiser_tiles", "yes", "'localiser_tiles' must be true or false"),
+        ("slice_margin", -1, "'slice_margin' must be an integer >= 0 or null"),
     ],
 )
 def test_config_names_the_bad_field(field, value, message):
@@ -445,3 +567,22 @@ def test_clean_up_fills_holes_and_keeps_one_body_through_the_slices():
     assert not out[15:18, 15:18, 1].any()
     assert out[15:17, 4:6, 1].all() and out[12:15, 4:6, 2].all()
     assert out.sum() == mask.sum() + 4 - 9
+
+
+def test_training_config_names_a_bad_curve_fraction():
+    with pytest.raises(ValueError, match="'intensity_curves' must be in"):
+        BrainMaskTrainingConfig(intensity_curves=1.5)
+
+
+def test_training_with_intensity_curves_runs_and_differs(tmp_path):
+    examples = TrainingExamples(torch.rand(6, 1, 16, 16).half(), torch.rand(6, 1, 16, 16) > 0.5)
+    nets = [
+        train_network(
+            examples,
+            SegmentationConfig(2, 2),
+            BrainMaskTrainingConfig(steps=3, batch_size=2, intensity_curves=curves),
+        )
+        for curves in (0.0, 1.0)
+    ]
+    a, b = (torch.cat([p.flatten() for p in n.parameters()]) for n in nets)
+    assert not torch.equal(a, b)

@@ -146,6 +146,22 @@ def test_intracranial_mask_adds_the_csf_shell_only(brain):
     assert float(values.min()) == float(values.max()) >= 1.0  # the CSF intensity, one value
 
 
+def test_skull_in_mask_adds_the_skull_shell_only(brain):
+    """The same scene; the intracranial mask grows by the skull shell (one dark value)."""
+    plain = SceneConfig(**{**SMALL.__dict__, "texture": 0.0, "intracranial_mask": True})
+    inside = make_scene(brain, plain, seed=8)
+    config = SceneConfig(**{**plain.__dict__, "skull_in_mask": True})
+    with_skull = make_scene(brain, config, seed=8)
+    assert torch.equal(inside.image.data, with_skull.image.data)
+    assert bool((with_skull.mask | ~inside.mask).all())  # a superset
+    added = with_skull.mask & ~inside.mask
+    assert int(added.sum()) > 0
+    values = with_skull.image.data[added]
+    assert float(values.min()) == float(values.max()) <= 0.3  # the skull's intensity, one value
+    with pytest.raises(ValueError, match="'skull_in_mask' needs 'intracranial_mask'"):
+        SceneConfig(skull_in_mask=True)
+
+
 def test_tissue_labels_randomise_only_the_brain(brain):
     """With labels, the brain gets one random intensity per label (blurred); the rest of the
     scene, drawn from the main random stream, is unchanged."""
