@@ -6,6 +6,7 @@ it must find the brain of an unseen scene with Dice >= 0.8 (issue 14).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import pickle
 from pathlib import Path
@@ -586,3 +587,13 @@ def test_training_with_intensity_curves_runs_and_differs(tmp_path):
     ]
     a, b = (torch.cat([p.flatten() for p in n.parameters()]) for n in nets)
     assert not torch.equal(a, b)
+
+
+def test_segmenter_examples_from_every_slice_add_only_slices_without_brain(phantom):
+    config = BrainMaskTrainingConfig(cases=1, bare_fraction=0.0, seed=5)
+    brain_only = make_examples([phantom], "segmenter", TINY, config, TINY_DATA)
+    every = dataclasses.replace(TINY_DATA, segment_all_slices=True)
+    everything = make_examples([phantom], "segmenter", TINY, config, every)
+    assert everything.inputs.shape[0] > brain_only.inputs.shape[0]
+    with_brain = everything.targets.flatten(1).any(1)
+    assert int(with_brain.sum()) == int(brain_only.targets.flatten(1).any(1).sum())
