@@ -25,11 +25,12 @@ show both reconstructions and the automatic masks.
 
 Part ``simval`` (not in ``all``): held-out *simulated* whole-uterus stacks, to choose between
 models without the real scan: ``--sim-cases`` scenes (``make_scene`` with the tiled recipe's
-localiser settings, masks up to the skull; scene seeds 5000 and up, which training does not
-draw), each cut into 2 stacks of 3.3 mm slices of 1.125 mm pixels (as the clinical scan), moderate
-motion, noise, bias field and signal voids; every model of ``--sim-models`` (comma-separated)
-segments the same stacks. The brains are the atlas's, as in training: this measures the scenes
-and acquisitions held out, not unseen anatomy.
+localiser settings, masks up to the skull; scene seeds 5000 and up, while training draws its
+scene seeds at random from [0, 2**31), so a shared scene is improbable), each cut into 2 stacks
+of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion, noise, bias
+field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
+stacks. The brains are the atlas's, as in training: this measures the scenes and acquisitions
+held out, not unseen anatomy.
 
 Run from the repository root on 2 quiet cores::
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 
+from svr.files import atomic_write_text
 from svr.image import load_nifti
 from svr.models.brain_mask import BrainMaskConfig, BrainMasker, save_brain_masker
 from svr.models.brain_mask_train import (
@@ -95,6 +96,23 @@ STAGE_FIELDS = {
     "localiser": ("localiser_mm", "localiser_size", "localiser", "localiser_tiles"),
     "segmenter": ("segmenter_mm", "segmenter_size", "segmenter", "localiser_tiles"),
 }
+SETTINGS = "settings.json"  # in each stage folder: what its examples and training depend on
+
+
+def stage_settings(
+    stage: str,
+    mask_config: BrainMaskConfig,
+    config: BrainMaskTrainingConfig,
+    args: argparse.Namespace,
+) -> dict[str, object]:
+    """Everything a stage's examples and weights depend on (a resumed run must match it)."""
+    mask = mask_config.to_dict()
+    return {
+        "mask_config": {k: mask[k] for k in STAGE_FIELDS[stage]},
+        "train": asdict(config),
+        "label_intensities": args.label_intensities,
+        "segment_all_slices": args.segment_all_slices,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -148,11 +166,10 @@ def main(argv: list[str] | None = None) -> int:
             newest = latest_checkpoint(args.out / stage)
             if newest is None:
                 parser.error(f"{args.out / stage} holds no checkpoint")
-            recorded = args.out / stage / "mask_config.json"
+            recorded = args.out / stage / SETTINGS
             if recorded.exists():
-                trained_with = json.loads(recorded.read_text())
-                wanted = mask_config.to_dict()
-                if any(trained_with.get(k) != wanted[k] for k in STAGE_FIELDS[stage]):
+                wanted = stage_settings(stage, mask_config, config, args)["mask_config"]
+                if json.loads(recorded.read_text())["mask_config"] != wanted:
                     parser.error(f"{recorded}: trained for another mask config (--tiles?)")
             checkpoint = load_checkpoint(newest)
             getattr(masker, stage).load_state_dict(checkpoint.state_dict)
@@ -162,18 +179,25 @@ def main(argv: list[str] | None = None) -> int:
         card = MODEL_CARD.format(
             localiser=trained["localiser"], segmenter=trained["segmenter"], command=REPRODUCE
         )
-        (args.model / "README.md").write_text(card)
+        atomic_write_text(args.model / "README.md", card, overwrite=True)
         print(f"wrote {args.model}")
         return 0
 
     stage = args.stage
     folder = args.out / stage
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "mask_config.json").write_text(json.dumps(mask_config.to_dict(), indent=1))
+    settings = stage_settings(stage, mask_config, config, args)
+    recorded = folder / SETTINGS
+    if recorded.exists() and json.loads(recorded.read_text()) != settings:
+        parser.error(
+            f"{recorded}: this run folder was started with other settings "
+            f"({json.loads(recorded.read_text())}); give another --out"
+        )
+    atomic_write_text(recorded, json.dumps(settings, indent=1), overwrite=True)
     cache = folder / "examples.pt"
     if cache.exists():
-        data = torch.load(cache, weights_only=True)
-        examples = TrainingExamples(data["inputs"], data["targets"])
+        cached = torch.load(cache, weights_only=True)
+        examples = TrainingExamples(cached["inputs"], cached["targets"])
     else:
         began = time.time()
         pairs = atlas_volume_paths(args.atlas)
@@ -183,11 +207,11 @@ def main(argv: list[str] | None = None) -> int:
             tissue_labels = [
                 load_nifti(v.parent / "parcellation.nii.gz").data.round().long() for v, _ in pairs
             ]
-        settings = stage_data(stage, tiles=mask_config.localiser_tiles)
+        data = stage_data(stage, tiles=mask_config.localiser_tiles)
         if args.segment_all_slices:
-            settings = dataclasses.replace(settings, segment_all_slices=True)
+            data = dataclasses.replace(data, segment_all_slices=True)
         examples = make_examples(
-            brains, stage, mask_config, config, settings, progress=True, tissue_labels=tissue_labels
+            brains, stage, mask_config, config, data, progress=True, tissue_labels=tissue_labels
         )
         torch.save({"inputs": examples.inputs, "targets": examples.targets}, cache)
         logging.info(

@@ -91,8 +91,9 @@ class BrainMaskConfig:
         threshold: Probability above which a voxel is brain, in (0, 1).
         min_volume_ml: Smallest brain accepted by the localiser, millilitres (cm^3), >= 0.
         slice_margin: Slices beyond the localised brain's first and last that are segmented
-            too, >= 0; ``None`` segments every slice (for a segmenter trained to find no
-            brain in slices without one).
+            too, >= 0; ``None`` segments every slice (then the 3D clean-up alone decides where
+            the brain ends, so pieces of other anatomy the segmenter takes for brain in slices
+            beyond it may stay when they touch it).
         percentile: Percentile of a stack's positive voxels that is mapped to 1, in (0, 100].
 
     Raises:

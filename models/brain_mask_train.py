@@ -8,14 +8,17 @@ slice thickness, in-plane spacing, field of view, noise, bias field, signal void
 slices are resampled onto the canvases that :func:`svr.models.brain_mask.segment_stack` uses
 (:func:`svr.models.brain_mask.slices_to_canvas`), with each stack's brain mask as the target:
 
-- ``"localiser"``: the coarse whole-slice canvas, centred near the stack's middle (shifted at
-  random so the brain is not always central); all slices through the brain and as many without;
+- ``"localiser"``: the localiser's canvas centred near the stack's middle, shifted at random
+  (by up to ``StageData.centre_shift_mm``, per stack or per slice: the whole-slice canvas, or a
+  tile anywhere in the field of view for the tiled recipe); all slices through the brain and
+  as many without;
 - ``"segmenter"``: the fine canvas centred on the brain's centroid plus a random error (as the
-  localiser's), for the slices through the brain and one beyond each end.
+  localiser's), for the slices through the brain and one beyond each end (or every slice, with
+  ``StageData.segment_all_slices``).
 
 :func:`make_examples` builds them, :func:`train_network` fits one U-Net (soft Dice + binary cross
-entropy, Adam, random flips, gamma and contrast), checkpointing and resuming, and
-``benchmarks/train_brain_masker.py`` runs both stages and writes the model.
+entropy, Adam, random flips, gamma, contrast and optional random intensity maps), checkpointing
+and resuming, and ``benchmarks/train_brain_masker.py`` runs both stages and writes the model.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ __all__ = [
     "StageData",
     "TrainingExamples",
     "dice_bce_loss",
+    "intensity_curve",
     "make_examples",
     "stage_data",
     "train_network",
@@ -163,9 +167,9 @@ _HEAD: dict[str, Any] = {
 def stage_data(stage: Stage, tiles: bool = False) -> StageData:
     """The simulation behind the shipped networks.
 
-    Coarse, wide scenes with many distracting organs for the localiser (its canvas has 3 mm
-    pixels, so finer stacks would only cost time); fine scenes with a field of view of a few
-    centimetres around the head for the segmenter.
+    Without ``tiles`` (the first recipe): coarse, wide scenes with many distracting organs for
+    the localiser (its canvas has 3 mm pixels, so finer stacks would only cost time); fine
+    scenes with a field of view of a few centimetres around the head for the segmenter.
 
     Args:
         stage: ``"localiser"`` or ``"segmenter"``.
@@ -300,7 +304,7 @@ def make_examples(
                 shift = torch.from_numpy(rng.uniform(-reach, reach, draws)) / spacing
                 centre = (torch.tensor(image.shape[:2], dtype=torch.float64) - 1) / 2 + shift
             else:  # the brain's slices and one beyond each end (inference segments a margin of
-                # BrainMaskConfig.slice_margin beyond the localised ones, to spare its errors)
+                # BrainMaskConfig.slice_margin beyond the localised ones, or every slice)
                 first = max(int(brain_slices.min()) - 1, 0)
                 last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
                 if data.segment_all_slices:

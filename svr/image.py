@@ -11,6 +11,7 @@ Conventions (``DESIGN.md``):
 
 from __future__ import annotations
 
+import gzip
 import logging
 import os
 import zlib
@@ -26,7 +27,7 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
-from svr.files import check_output_path
+from svr.files import atomic_write_bytes, check_output_path
 
 NIFTI_SUFFIXES = (".nii", ".nii.gz")
 DEFAULT_PERCENTILE = 99.0
@@ -247,15 +248,11 @@ def save_mask_like(
 
 
 def _save_atomically(image: nib.Nifti1Image, path: Path) -> Path:
-    """Write ``image`` to a temporary file beside ``path``, then rename it (atomic on POSIX)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{''.join(path.suffixes)}")
-    try:
-        nib.save(image, str(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``image`` with :func:`svr.files.atomic_write_bytes` (gzip for ``.nii.gz``)."""
+    data = image.to_bytes()
+    if path.name.endswith(".gz"):
+        data = gzip.compress(data, compresslevel=6)
+    return atomic_write_bytes(path, data, overwrite=True)
 
 
 def voxel_to_world(affine: Tensor, voxels: Tensor) -> Tensor:

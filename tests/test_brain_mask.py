@@ -19,6 +19,7 @@ import torch
 
 from svr.cli import main
 from svr.image import Image, save_mask_like
+from svr.models import brain_mask_train
 from svr.models.brain_mask import (
     BrainMaskConfig,
     BrainMasker,
@@ -234,6 +235,27 @@ def test_slice_margin_sets_the_segmented_slices(margin, slices):
     mask = segment_stack(Image(data, affine), masker, device="cpu").mask
     found = mask.any(0).any(0).nonzero()[:, 0]
     assert (int(found.min()), int(found.max())) == slices
+
+
+@pytest.mark.parametrize("per_slice", [False, True])
+def test_localiser_canvas_centres_are_drawn_per_stack_or_per_slice(phantom, monkeypatch, per_slice):
+    centres = []
+
+    def recording(slices, spacing, centre, size, pixel_mm, mode="bilinear"):
+        centres.append(centre)
+        return slices_to_canvas(slices, spacing, centre, size, pixel_mm, mode)
+
+    monkeypatch.setattr(brain_mask_train, "slices_to_canvas", recording)
+    data = dataclasses.replace(TINY_DATA, shift_per_slice=per_slice)
+    config = BrainMaskTrainingConfig(cases=1, bare_fraction=0.0)
+    make_examples([phantom], "localiser", TINY, config, data)
+    inputs = centres[::2]  # each stack's canvases, then its targets at the same centres
+    assert all(torch.equal(a, b) for a, b in zip(inputs, centres[1::2], strict=True))
+    for centre in inputs:
+        if per_slice:
+            assert centre.dim() == 2 and len(torch.unique(centre[:, 0])) == centre.shape[0]
+        else:
+            assert centre.shape == (2,)
 
 
 def test_config_without_tiles_loads_as_one_canvas():

@@ -41,9 +41,6 @@ MASK_MODEL_HELP = (
 )
 """The meaning of ``--mask-model`` (:func:`svr.models.brain_mask.load_brain_masker`)."""
 
-VOLUME_SUFFIXES = (".nii", ".nii.gz")
-"""The file names a NIfTI output may have."""
-
 
 def check_outputs(
     outputs: Sequence[tuple[str, str | None, tuple[str, ...] | None]],

@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING
 from svr.cli.common import (
     MASK_MODEL_HELP,
     MODEL_HELP,
-    VOLUME_SUFFIXES,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -307,10 +306,11 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
 
 def _check_outputs(args: argparse.Namespace) -> None:
     """Check every output path before the computation: suffix, existence, folder, no repeats."""
+    from svr.image import NIFTI_SUFFIXES
     from svr.reconstruction.qa import FIGURE_SUFFIXES
 
     outputs = [
-        ("--output-volume", args.output_volume, VOLUME_SUFFIXES),
+        ("--output-volume", args.output_volume, NIFTI_SUFFIXES),
         ("--output-slices", args.output_slices, None),
         ("--output-transforms", args.output_transforms, TABLE_SUFFIXES),
         ("--output-qa", args.output_qa, FIGURE_SUFFIXES),

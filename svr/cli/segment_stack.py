@@ -10,7 +10,6 @@ from tqdm import tqdm
 
 from svr.cli.common import (
     MASK_MODEL_HELP,
-    VOLUME_SUFFIXES,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -73,7 +72,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
-    from svr.image import load_nifti, save_mask_like
+    from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
     from svr.models.brain_mask import load_brain_masker, segment_stack
     from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure
 
@@ -84,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         )
     check_outputs(
         [
-            *(("--output-stack-masks", path, VOLUME_SUFFIXES) for path in args.output_stack_masks),
+            *(("--output-stack-masks", path, NIFTI_SUFFIXES) for path in args.output_stack_masks),
             ("--output-qa", args.output_qa, FIGURE_SUFFIXES),
         ],
         args.overwrite,
