@@ -12,7 +12,7 @@ stack of
 and reports per stack Dice, recall (the fraction of the manual brain inside ours) and precision
 against the given masks, the wall time of :func:`svr.models.brain_mask.segment_stack` with
 ``--threads`` torch threads, and the peak resident memory of a fresh process that loads the model
-and segments the first real stack in which a brain was found (``ru_maxrss``, with the same
+and segments the first real stack in which a brain was found (``VmHWM``, with the same
 process's peak before the call).
 The reference method is the toolkit's former automatic mask, Otsu (``--auto-masks otsu``), on
 the same stacks (ratio columns).
@@ -31,6 +31,11 @@ of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion,
 field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
 stacks. The brains are the atlas's, as in training: this measures the scenes and acquisitions
 held out, not unseen anatomy.
+
+Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
+``regrow_mm``) swept over settings on every stack of part ``masks`` and of part ``simval``: the
+``--mask-model`` probabilities of each stack are computed once and cleaned up with each setting
+(:func:`svr.models.brain_mask.clean_up_mask`); Dice min / mean per dataset.
 
 Run from the repository root on 2 quiet cores::
 
@@ -115,20 +120,25 @@ def otsu_masks(stacks: list[Image], names: list[str]) -> list[torch.Tensor]:
     return out
 
 
+# The peak is VmHWM (kB) of /proc/self/status: ru_maxrss keeps the parent's high-water mark
+# across fork and exec on Linux, so in a child of this benchmark it reported the benchmark's own
+# peak (figures before 2026-11-24's third session were inflated by it).
 PEAK_SCRIPT = """
-import resource, sys, time, torch
+import sys, time, torch
+def peak_kb():
+    with open("/proc/self/status") as status:
+        return next(float(line.split()[1]) for line in status if line.startswith("VmHWM:"))
 torch.set_num_threads(int(sys.argv[2]))
 from svr.image import load_nifti
 from svr.models.brain_mask import load_brain_masker, segment_stack
 masker = load_brain_masker(sys.argv[3])
 stack = load_nifti(sys.argv[1])
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+before = peak_kb()
 try:
     segment_stack(stack, masker)
 except ValueError:  # no brain found: the work up to that point is measured
     pass
-after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-print(before / 1024, after / 1024)
+print(before / 1024, peak_kb() / 1024)
 """
 
 
@@ -275,7 +285,8 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
     ]
 
 
-def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
+def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tensor]]:
+    """The held-out simulated stacks of part ``simval``: (case name, stack, bool brain mask)."""
     import dataclasses
 
     from svr.models.brain_mask_train import stage_data
@@ -307,6 +318,59 @@ def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
         )
         for stack in simulate_case(make_scene(brain, scene_config, seed=seed), config).stacks:
             stacks.append((f"case {case}", stack.image, stack.mask.data > 0.5))
+    return stacks
+
+
+# (opening_mm, regrow_mm) settings of part ``opening``; (None, 0) is no opening.
+OPENINGS = [(None, 0.0), (4.0, 0.0), (8.0, 0.0), (12.0, 0.0), (6.0, 2.0), (8.0, 2.0), (8.0, 3.0)]
+OPENINGS += [(8.0, 5.0), (10.0, 2.0)]
+
+
+def part_opening(args: argparse.Namespace, report: dict) -> list[str]:
+    from svr.models.brain_mask import clean_up_mask
+
+    masker = load_brain_masker(args.mask_model)
+    threshold = masker.config.threshold
+    cases: list[tuple[str, Image, torch.Tensor]] = []
+    for dataset, pairs in datasets(args.data).items():
+        for stack_path, mask_path in pairs:
+            stack = load_nifti(stack_path)
+            cases.append((dataset, stack, mask_on_grid(load_nifti(mask_path), stack)))
+    cases += [("held-out simulation", image, truth) for _, image, truth in simval_stacks(args)]
+    names = list(dict.fromkeys(name for name, _, _ in cases))
+    probabilities = []
+    for name, image, _ in cases:
+        try:
+            probabilities.append(segment_stack(image, masker, name=name).probability.numpy())
+        except BrainNotFoundError:
+            probabilities.append(None)
+    lines = [
+        "",
+        f"Clean-up settings on the probabilities of `{args.mask_model}` (Dice min / mean):",
+        "",
+        "| opening / regrow (mm) | " + " | ".join(names) + " |",
+        "|---" * (len(names) + 1) + "|",
+    ]
+    report["opening"] = {}
+    for opening, regrow in OPENINGS:
+        dice: dict[str, list[float]] = {name: [] for name in names}
+        for (name, image, truth), probability in zip(cases, probabilities, strict=True):
+            if probability is None:
+                dice[name].append(0.0)
+                continue
+            spacing = image.spacing.double().numpy()
+            mask = clean_up_mask(probability > threshold, spacing, opening, regrow)
+            dice[name].append(scores(torch.from_numpy(mask), truth)["dice"])
+        label = "none" if opening is None else f"{opening:g} / {regrow:g}"
+        report["opening"][label] = dice
+        cells = [f"{min(v):.3f} / {np.mean(v):.3f}" for v in dice.values()]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    return lines
+
+
+def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
+    stacks = simval_stacks(args)
     lines = [
         "",
         f"Held-out simulated whole-uterus stacks: {len(stacks)} stacks, {args.sim_cases} scenes",
@@ -341,7 +405,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--mask-model", default="default")
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--part", choices=["masks", "recon", "all", "simval"], default="all")
+    parser.add_argument(
+        "--part", choices=["masks", "recon", "all", "simval", "opening"], default="all"
+    )
     parser.add_argument("--sim-cases", type=int, default=8, help="simval: number of scenes")
     parser.add_argument(
         "--sim-models", default="default", help="simval: comma-separated models to compare"
@@ -360,6 +426,8 @@ def main(argv: list[str] | None = None) -> int:
         lines += part_recon(args, report)
     if args.part == "simval":
         lines += part_simval(args, report)
+    if args.part == "opening":
+        lines += part_opening(args, report)
     if args.results is not None:
         args.results.write_text("\n".join(lines) + "\n")
         args.results.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")

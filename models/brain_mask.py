@@ -19,7 +19,12 @@ A clinical stack shows the whole maternal abdomen; the brain is a small part of 
    left-right flipped canvas) and the probabilities go back onto the stack grid.
 3. **Clean up.** The largest 3D component is kept and holes are filled slice by slice; a piece
    of a slice stays only if it joins the brain through the neighbouring slices (per-slice
-   consistency: the brain is one body through the stack).
+   consistency: the brain is one body through the stack). With ``opening_mm`` the mask is
+   first opened in 3D by a ball of that radius (in mm, on the stack's anisotropic grid): parts
+   thinner than the ball, such as a leak along the fluid beside the head or a piece of the body
+   joined to the brain by a narrow bridge, are cut, while the brain's bulk is kept; the mask
+   within ``regrow_mm`` of the opened one is then given back (the ragged edge that slice motion
+   leaves, which the ball cannot reach into, but not the bulk of a leak).
 
 Canvases are cut with the same function (:func:`slices_to_canvas`) at inference and when the
 training examples are made (:mod:`svr.models.brain_mask_train`), so both see the same pixels.
@@ -59,8 +64,10 @@ __all__ = [
     "BrainNotFoundError",
     "MaskResult",
     "canvas_to_slices",
+    "clean_up_mask",
     "load_brain_masker",
     "normalise_stack",
+    "open_mask",
     "save_brain_masker",
     "segment_stack",
     "slices_to_canvas",
@@ -95,6 +102,12 @@ class BrainMaskConfig:
             the brain ends, so pieces of other anatomy the segmenter takes for brain in slices
             beyond it may stay when they touch it).
         percentile: Percentile of a stack's positive voxels that is mapped to 1, in (0, 100].
+        opening_mm: Radius of the ball by which the clean-up opens the mask (erodes, then
+            dilates), mm, > 0; ``None`` for no opening. Where the opening would leave less than
+            half of the mask (a brain thinner than the ball, e.g. a stack with few slices
+            through it), the mask is kept unopened.
+        regrow_mm: After the opening, the voxels of the mask within this distance of the
+            opened mask (mm, >= 0) are kept too.
 
     Raises:
         ValueError: On construction, naming the field, for an invalid value.
@@ -111,6 +124,8 @@ class BrainMaskConfig:
     slice_margin: int | None = 2
     percentile: float = 99.0
     localiser_tiles: bool = False
+    opening_mm: float | None = None
+    regrow_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.localiser_tiles, bool):
@@ -143,6 +158,24 @@ class BrainMaskConfig:
             raise ValueError(
                 "BrainMaskConfig: 'slice_margin' must be an integer >= 0 or null, "
                 f"got {self.slice_margin!r}"
+            )
+        radius = self.opening_mm
+        if radius is not None and (
+            isinstance(radius, bool)
+            or not isinstance(radius, (int, float))
+            or not (math.isfinite(radius) and radius > 0)
+        ):
+            raise ValueError(
+                f"BrainMaskConfig: 'opening_mm' must be a finite number > 0 or null, got {radius!r}"
+            )
+        regrow = self.regrow_mm
+        if (
+            isinstance(regrow, bool)
+            or not isinstance(regrow, (int, float))
+            or not (math.isfinite(regrow) and regrow >= 0)
+        ):
+            raise ValueError(
+                f"BrainMaskConfig: 'regrow_mm' must be a finite number >= 0, got {regrow!r}"
             )
         if not self.min_volume_ml >= 0:
             raise ValueError(
@@ -320,13 +353,66 @@ def canvas_to_slices(
     )
 
 
-def _clean_up(brain: np.ndarray) -> np.ndarray:
-    """The largest 3D component of a bool mask with the holes of each slice filled.
+def open_mask(mask: np.ndarray, spacing: np.ndarray, radius_mm: float) -> np.ndarray:
+    """A bool mask opened by a ball: the union of all balls of ``radius_mm`` inside it.
+
+    Erosion and dilation are thresholds of Euclidean distance transforms in mm, so the ball is
+    round on an anisotropic grid (e.g. 1.1 mm pixels, 3.3 mm slices). Outside the array counts
+    as background.
+
+    Args:
+        mask: (I, J, K) bool.
+        spacing: (3,) voxel size, mm (orthogonal axes).
+        radius_mm: The ball's radius, mm, > 0.
+
+    Returns:
+        (I, J, K) bool, a subset of ``mask``.
+    """
+    sampling = np.asarray(spacing, dtype=np.float64)
+    pad = [(math.ceil(radius_mm / step) + 1,) * 2 for step in sampling]
+    padded = np.pad(mask.astype(bool), pad)
+    core = ndimage.distance_transform_edt(padded, sampling=sampling) > radius_mm
+    if not core.any():
+        return np.zeros_like(mask, dtype=bool)
+    opened = ndimage.distance_transform_edt(~core, sampling=sampling) <= radius_mm
+    inner = tuple(slice(before, before + n) for (before, _), n in zip(pad, mask.shape, strict=True))
+    return opened[inner] & mask
+
+
+def clean_up_mask(
+    brain: np.ndarray,
+    spacing: np.ndarray,
+    opening_mm: float | None = None,
+    regrow_mm: float = 0.0,
+) -> np.ndarray:
+    """The clean-up of :func:`segment_stack`: one body, optionally opened, holes filled.
 
     Keeping one face-connected body is the per-slice consistency: a piece of a slice stays only
-    if it joins the brain through the neighbouring slices.
+    if it joins the brain through the neighbouring slices. With ``opening_mm`` the component is
+    first opened (:func:`open_mask`), the largest component of the result kept with the
+    component's voxels within ``regrow_mm`` of it, unless the opened part is less than half of
+    the component.
+
+    Args:
+        brain: (I, J, K) bool, the thresholded probabilities on a stack's grid.
+        spacing: (3,) voxel size, mm.
+        opening_mm: Radius of the opening's ball, mm; ``None`` for no opening.
+        regrow_mm: Distance from the opened mask within which voxels are given back, mm.
+
+    Returns:
+        (I, J, K) bool mask (empty only if ``brain`` is).
     """
     body = largest_component(brain)
+    if opening_mm is not None and body.any():
+        box = ndimage.find_objects(body.astype(np.uint8))[0]  # (all of it; distances stay exact)
+        part = body[box]
+        opened = largest_component(open_mask(part, spacing, opening_mm))
+        if opened.sum() >= 0.5 * part.sum():
+            if regrow_mm > 0:
+                near = ndimage.distance_transform_edt(~opened, sampling=spacing) <= regrow_mm
+                opened = largest_component(part & near)
+            body = np.zeros_like(body)
+            body[box] = opened
     for k in range(body.shape[2]):
         body[:, :, k] = ndimage.binary_fill_holes(body[:, :, k])
     return body
@@ -454,7 +540,12 @@ def segment_stack(
     probability[:, :, first : last + 1] = fine[:, 0].permute(1, 2, 0).float().cpu()
 
     # 3. Clean up.
-    mask = _clean_up(probability.numpy() > cfg.threshold)
+    mask = clean_up_mask(
+        probability.numpy() > cfg.threshold,
+        stack.spacing.cpu().double().numpy(),
+        cfg.opening_mm,
+        cfg.regrow_mm,
+    )
     volume_ml = float(mask.sum()) * voxel_ml
     if volume_ml < max(cfg.min_volume_ml, voxel_ml):
         raise BrainNotFoundError(

@@ -162,9 +162,20 @@ _HEAD: dict[str, Any] = {
     "body_scale": (1.2, 2.2),
     "intracranial_mask": True,
 }
+# ``tight_heads``: the head as on the clinical scan's stacks, where fluid touching the head was
+# taken into the mask: a narrower CSF space, a skull that may be faint and thin, and a scalp that
+# may be almost absent, so that the skull's line and the head's shape, not a wide grey band,
+# tell the head from the fluid around it.
+_TIGHT_HEAD: dict[str, Any] = {
+    **_HEAD,
+    "csf_mm": (1.0, 6.0),
+    "skull_mm": (0.5, 2.5),
+    "skull_intensity": (0.02, 0.7),
+    "scalp_mm": (0.3, 3.0),
+}
 
 
-def stage_data(stage: Stage, tiles: bool = False) -> StageData:
+def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> StageData:
     """The simulation behind the shipped networks.
 
     Without ``tiles`` (the first recipe): coarse, wide scenes with many distracting organs for
@@ -179,7 +190,10 @@ def stage_data(stage: Stage, tiles: bool = False) -> StageData:
             centres anywhere in the field of view. Segmenter: heads that may touch the wall,
             masks up to the skull's outer edge (as the manual masks of clinical stacks are
             drawn around the skull's dark rim).
+        tight_heads: Heads with a narrower CSF space, fainter and thinner skulls and scalps
+            down to 0.3 mm (all scenes of either stage).
     """
+    head = _TIGHT_HEAD if tight_heads else _HEAD
     if stage == "localiser" and tiles:
         scene = SceneConfig(
             extent_mm=320.0,
@@ -187,7 +201,7 @@ def stage_data(stage: Stage, tiles: bool = False) -> StageData:
             fluid_margin_mm=(0.5, 30.0),
             distractors=(30, 80),
             distractor_mm=(3.0, 25.0),
-            **_HEAD,
+            **head,
         )
         return StageData(
             scene, (1.0, 1.8), (40.0, 130.0), centre_shift_mm=120.0, shift_per_slice=True
@@ -199,7 +213,7 @@ def stage_data(stage: Stage, tiles: bool = False) -> StageData:
             fluid_margin_mm=(3.0, 30.0),
             distractors=(30, 80),
             distractor_mm=(3.0, 25.0),
-            **_HEAD,
+            **head,
         )
         return StageData(scene, (1.5, 2.5), (40.0, 130.0))
     scene = SceneConfig(
@@ -210,7 +224,7 @@ def stage_data(stage: Stage, tiles: bool = False) -> StageData:
         distractors=(10, 30),
         distractor_mm=(3.0, 20.0),
         skull_in_mask=tiles,
-        **_HEAD,
+        **head,
     )
     return StageData(scene, (0.8, 1.5), (30.0, 50.0))
 

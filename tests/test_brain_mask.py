@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk  # noqa: N813
 import torch
+from scipy import ndimage
 
 from svr.cli import main
 from svr.image import Image, save_mask_like
@@ -200,6 +201,22 @@ def test_tiled_stage_data_spreads_the_localiser_canvases():
     assert tiled.scene.spacing_mm < plain.scene.spacing_mm
     segmenter = stage_data("segmenter", tiles=True)
     assert segmenter.scene.skull_in_mask and not stage_data("segmenter").scene.skull_in_mask
+
+
+@pytest.mark.parametrize("stage", ["localiser", "segmenter"])
+def test_tight_heads_change_only_the_head_layers(stage):
+    usual = stage_data(stage, tiles=True)
+    tight = stage_data(stage, tiles=True, tight_heads=True)
+    changed = {
+        f.name
+        for f in dataclasses.fields(usual.scene)
+        if getattr(usual.scene, f.name) != getattr(tight.scene, f.name)
+    }
+    assert changed == {"csf_mm", "skull_mm", "skull_intensity", "scalp_mm"}
+    assert tight.scene.csf_mm[1] < usual.scene.csf_mm[1]
+    assert tight.scene.skull_mm[0] < usual.scene.skull_mm[0]
+    assert tight.scene.scalp_mm[0] < usual.scene.scalp_mm[0]
+    assert dataclasses.replace(tight, scene=usual.scene) == usual
 
 
 class _Above(torch.nn.Module):
@@ -577,7 +594,7 @@ def test_examples_are_a_function_of_the_seed(phantom):
 
 
 def test_clean_up_fills_holes_and_keeps_one_body_through_the_slices():
-    from svr.models.brain_mask import _clean_up
+    from svr.models.brain_mask import clean_up_mask
 
     mask = np.zeros((20, 20, 3), dtype=bool)
     mask[4:12, 4:12, :] = True
@@ -585,11 +602,72 @@ def test_clean_up_fills_holes_and_keeps_one_body_through_the_slices():
     mask[15:18, 15:18, 1] = True  # a piece of one slice, apart from the brain: dropped
     mask[12:15, 4:6, 2] = True  # joins the brain in its own slice
     mask[15:17, 4:6, 1:3] = True  # joins the brain only through the next slice: kept
-    out = _clean_up(mask.copy())
+    out = clean_up_mask(mask.copy(), np.ones(3))
     assert out[7:9, 7:9, 1].all()
     assert not out[15:18, 15:18, 1].any()
     assert out[15:17, 4:6, 1].all() and out[12:15, 4:6, 2].all()
     assert out.sum() == mask.sum() + 4 - 9
+
+
+def _solid_ellipsoid(shape, spacing, centre_mm, radii_mm):
+    """Bool mask of voxels whose centres (index * spacing, mm) lie in an axis-aligned ellipsoid."""
+    points = np.indices(shape).reshape(3, -1).T * np.asarray(spacing)
+    local = (points - np.asarray(centre_mm)) / np.asarray(radii_mm)
+    return ((local**2).sum(axis=1) <= 1).reshape(shape)
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (1.1, 0.9, 3.3)])
+def test_open_mask_equals_scipy_opening_by_a_ball_in_mm(spacing):
+    from svr.models.brain_mask import open_mask
+
+    rng = np.random.default_rng(2)
+    mask = ndimage.gaussian_filter(rng.standard_normal((40, 36, 14)), 2.5) > 0
+    mask[0:12, 0:10, 0:6] = True  # touches the array's border: outside counts as background
+    radius = 3.5
+    reach = [int(radius // step) for step in spacing]
+    offsets = np.indices([2 * n + 1 for n in reach]).reshape(3, -1).T - np.array(reach)
+    ball = (np.linalg.norm(offsets * np.array(spacing), axis=1) <= radius).reshape(
+        [2 * n + 1 for n in reach]
+    )
+    expected = ndimage.binary_opening(mask, structure=ball)
+    opened = open_mask(mask, np.array(spacing), radius)
+    assert 0 < opened.sum() < mask.sum()
+    np.testing.assert_array_equal(opened, expected)
+
+
+def test_clean_up_opening_cuts_a_leak_and_a_bridged_piece_and_keeps_the_head():
+    from svr.models.brain_mask import clean_up_mask
+
+    spacing = np.array([1.0, 1.0, 3.0])
+    head = _solid_ellipsoid((110, 100, 26), spacing, (50.0, 50.0, 36.0), (30, 24, 27))
+    leaky = head.copy()
+    leaky[70:100, 47:53, 8:16] = True  # a leak along fluid: 6 mm thick, 20 mm out of the head
+    leaky[48:52, 48:52, 21:23] = True  # a narrow bridge from the head's end ...
+    leaky[30:70, 30:70, 23:26] = True  # ... to a piece of the body beyond it
+    out = clean_up_mask(leaky, spacing, 8.0)
+    assert out[head].mean() > 0.99
+    assert not out[:, :, 23:].any()  # the piece beyond the bridge is gone
+    assert not out[81:].any()  # the head ends at i = 80: the leak is gone
+    assert (out & ~head).sum() < 0.05 * (leaky & ~head).sum()
+    assert clean_up_mask(leaky, spacing, None).sum() == leaky.sum()  # no opening: all kept
+    # Regrowing by 2.5 mm gives back the leak's first 2 mm beside the head, no more.
+    regrown = clean_up_mask(leaky, spacing, 8.0, 2.5)
+    assert regrown[out].all() and not regrown[:, :, 23:].any()
+    assert regrown[82, 47:53, 12].all() and not regrown[83:].any()
+    # A brain thinner than the ball (two slices): opening would remove it, so it is kept.
+    slab = np.zeros((60, 60, 6), dtype=bool)
+    slab[10:50, 10:50, 2:4] = True
+    np.testing.assert_array_equal(clean_up_mask(slab, spacing, 8.0), slab)
+
+
+def test_config_names_a_bad_opening_radius():
+    for bad in (0.0, -1.0, float("inf"), True, "8"):
+        with pytest.raises(ValueError, match="'opening_mm' must be a finite number > 0 or null"):
+            BrainMaskConfig(opening_mm=bad)
+    assert BrainMaskConfig(opening_mm=8).opening_mm == 8
+    for bad in (-1.0, float("nan"), None, False):
+        with pytest.raises(ValueError, match="'regrow_mm' must be a finite number >= 0"):
+            BrainMaskConfig(regrow_mm=bad)
 
 
 def test_training_config_names_a_bad_curve_fraction():

@@ -21,13 +21,15 @@ DESCRIPTION = """\
 Find the fetal brain in each stack and write its mask: one uint8 NIfTI per stack on the stack's
 own grid, with the stack's header (sform and qform as in the stack), so that the next command
 (`svr reconstruct --stack-masks`, NeSVoR, SVRTK) reads it as is. The shipped model is accurate on
-stacks cropped around the brain; on whole-uterus stacks it finds the brain but its masks are
-approximate (they may leak into fluid next to the head or take in parts of the fetal body):
-check the --output-qa figure. It is shipped in the package (no download) and runs on a CPU: a
-small 2D U-Net looks for the brain on tiles covering each slice's field of view, a second one
-segments every slice on a finer grid centred on it, and the largest 3D region is kept with
-holes filled. A stack in which no brain is found is an error naming the stack (no
-mask is written). All inputs are checked and all masks computed before any file is written.
+stacks cropped around the brain; on whole-uterus stacks it finds the brain and its masks serve
+reconstruction, but they are looser than manual ones (they may take in fluid next to the head
+or miss a rim of it): check the --output-qa figure. It is shipped in the package (no download)
+and runs on a CPU: a small 2D U-Net looks for the brain on tiles covering each slice's field of
+view, a second one segments every slice on a finer grid centred on it, and the largest 3D
+region is kept, opened by an 8 mm ball (cutting thin leaks and pieces of the body joined by
+narrow bridges) and its holes filled. A stack in which no brain is found is an error naming the
+stack (no mask is written). All inputs are checked and all masks computed before any file is
+written.
 
 examples:
   svr segment-stack --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
