@@ -322,8 +322,15 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
 
 
 # (opening_mm, regrow_mm) settings of part ``opening``; (None, 0) is no opening.
-OPENINGS = [(None, 0.0), (4.0, 0.0), (8.0, 0.0), (12.0, 0.0), (6.0, 2.0), (8.0, 2.0), (8.0, 3.0)]
-OPENINGS += [(8.0, 5.0), (10.0, 2.0)]
+OPENINGS = [
+    (None, 0.0),
+    *((radius, 0.0) for radius in (4.0, 8.0, 12.0)),
+    (6.0, 2.0),
+    (8.0, 2.0),
+    (8.0, 3.0),
+    (8.0, 5.0),
+    (10.0, 2.0),
+]
 
 
 def part_opening(args: argparse.Namespace, report: dict) -> list[str]:

@@ -49,9 +49,9 @@ MODEL_CARD = """\
 # Shipped brain-mask model (`svr segment-stack`)
 
 Two 2D U-Nets (`svr.models.segmentation.BrainUNet`, depth 4, width 8 for the localiser and 12
-for the segmenter; float16 safetensors and a
-JSON config, loaded by `svr.models.brain_mask.load_brain_masker("default")` without running
-code), `svr.models.brain_mask`: a localiser on 1.5 mm canvases of 192 mm tiled over each slice's
+for the segmenter; float16 safetensors and a JSON config, loaded by
+`svr.models.brain_mask.load_brain_masker("default")` without running code),
+`svr.models.brain_mask`: a localiser on 1.5 mm canvases of 192 mm tiled over each slice's
 field of view (overlapping by half, blended), which gives the brain's in-plane centre, and a
 segmenter on 1.25 mm canvases of 160 mm centred there, run on every slice. The clean-up keeps
 the largest 3D component, opens it by a ball of 8 mm (cutting thin leaks into the fluid beside

@@ -57,6 +57,7 @@ from svr.models.checkpoint import (
 )
 from svr.models.pretrained import DEFAULT_MODEL, brain_mask_model_path
 from svr.models.segmentation import BrainUNet, SegmentationConfig
+from svr.sampling._validation import is_finite_number
 
 __all__ = [
     "BrainMaskConfig",
@@ -159,21 +160,12 @@ class BrainMaskConfig:
                 "BrainMaskConfig: 'slice_margin' must be an integer >= 0 or null, "
                 f"got {self.slice_margin!r}"
             )
-        radius = self.opening_mm
-        if radius is not None and (
-            isinstance(radius, bool)
-            or not isinstance(radius, (int, float))
-            or not (math.isfinite(radius) and radius > 0)
-        ):
+        radius, regrow = self.opening_mm, self.regrow_mm
+        if radius is not None and not (is_finite_number(radius) and radius > 0):
             raise ValueError(
                 f"BrainMaskConfig: 'opening_mm' must be a finite number > 0 or null, got {radius!r}"
             )
-        regrow = self.regrow_mm
-        if (
-            isinstance(regrow, bool)
-            or not isinstance(regrow, (int, float))
-            or not (math.isfinite(regrow) and regrow >= 0)
-        ):
+        if not (is_finite_number(regrow) and regrow >= 0):
             raise ValueError(
                 f"BrainMaskConfig: 'regrow_mm' must be a finite number >= 0, got {regrow!r}"
             )

@@ -194,27 +194,19 @@ def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> 
             down to 0.3 mm (all scenes of either stage).
     """
     head = _TIGHT_HEAD if tight_heads else _HEAD
-    if stage == "localiser" and tiles:
-        scene = SceneConfig(
-            extent_mm=320.0,
-            spacing_mm=1.6,
-            fluid_margin_mm=(0.5, 30.0),
-            distractors=(30, 80),
-            distractor_mm=(3.0, 25.0),
-            **head,
-        )
-        return StageData(
-            scene, (1.0, 1.8), (40.0, 130.0), centre_shift_mm=120.0, shift_per_slice=True
-        )
     if stage == "localiser":
         scene = SceneConfig(
-            extent_mm=400.0,
-            spacing_mm=2.5,
-            fluid_margin_mm=(3.0, 30.0),
+            extent_mm=320.0 if tiles else 400.0,
+            spacing_mm=1.6 if tiles else 2.5,
+            fluid_margin_mm=(0.5, 30.0) if tiles else (3.0, 30.0),
             distractors=(30, 80),
             distractor_mm=(3.0, 25.0),
             **head,
         )
+        if tiles:
+            return StageData(
+                scene, (1.0, 1.8), (40.0, 130.0), centre_shift_mm=120.0, shift_per_slice=True
+            )
         return StageData(scene, (1.5, 2.5), (40.0, 130.0))
     scene = SceneConfig(
         extent_mm=200.0,
@@ -319,11 +311,12 @@ def make_examples(
                 centre = (torch.tensor(image.shape[:2], dtype=torch.float64) - 1) / 2 + shift
             else:  # the brain's slices and one beyond each end (inference segments a margin of
                 # BrainMaskConfig.slice_margin beyond the localised ones, or every slice)
-                first = max(int(brain_slices.min()) - 1, 0)
-                last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
                 if data.segment_all_slices:
-                    first, last = 0, image.shape[2] - 1
-                chosen = torch.arange(first, last + 1)
+                    chosen = torch.arange(image.shape[2])
+                else:
+                    first = max(int(brain_slices.min()) - 1, 0)
+                    last = min(int(brain_slices.max()) + 1, image.shape[2] - 1)
+                    chosen = torch.arange(first, last + 1)
                 where = torch.nonzero(mask).double()
                 error = torch.from_numpy(rng.normal(0.0, 5.0, 2)) / spacing
                 centre = where[:, :2].mean(0) + error

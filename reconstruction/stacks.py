@@ -8,12 +8,12 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
    world position, as :mod:`svr.models.predict` does); it must overlap the stack. Without masks, an
    automatic one, by ``StackConfig.auto_mask``: ``"network"`` runs the shipped brain-mask
    networks (:func:`svr.models.brain_mask.segment_stack`, meant for whole-uterus and cropped
-   stacks; the shipped model is accurate on cropped ones, approximate on whole-uterus ones; a
-   stack where no brain is found is an error naming it); ``"otsu"`` keeps voxels above the
-   stack's Otsu threshold inside the region that every stack's field of view covers (each stack
-   covering the boxes of its voxels), then the largest 3D connected component with its holes
-   filled, which suits only stacks already cropped around the brain (the brain is the largest
-   bright object seen by all stacks).
+   stacks; the shipped model is accurate on cropped ones, looser than manual masks on
+   whole-uterus ones; a stack where no brain is found is an error naming it); ``"otsu"`` keeps
+   voxels above the stack's Otsu threshold inside the region that every stack's field of view
+   covers (each stack covering the boxes of its voxels), then the largest 3D connected component
+   with its holes filled, which suits only stacks already cropped around the brain (the brain is
+   the largest bright object seen by all stacks).
 2. **Crop.** In-plane (axes 0 and 1) to the mask's bounding box over all planes plus
    ``crop_margin_mm``, clipped to the array; along k to the planes from the first to the last
    with mask (a contiguous range; planes with an empty mask inside it are kept and dropped later

@@ -132,31 +132,30 @@ def test_organs_change_only_the_surroundings(brain):
     assert float(plain.image.data.double().sum()) == pytest.approx(257755.41016155295, rel=1e-9)
 
 
+def _added_by(brain, base: dict, extra: dict) -> torch.Tensor:
+    """Intensities of the voxels a mask option adds to the same untextured scene (seed 8).
+
+    Checks that the image is unchanged and the new mask is a strict superset of the old one.
+    """
+    plain = SceneConfig(**{**SMALL.__dict__, "texture": 0.0, **base})
+    before = make_scene(brain, plain, seed=8)
+    after = make_scene(brain, SceneConfig(**{**plain.__dict__, **extra}), seed=8)
+    assert torch.equal(before.image.data, after.image.data)
+    assert bool((after.mask | ~before.mask).all())  # a superset
+    added = after.mask & ~before.mask
+    assert int(added.sum()) > 0
+    return after.image.data[added]
+
+
 def test_intracranial_mask_adds_the_csf_shell_only(brain):
     """The same scene; its mask grows by the CSF shell (inside the skull) and nothing else."""
-    plain = SceneConfig(**{**SMALL.__dict__, "texture": 0.0})
-    brain_only = make_scene(brain, plain, seed=8)
-    config = SceneConfig(**{**plain.__dict__, "intracranial_mask": True})
-    intracranial = make_scene(brain, config, seed=8)
-    assert torch.equal(brain_only.image.data, intracranial.image.data)
-    assert bool((intracranial.mask | ~brain_only.mask).all())  # a superset
-    added = intracranial.mask & ~brain_only.mask
-    assert int(added.sum()) > 0
-    values = intracranial.image.data[added]
+    values = _added_by(brain, {}, {"intracranial_mask": True})
     assert float(values.min()) == float(values.max()) >= 1.0  # the CSF intensity, one value
 
 
 def test_skull_in_mask_adds_the_skull_shell_only(brain):
     """The same scene; the intracranial mask grows by the skull shell (one dark value)."""
-    plain = SceneConfig(**{**SMALL.__dict__, "texture": 0.0, "intracranial_mask": True})
-    inside = make_scene(brain, plain, seed=8)
-    config = SceneConfig(**{**plain.__dict__, "skull_in_mask": True})
-    with_skull = make_scene(brain, config, seed=8)
-    assert torch.equal(inside.image.data, with_skull.image.data)
-    assert bool((with_skull.mask | ~inside.mask).all())  # a superset
-    added = with_skull.mask & ~inside.mask
-    assert int(added.sum()) > 0
-    values = with_skull.image.data[added]
+    values = _added_by(brain, {"intracranial_mask": True}, {"skull_in_mask": True})
     assert float(values.min()) == float(values.max()) <= 0.3  # the skull's intensity, one value
     with pytest.raises(ValueError, match="'skull_in_mask' needs 'intracranial_mask'"):
         SceneConfig(skull_in_mask=True)

@@ -45,8 +45,7 @@ with their simulation is below --ncc-threshold, and edge-preserving super-resolu
 Stacks are cropped to their brain masks and normalised; without --stack-masks each stack's brain
 is found automatically (--auto-masks network, as `svr segment-stack` does; the log and the QA
 figure say so; accurate on stacks cropped around the brain, looser than manual masks on
-whole-uterus scans;
-a stack without a found brain stops the command with an error). The output
+whole-uterus scans; a stack without a found brain stops the command with an error). The output
 volume is in canonical atlas space with --registration cnn and in the scanner's world frame
 otherwise. --output-transforms writes one row per slice (stack file, k index, pose of the file's
 k-plane as 6-vector and matrix, frame, NCC, EM weight, excluded); --output-slices a NeSVoR-style
@@ -110,8 +109,8 @@ def add_options(
         default="network",
         help="masks of stacks given without --stack-masks: network (the shipped brain-mask "
         "networks of svr segment-stack; reliable on cropped stacks, looser than manual masks on "
-        "whole-uterus ones) or otsu (the largest "
-        "bright region all stacks see; stacks cropped around the brain only)",
+        "whole-uterus ones) or otsu (the largest bright region all stacks see; stacks cropped "
+        "around the brain only)",
     )
     inputs.add_argument(
         "--mask-model",
