@@ -29,8 +29,10 @@ localiser settings, masks up to the skull; scene seeds 5000 and up, while traini
 scene seeds at random from [0, 2**31), so a shared scene is improbable), each cut into 2 stacks
 of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion, noise, bias
 field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
-stacks. The brains are the atlas's, as in training: this measures the scenes and acquisitions
-held out, not unseen anatomy.
+stacks. ``--sim-faces`` gives the heads faces and ``--sim-mask-fraction`` cuts the true masks
+with the slices' profiles (``SimulationConfig.mask_fraction``), the conventions of models
+trained with ``--faces --partial-volume-masks``. The brains are the atlas's, as in training:
+this measures the scenes and acquisitions held out, not unseen anatomy.
 
 Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
 ``regrow_mm``) swept over settings on every stack of part ``masks`` and of part ``simval``: the
@@ -296,7 +298,7 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
 
     brains, _ = load_volumes(atlas_volume_paths(args.data / "atlas" / "sb-fidon2021"))
     scene_config = dataclasses.replace(
-        stage_data("localiser", tiles=True).scene, skull_in_mask=True
+        stage_data("localiser", tiles=True).scene, skull_in_mask=True, face=args.sim_faces
     )
     stacks = []
     for case in range(args.sim_cases):
@@ -314,6 +316,7 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
             noise=0.03,
             bias_field=0.2,
             signal_void_probability=0.05,
+            mask_fraction=args.sim_mask_fraction,
             seed=seed,
         )
         for stack in simulate_case(make_scene(brain, scene_config, seed=seed), config).stacks:
@@ -378,9 +381,13 @@ def part_opening(args: argparse.Namespace, report: dict) -> list[str]:
 
 def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
     stacks = simval_stacks(args)
+    convention = "centre-plane" if args.sim_mask_fraction is None else "partial-volume"
     lines = [
         "",
-        f"Held-out simulated whole-uterus stacks: {len(stacks)} stacks, {args.sim_cases} scenes",
+        f"Held-out simulated whole-uterus stacks: {len(stacks)} stacks, {args.sim_cases} scenes"
+        f" (faces: {'yes' if args.sim_faces else 'no'}; {convention} masks"
+        + ("" if args.sim_mask_fraction is None else f", fraction {args.sim_mask_fraction:g}")
+        + ")",
         "",
         "| model | Dice min | Dice mean | recall min | recall mean | not found |",
         "|---|---|---|---|---|---|",
@@ -418,6 +425,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sim-cases", type=int, default=8, help="simval: number of scenes")
     parser.add_argument(
         "--sim-models", default="default", help="simval: comma-separated models to compare"
+    )
+    parser.add_argument(
+        "--sim-faces", action="store_true", help="simval: heads with faces (SceneConfig.face)"
+    )
+    parser.add_argument(
+        "--sim-mask-fraction",
+        type=float,
+        help="simval: SimulationConfig.mask_fraction of the true masks (default: centre plane)",
     )
     parser.add_argument("--results", type=Path, help="markdown file to write (+ .json beside)")
     parser.add_argument("--figures", type=Path, help="folder for the figures")

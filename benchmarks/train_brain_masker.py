@@ -122,6 +122,8 @@ def stage_settings(
         "label_intensities": args.label_intensities,
         "segment_all_slices": args.segment_all_slices,
         "tight_heads": args.tight_heads,
+        "faces": args.faces,
+        "partial_volume_masks": args.partial_volume_masks,
     }
 
 
@@ -158,6 +160,16 @@ def main(argv: list[str] | None = None) -> int:
         "--tight-heads",
         action="store_true",
         help="scenes with narrower CSF, fainter thinner skulls and scalps (stage_data)",
+    )
+    parser.add_argument(
+        "--faces",
+        action="store_true",
+        help="scenes whose heads have a face and eyes and whose bodies hang from a neck",
+    )
+    parser.add_argument(
+        "--partial-volume-masks",
+        action="store_true",
+        help="slice masks wherever a fifth of the slice's profile is brain (stage_data)",
     )
     parser.add_argument(
         "--segmenter-width",
@@ -214,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = stage_settings(stage, mask_config, config, args)
     recorded = folder / SETTINGS
     # (runs recorded before a setting existed had its default)
-    if recorded.exists() and {"tight_heads": False, **json.loads(recorded.read_text())} != settings:
+    defaults = {"tight_heads": False, "faces": False, "partial_volume_masks": False}
+    if recorded.exists() and {**defaults, **json.loads(recorded.read_text())} != settings:
         parser.error(
             f"{recorded}: this run folder was started with other settings "
             f"({json.loads(recorded.read_text())}); give another --out"
@@ -233,7 +246,13 @@ def main(argv: list[str] | None = None) -> int:
             tissue_labels = [
                 load_nifti(v.parent / "parcellation.nii.gz").data.round().long() for v, _ in pairs
             ]
-        data = stage_data(stage, mask_config.localiser_tiles, args.tight_heads)
+        data = stage_data(
+            stage,
+            mask_config.localiser_tiles,
+            args.tight_heads,
+            faces=args.faces,
+            partial_volume=args.partial_volume_masks,
+        )
         if args.segment_all_slices:
             data = dataclasses.replace(data, segment_all_slices=True)
         examples = make_examples(

@@ -150,6 +150,7 @@ class StageData:
     centre_shift_mm: float = 60.0
     shift_per_slice: bool = False
     segment_all_slices: bool = False
+    mask_fraction: float | None = None
 
 
 # Shared by both networks' scenes: the head as it looks on fetal T2 stacks (a wide, bright
@@ -175,7 +176,18 @@ _TIGHT_HEAD: dict[str, Any] = {
 }
 
 
-def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> StageData:
+# ``partial_volume``: a thick slice's mask holds the brain wherever a fifth of its profile is
+# brain, as manual masks include the slices that graze the top and bottom of the head.
+PARTIAL_VOLUME_MASK_FRACTION = 0.2
+
+
+def stage_data(
+    stage: Stage,
+    tiles: bool = False,
+    tight_heads: bool = False,
+    faces: bool = False,
+    partial_volume: bool = False,
+) -> StageData:
     """The simulation behind the shipped networks.
 
     Without ``tiles`` (the first recipe): coarse, wide scenes with many distracting organs for
@@ -192,8 +204,12 @@ def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> 
             drawn around the skull's dark rim).
         tight_heads: Heads with a narrower CSF space, fainter and thinner skulls and scalps
             down to 0.3 mm (all scenes of either stage).
+        faces: Heads with a face and eyes, and bodies on a neck (``SceneConfig.face``).
+        partial_volume: Slice masks that hold the brain wherever a fifth of the slice's
+            profile is brain (``StageData.mask_fraction`` 0.2), not only on its centre plane.
     """
-    head = _TIGHT_HEAD if tight_heads else _HEAD
+    head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces}
+    fraction = PARTIAL_VOLUME_MASK_FRACTION if partial_volume else None
     if stage == "localiser":
         scene = SceneConfig(
             extent_mm=320.0 if tiles else 400.0,
@@ -205,9 +221,14 @@ def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> 
         )
         if tiles:
             return StageData(
-                scene, (1.0, 1.8), (40.0, 130.0), centre_shift_mm=120.0, shift_per_slice=True
+                scene,
+                (1.0, 1.8),
+                (40.0, 130.0),
+                centre_shift_mm=120.0,
+                shift_per_slice=True,
+                mask_fraction=fraction,
             )
-        return StageData(scene, (1.5, 2.5), (40.0, 130.0))
+        return StageData(scene, (1.5, 2.5), (40.0, 130.0), mask_fraction=fraction)
     scene = SceneConfig(
         extent_mm=200.0,
         spacing_mm=1.25,
@@ -218,7 +239,7 @@ def stage_data(stage: Stage, tiles: bool = False, tight_heads: bool = False) -> 
         skull_in_mask=tiles,
         **head,
     )
-    return StageData(scene, (0.8, 1.5), (30.0, 50.0))
+    return StageData(scene, (0.8, 1.5), (30.0, 50.0), mask_fraction=fraction)
 
 
 def _case_simulation(
@@ -238,6 +259,7 @@ def _case_simulation(
         noise=float(rng.uniform(0.005, 0.06)),
         bias_field=float(rng.uniform(0.0, 0.4)),
         signal_void_probability=float(rng.uniform(0.0, 0.15)),
+        mask_fraction=data.mask_fraction,
         seed=seed,
     )
 

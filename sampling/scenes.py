@@ -8,8 +8,10 @@ randomisation (SynthSeg-style: random shapes, random intensities) around a canon
    a random gamma;
 2. the fetal head around it, as shells by distance from the brain surface: extra-axial CSF
    (bright on T2), the skull (dark) and the scalp;
-3. the fetal body, an ellipsoid next to the head, and the amniotic fluid, a larger ellipsoid
-   around both (bright);
+3. the fetal body, an ellipsoid next to the head (with ``face``: below and behind it, where the
+   neck is, and a face under the front of the brain: soft tissue holding two eyes, bright
+   vitreous in a dark rim with a dark lens), and the amniotic fluid, a larger ellipsoid around
+   them (bright);
 4. maternal tissue around them, inside an abdomen (an ellipsoid with a randomly perturbed
    boundary; air, 0, outside): a random label field (the arg-max of smoothed noise channels) with
    a random intensity per label and a smooth texture.
@@ -74,6 +76,11 @@ class SceneConfig:
             inside the skull, as manual fetal brain masks are drawn), not the brain alone.
         skull_in_mask: Whether the intracranial mask reaches the skull's outer edge (manual
             masks drawn around the skull's dark rim); needs ``intracranial_mask``.
+        face: Whether the head has a face (soft tissue and two eyes below the front of the
+            brain, outside the skull) and the body hangs from a neck (below and behind the
+            brain) rather than in a random direction. Needs the brain in RAS orientation
+            (canonical +y anterior, +z superior), as the atlas is; its random draws come from
+            their own stream, so scenes without it are unchanged.
 
     Raises:
         ValueError: On construction, naming the field, for an invalid value.
@@ -100,6 +107,7 @@ class SceneConfig:
     body_scale: tuple[float, float] = (0.9, 1.6)
     intracranial_mask: bool = False
     skull_in_mask: bool = False
+    face: bool = False
 
     def __post_init__(self) -> None:
         for name in ("extent_mm", "spacing_mm"):
@@ -137,6 +145,11 @@ class SceneConfig:
                 raise ValueError(f"SceneConfig: '{name}' must be a number >= 0, got {value!r}")
         if self.skull_in_mask and not self.intracranial_mask:
             raise ValueError("SceneConfig: 'skull_in_mask' needs 'intracranial_mask'")
+        for name in ("intracranial_mask", "skull_in_mask", "face"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(
+                    f"SceneConfig: '{name}' must be true or false, got {getattr(self, name)!r}"
+                )
 
 
 def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
@@ -205,6 +218,82 @@ def _paint_organs(
         scene[box] = np.where(core, core_value, scene[box])
 
 
+def _neck_direction(rng: np.random.Generator) -> np.ndarray:
+    """A unit vector below and behind the brain (canonical RAS: -z inferior, -y posterior)."""
+    direction = np.array([0.0, -0.5, -1.0]) + 0.35 * rng.standard_normal(3)
+    return direction / np.linalg.norm(direction)
+
+
+def _paint_face(
+    scene: np.ndarray,
+    xyz: np.ndarray,
+    brain_mask: np.ndarray,
+    distance: np.ndarray,
+    skull: float,
+    cfg: SceneConfig,
+    rng: np.random.Generator,
+) -> None:
+    """Paint a face below the front of the brain, in place, beyond the skull.
+
+    The brain's extent gives the sizes: the face is an ellipsoid of soft tissue under the frontal
+    lobes; each eye (radius 8-12 % of the brain's length, as fetal eyes are) sits under the front
+    of the brain, off the midline, with a dark rim (sclera) and a dark lens at its front.
+
+    Args:
+        scene: (n, n, n) intensities, modified.
+        xyz: (n, n, n, 3) canonical mm (RAS).
+        brain_mask: (n, n, n) bool, the brain.
+        distance: (n, n, n) distance from the brain, mm.
+        skull: Distance of the skull's outer edge from the brain, mm.
+        cfg: Intensity ranges.
+        rng: The face's random stream.
+    """
+    points = xyz[brain_mask]
+    if len(points) == 0:
+        return
+    outside = distance > skull
+    low, high = points.min(axis=0), points.max(axis=0)
+    width, length, height = high - low
+    middle = (low + high) / 2
+    front = high[1]
+    frontal = points[points[:, 1] > front - 0.25 * length]
+    floor = float(frontal[:, 2].min())  # the underside of the frontal lobes
+    face_centre = np.array(
+        [
+            middle[0],
+            front - _uniform(rng, (0.1, 0.3)) * length,
+            floor - skull - _uniform(rng, (0.05, 0.2)) * height,
+        ]
+    )
+    face_radii = np.array(
+        [
+            _uniform(rng, (0.3, 0.45)) * width,
+            _uniform(rng, (0.25, 0.4)) * length,
+            _uniform(rng, (0.3, 0.45)) * height,
+        ]
+    )
+    tilt = quat_to_matrix(torch.from_numpy(np.r_[1.0, 0.15 * rng.standard_normal(3)])).numpy()
+    face = _ellipsoid(xyz, face_centre, face_radii, tilt) & outside
+    scene[face] = _uniform(rng, cfg.tissue_intensity)
+    radius = _uniform(rng, (0.08, 0.12)) * length
+    rim = _uniform(rng, (0.5, 1.5))
+    vitreous = _uniform(rng, cfg.csf_intensity)
+    sclera, lens = _uniform(rng, cfg.skull_intensity), _uniform(rng, cfg.skull_intensity)
+    for side in (-1.0, 1.0):
+        centre = np.array(
+            [
+                middle[0] + side * _uniform(rng, (0.15, 0.25)) * width,
+                front - _uniform(rng, (0.05, 0.2)) * length,
+                floor - skull - _uniform(rng, (0.6, 1.2)) * radius,
+            ]
+        )
+        distance = np.linalg.norm(xyz - centre, axis=-1)
+        scene[(distance <= radius + rim) & outside] = sclera
+        scene[(distance <= radius) & outside] = vitreous
+        lens_centre = centre + np.array([0.0, 0.7 * radius, 0.0])
+        scene[(np.linalg.norm(xyz - lens_centre, axis=-1) <= 0.3 * radius) & outside] = lens
+
+
 def make_scene(
     brain: CanonicalVolume,
     config: SceneConfig | None = None,
@@ -271,6 +360,9 @@ def make_scene(
     # 3. Body and amniotic fluid.
     direction = rng.standard_normal(3)
     direction /= np.linalg.norm(direction)
+    face_rng = np.random.default_rng([seed, 2])  # (own stream: scenes without faces unchanged)
+    if cfg.face:
+        direction = _neck_direction(face_rng)
     body_radii = radius * rng.uniform(*cfg.body_scale, size=3) * np.array([1.0, 1.0, 1.5])
     body_centre = direction * (radius + scalp + body_radii[2] * rng.uniform(0.6, 0.9))
     body = _ellipsoid(xyz, body_centre, body_radii, _random_rotation(rng))
@@ -306,6 +398,8 @@ def make_scene(
         _paint_organs(scene, xyz, (abdomen | fluid) & (distance > scalp), organs, cfg, rng)
     else:
         scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
+    if cfg.face:
+        _paint_face(scene, xyz, brain_mask, distance, skull, cfg, face_rng)
     scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= skull, _uniform(rng, cfg.skull_intensity), scene)
     scene = np.where(distance <= csf, _uniform(rng, cfg.csf_intensity), scene)

@@ -19,6 +19,7 @@ and ``gt_mask.nii.gz`` in the scanner frame, ``case.json``, ``truth_slices.json`
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -34,6 +35,7 @@ from tqdm import tqdm
 from svr.files import atomic_directory
 from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti, voxel_to_world
+from svr.sampling._validation import is_finite_number
 from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
@@ -70,6 +72,11 @@ class SimulationConfig:
         signal_void_probability: Chance that a slice has a signal void (a dark blob).
         random_placement: Rotate and shift the brain randomly in the scanner.
         in_plane_psf: Also apply the in-plane Gaussian PSF.
+        mask_fraction: How a slice's brain mask is cut: ``None`` for the brain on the slice's
+            centre plane; a number in (0, 1) for the points where more than this fraction of
+            the slice's through-plane profile (its PSF) is brain, so that a slice grazing the
+            brain's top or bottom, which shows it in partial volume, has it in its mask (as
+            manual masks of thick slices are drawn).
         seed: Seed of every random choice.
     """
 
@@ -91,6 +98,7 @@ class SimulationConfig:
     signal_void_probability: float = 0.0
     random_placement: bool = True
     in_plane_psf: bool = False
+    mask_fraction: float | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -129,6 +137,11 @@ class SimulationConfig:
             raise ValueError(
                 "SimulationConfig: 'motion' must be trajectories, random_walk or none, "
                 f"got {self.motion!r}"
+            )
+        fraction = self.mask_fraction
+        if fraction is not None and not (is_finite_number(fraction) and 0 < fraction < 1):
+            raise ValueError(
+                f"SimulationConfig: 'mask_fraction' must be in (0, 1) or None, got {fraction!r}"
             )
         if self.motion == "trajectories" and self.motion_path is None:
             raise ValueError("SimulationConfig: motion='trajectories' needs 'motion_path'")
@@ -332,6 +345,10 @@ def simulate_case(
         psf_samples=3 if config.in_plane_psf else 5,
     )
     mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
+    mask_threshold = 0.5
+    if config.mask_fraction is not None:
+        mask_config = dataclasses.replace(mask_config, thickness_mm=config.thickness_mm)
+        mask_threshold = config.mask_fraction
     sigma = config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99))
 
     gt_on_device, mask_on_device = gt_volume.to(device), gt_mask.to(device)
@@ -353,7 +370,8 @@ def simulate_case(
         true_poses = se3_compose(se3_inverse(moved), nominal)
         on_device = true_poses.to(device)
         slices = sample_slices(gt_on_device, on_device, slice_config).cpu()
-        masks = (sample_slices(mask_on_device, on_device, mask_config) > 0.5).float().cpu()
+        masks = sample_slices(mask_on_device, on_device, mask_config) > mask_threshold
+        masks = masks.float().cpu()
         if config.bias_field > 0:
             pts_u = (torch.arange(side, dtype=torch.float64) - (side - 1) / 2) * config.in_plane_mm
             grid = (

@@ -37,6 +37,7 @@ from svr.models.brain_mask_train import (
     BrainMaskTrainingConfig,
     StageData,
     TrainingExamples,
+    _case_simulation,
     dice_bce_loss,
     intensity_curve,
     make_examples,
@@ -217,6 +218,19 @@ def test_tight_heads_change_only_the_head_layers(stage):
     assert tight.scene.skull_mm[0] < usual.scene.skull_mm[0]
     assert tight.scene.scalp_mm[0] < usual.scene.scalp_mm[0]
     assert dataclasses.replace(tight, scene=usual.scene) == usual
+
+
+@pytest.mark.parametrize("stage", ["localiser", "segmenter"])
+def test_faces_and_partial_volume_masks_change_one_field_each(stage):
+    usual = stage_data(stage, tiles=True)
+    assert not usual.scene.face and usual.mask_fraction is None
+    faced = stage_data(stage, tiles=True, faces=True)
+    assert faced.scene == dataclasses.replace(usual.scene, face=True)
+    assert dataclasses.replace(faced, scene=usual.scene) == usual
+    partial = stage_data(stage, tiles=True, partial_volume=True)
+    assert partial == dataclasses.replace(usual, mask_fraction=0.2)
+    config = _case_simulation(partial, False, np.random.default_rng(0), 1)
+    assert config.mask_fraction == 0.2
 
 
 class _Above(torch.nn.Module):

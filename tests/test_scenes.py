@@ -7,7 +7,7 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-from svr.sampling.scenes import SceneConfig, make_scene
+from svr.sampling.scenes import SceneConfig, _neck_direction, _paint_face, make_scene
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import canonicalize
 
@@ -88,6 +88,8 @@ def test_stacks_cut_from_a_scene_show_the_surroundings(brain):
         ("distractors", (-1, 2)),
         ("distractor_mm", (0.0, 3.0)),
         ("body_scale", (2.0, 1.0)),
+        ("face", 1),
+        ("intracranial_mask", "yes"),
     ],
 )
 def test_config_errors_name_the_field(field, value):
@@ -174,3 +176,63 @@ def test_tissue_labels_randomise_only_the_brain(brain):
     inside = synthetic.image.data[plain.mask]
     assert not torch.allclose(inside, plain.image.data[plain.mask])
     assert float(inside.min()) >= 0.0 and float(inside.max()) <= 1.0  # values in [0.1, 1], blurred
+
+
+def test_faces_change_only_what_is_beyond_the_skull(brain):
+    """A face (and the body on a neck) changes the scene beyond the skull only: the brain, the
+    head's shells and the mask are the same, and scenes without a face draw the same numbers."""
+    config = SceneConfig(**{**SMALL.__dict__, "texture": 0.0, "intracranial_mask": True})
+    plain = make_scene(brain, config, seed=3)
+    faced = make_scene(brain, SceneConfig(**{**config.__dict__, "face": True}), seed=3)
+    assert torch.equal(plain.mask, faced.mask)
+    from scipy import ndimage
+
+    distance = ndimage.distance_transform_edt(~plain.mask.numpy(), sampling=2.0)
+    changed = (plain.image.data != faced.image.data).numpy()
+    assert changed.mean() > 0.01
+    assert not changed[distance <= 1.5].any()  # the brain and the CSF next to it are kept
+
+
+def test_face_has_two_eyes_below_the_front_of_the_brain(brain):
+    """Painted on an empty scene with one intensity per part: all of it beyond the skull, the
+    face under the front of the brain (canonical RAS), two eyes (the vitreous value) on either
+    side of the midline, each with a darker lens."""
+    from scipy import ndimage
+
+    from svr.image import voxel_centres
+
+    config = SceneConfig(
+        extent_mm=120.0,
+        spacing_mm=1.0,
+        csf_intensity=(1.5, 1.5),
+        tissue_intensity=(0.6, 0.6),
+        skull_intensity=(0.1, 0.1),
+    )
+    grid = make_scene(brain, config, seed=1)
+    xyz = voxel_centres(grid.image).numpy()
+    mask = grid.mask.numpy()
+    distance = ndimage.distance_transform_edt(~mask, sampling=1.0)
+    scene = np.zeros(mask.shape)
+    _paint_face(scene, xyz, mask, distance, 4.0, config, np.random.default_rng(0))
+    painted = scene != 0
+    assert painted.sum() > 500 and not painted[distance <= 4.0].any()
+    points = xyz[mask]
+    front, middle = points[:, 1].max(), points.mean(axis=0)
+    assert xyz[painted][:, 2].mean() < points[:, 2].min() + 4.0  # below the brain
+    assert xyz[painted][:, 1].mean() > middle[1]  # in front of its centre
+    eyes, count = ndimage.label(scene == 1.5)
+    assert count == 2
+    centres = np.array([xyz[eyes == k].mean(axis=0) for k in (1, 2)])
+    assert (centres[:, 0] - middle[0]).prod() < 0  # one each side of the midline
+    assert (centres[:, 1] > front - 0.3 * np.ptp(points[:, 1])).all()
+    frontal = points[points[:, 1] > front - 0.25 * np.ptp(points[:, 1])]
+    assert (centres[:, 2] < frontal[:, 2].min() - 4.0).all()  # under the frontal lobes' skull
+    lenses = xyz[scene == 0.1]
+    assert lenses.size and lenses[:, 1].mean() > centres[:, 1].mean()  # at the eyes' front
+
+
+def test_neck_is_below_and_behind_the_brain():
+    rng = np.random.default_rng(0)
+    directions = np.array([_neck_direction(rng) for _ in range(500)])
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0)
+    assert (directions[:, 2] < 0).mean() > 0.95 and directions[:, 1].mean() < -0.2
