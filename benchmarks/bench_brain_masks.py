@@ -29,9 +29,10 @@ localiser settings, masks up to the skull; scene seeds 5000 and up, while traini
 scene seeds at random from [0, 2**31), so a shared scene is improbable), each cut into 2 stacks
 of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion, noise, bias
 field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
-stacks. ``--sim-faces`` gives the heads faces and ``--sim-mask-fraction`` cuts the true masks
-with the slices' profiles (``SimulationConfig.mask_fraction``), the conventions of models
-trained with ``--faces --partial-volume-masks``. The brains are the atlas's, as in training:
+stacks. ``--sim-faces`` gives the heads faces, ``--sim-spinal-cord`` ends them at the skull
+base and ``--sim-mask-fraction`` cuts the true masks with the slices' profiles
+(``SimulationConfig.mask_fraction``): the conventions of models trained with ``--faces
+--spinal-cord --partial-volume-masks``. The brains are the atlas's, as in training:
 this measures the scenes and acquisitions held out, not unseen anatomy.
 
 Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
@@ -298,7 +299,10 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
 
     brains, _ = load_volumes(atlas_volume_paths(args.data / "atlas" / "sb-fidon2021"))
     scene_config = dataclasses.replace(
-        stage_data("localiser", tiles=True).scene, skull_in_mask=True, face=args.sim_faces
+        stage_data("localiser", tiles=True).scene,
+        skull_in_mask=True,
+        face=args.sim_faces,
+        spinal_cord=args.sim_spinal_cord,
     )
     stacks = []
     for case in range(args.sim_cases):
@@ -385,7 +389,8 @@ def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
     lines = [
         "",
         f"Held-out simulated whole-uterus stacks: {len(stacks)} stacks, {args.sim_cases} scenes"
-        f" (faces: {'yes' if args.sim_faces else 'no'}; {convention} masks"
+        f" (faces: {'yes' if args.sim_faces else 'no'}; "
+        f"spinal cord: {'yes' if args.sim_spinal_cord else 'no'}; {convention} masks"
         + ("" if args.sim_mask_fraction is None else f", fraction {args.sim_mask_fraction:g}")
         + ")",
         "",
@@ -428,6 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--sim-faces", action="store_true", help="simval: heads with faces (SceneConfig.face)"
+    )
+    parser.add_argument(
+        "--sim-spinal-cord",
+        action="store_true",
+        help="simval: heads end at the skull base (SceneConfig.spinal_cord)",
     )
     parser.add_argument(
         "--sim-mask-fraction",

@@ -124,6 +124,7 @@ def stage_settings(
         "tight_heads": args.tight_heads,
         "faces": args.faces,
         "partial_volume_masks": args.partial_volume_masks,
+        "spinal_cord": args.spinal_cord,
     }
 
 
@@ -170,6 +171,11 @@ def main(argv: list[str] | None = None) -> int:
         "--partial-volume-masks",
         action="store_true",
         help="slice masks wherever a fifth of the slice's profile is brain (stage_data)",
+    )
+    parser.add_argument(
+        "--spinal-cord",
+        action="store_true",
+        help="heads end at the skull base; the brainstem below is the cord (SceneConfig)",
     )
     parser.add_argument(
         "--segmenter-width",
@@ -226,7 +232,12 @@ def main(argv: list[str] | None = None) -> int:
     settings = stage_settings(stage, mask_config, config, args)
     recorded = folder / SETTINGS
     # (runs recorded before a setting existed had its default)
-    defaults = {"tight_heads": False, "faces": False, "partial_volume_masks": False}
+    defaults = {
+        "tight_heads": False,
+        "faces": False,
+        "partial_volume_masks": False,
+        "spinal_cord": False,
+    }
     if recorded.exists() and {**defaults, **json.loads(recorded.read_text())} != settings:
         parser.error(
             f"{recorded}: this run folder was started with other settings "
@@ -252,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
             args.tight_heads,
             faces=args.faces,
             partial_volume=args.partial_volume_masks,
+            spinal_cord=args.spinal_cord,
         )
         if args.segment_all_slices:
             data = dataclasses.replace(data, segment_all_slices=True)

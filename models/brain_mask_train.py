@@ -187,6 +187,7 @@ def stage_data(
     tight_heads: bool = False,
     faces: bool = False,
     partial_volume: bool = False,
+    spinal_cord: bool = False,
 ) -> StageData:
     """The simulation behind the shipped networks.
 
@@ -207,8 +208,10 @@ def stage_data(
         faces: Heads with a face and eyes, and bodies on a neck (``SceneConfig.face``).
         partial_volume: Slice masks that hold the brain wherever a fifth of the slice's
             profile is brain (``StageData.mask_fraction`` 0.2), not only on its centre plane.
+        spinal_cord: Heads that end at the skull base, the brainstem below it being the
+            spinal cord (``SceneConfig.spinal_cord``).
     """
-    head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces}
+    head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces, "spinal_cord": spinal_cord}
     fraction = PARTIAL_VOLUME_MASK_FRACTION if partial_volume else None
     if stage == "localiser":
         scene = SceneConfig(

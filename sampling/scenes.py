@@ -81,6 +81,11 @@ class SceneConfig:
             brain) rather than in a random direction. Needs the brain in RAS orientation
             (canonical +y anterior, +z superior), as the atlas is; its random draws come from
             their own stream, so scenes without it are unchanged.
+        spinal_cord: Whether the brainstem below the skull base (the planes under the lowest
+            one whose brain cross-section is at least ``CORD_AREA_FRACTION`` of the largest)
+            is the spinal cord: outside the head and its mask, in a canal of CSF and bone
+            through whatever is beneath the head (the neck with ``face``), as manual masks end
+            at the skull base. Needs the brain in RAS orientation.
 
     Raises:
         ValueError: On construction, naming the field, for an invalid value.
@@ -108,6 +113,7 @@ class SceneConfig:
     intracranial_mask: bool = False
     skull_in_mask: bool = False
     face: bool = False
+    spinal_cord: bool = False
 
     def __post_init__(self) -> None:
         for name in ("extent_mm", "spacing_mm"):
@@ -145,7 +151,7 @@ class SceneConfig:
                 raise ValueError(f"SceneConfig: '{name}' must be a number >= 0, got {value!r}")
         if self.skull_in_mask and not self.intracranial_mask:
             raise ValueError("SceneConfig: 'skull_in_mask' needs 'intracranial_mask'")
-        for name in ("intracranial_mask", "skull_in_mask", "face"):
+        for name in ("intracranial_mask", "skull_in_mask", "face", "spinal_cord"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(
                     f"SceneConfig: '{name}' must be true or false, got {getattr(self, name)!r}"
@@ -216,6 +222,26 @@ def _paint_organs(
             scene[box] = np.where(outer, _uniform(rng, cfg.skull_intensity), scene[box])
         core = _ellipsoid(local, centre, radii, rotation)
         scene[box] = np.where(core, core_value, scene[box])
+
+
+# ``spinal_cord``: the head ends at the lowest axial plane whose brain cross-section is at least
+# this fraction of the largest (the medulla below it is a few per cent; the cerebellum more).
+CORD_AREA_FRACTION = 0.05
+
+
+def _split_cord(brain_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(head brain, spinal cord): the brain's voxels above and below the skull base.
+
+    Args:
+        brain_mask: (n, n, n) bool on a grid whose third axis points up (RAS).
+    """
+    area = brain_mask.sum(axis=(0, 1))
+    if not area.any():
+        return brain_mask, np.zeros_like(brain_mask)
+    base = int(np.nonzero(area >= CORD_AREA_FRACTION * area.max())[0][0])
+    cord = brain_mask.copy()
+    cord[:, :, base:] = False
+    return brain_mask & ~cord, cord
 
 
 def _neck_direction(rng: np.random.Generator) -> np.ndarray:
@@ -350,12 +376,16 @@ def make_scene(
         intensity = np.where(brain_mask, synthetic, intensity)
 
     # 2. The head: shells by distance from the brain surface.
-    distance = ndimage.distance_transform_edt(~brain_mask, sampling=cfg.spacing_mm)
+    # (with ``spinal_cord`` the head holds the brain above the skull base only)
+    head_brain, cord = (brain_mask, np.zeros_like(brain_mask))
+    if cfg.spinal_cord:
+        head_brain, cord = _split_cord(brain_mask)
+    distance = ndimage.distance_transform_edt(~head_brain, sampling=cfg.spacing_mm)
     csf = _uniform(rng, cfg.csf_mm)
     skull = csf + _uniform(rng, cfg.skull_mm)
     scalp = skull + _uniform(rng, cfg.scalp_mm)
     xyz = points.numpy()
-    radius = float(np.linalg.norm(xyz[brain_mask], axis=-1).max()) if brain_mask.any() else 30.0
+    radius = float(np.linalg.norm(xyz[head_brain], axis=-1).max()) if head_brain.any() else 30.0
 
     # 3. Body and amniotic fluid.
     direction = rng.standard_normal(3)
@@ -399,16 +429,24 @@ def make_scene(
     else:
         scene = np.where(body, _uniform(rng, cfg.tissue_intensity), scene)
     if cfg.face:
-        _paint_face(scene, xyz, brain_mask, distance, skull, cfg, face_rng)
+        _paint_face(scene, xyz, head_brain, distance, skull, cfg, face_rng)
     scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= skull, _uniform(rng, cfg.skull_intensity), scene)
     scene = np.where(distance <= csf, _uniform(rng, cfg.csf_intensity), scene)
+    if cord.any():  # a canal through what is beneath the head: CSF, then bone (own stream)
+        cord_rng = np.random.default_rng([seed, 3])
+        around = ndimage.distance_transform_edt(~cord, sampling=cfg.spacing_mm)
+        fluid_mm = _uniform(cord_rng, (0.5, 2.0))
+        bone_mm = fluid_mm + _uniform(cord_rng, (1.0, 4.0))
+        beneath = distance > scalp
+        scene[(around <= bone_mm) & beneath] = _uniform(cord_rng, cfg.skull_intensity)
+        scene[(around <= fluid_mm) & beneath] = _uniform(cord_rng, cfg.csf_intensity)
     if cfg.texture > 0:
         texture = 1.0 + cfg.texture * _smooth_noise(rng, (n, n, n), 2.0 / cfg.spacing_mm)
         scene = scene * np.clip(texture, 0.2, None)
-    scene = np.where(brain_mask, intensity, scene)
+    scene = np.where(brain_mask, intensity, scene)  # (the cord's too: it is neural tissue)
     reach = skull if cfg.skull_in_mask else csf
-    mask = (brain_mask | (distance <= reach)) if cfg.intracranial_mask else brain_mask
+    mask = (head_brain | (distance <= reach)) if cfg.intracranial_mask else head_brain
     return CanonicalVolume(
         Image(torch.from_numpy(scene.astype(np.float32)), affine),
         torch.from_numpy(mask),

@@ -221,12 +221,14 @@ def test_tight_heads_change_only_the_head_layers(stage):
 
 
 @pytest.mark.parametrize("stage", ["localiser", "segmenter"])
-def test_faces_and_partial_volume_masks_change_one_field_each(stage):
+def test_faces_cords_and_partial_volume_masks_change_one_field_each(stage):
     usual = stage_data(stage, tiles=True)
     assert not usual.scene.face and usual.mask_fraction is None
     faced = stage_data(stage, tiles=True, faces=True)
     assert faced.scene == dataclasses.replace(usual.scene, face=True)
     assert dataclasses.replace(faced, scene=usual.scene) == usual
+    cord = stage_data(stage, tiles=True, spinal_cord=True)
+    assert cord.scene == dataclasses.replace(usual.scene, spinal_cord=True)
     partial = stage_data(stage, tiles=True, partial_volume=True)
     assert partial == dataclasses.replace(usual, mask_fraction=0.2)
     config = _case_simulation(partial, False, np.random.default_rng(0), 1)

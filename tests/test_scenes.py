@@ -7,7 +7,13 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
-from svr.sampling.scenes import SceneConfig, _neck_direction, _paint_face, make_scene
+from svr.sampling.scenes import (
+    SceneConfig,
+    _neck_direction,
+    _paint_face,
+    _split_cord,
+    make_scene,
+)
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import canonicalize
 
@@ -89,6 +95,7 @@ def test_stacks_cut_from_a_scene_show_the_surroundings(brain):
         ("distractor_mm", (0.0, 3.0)),
         ("body_scale", (2.0, 1.0)),
         ("face", 1),
+        ("spinal_cord", None),
         ("intracranial_mask", "yes"),
     ],
 )
@@ -236,3 +243,45 @@ def test_neck_is_below_and_behind_the_brain():
     directions = np.array([_neck_direction(rng) for _ in range(500)])
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0)
     assert (directions[:, 2] < 0).mean() > 0.95 and directions[:, 1].mean() < -0.2
+
+
+def test_split_cord_cuts_the_thin_part_below_the_base():
+    """A ball with a one-voxel rod hanging below it: the cord is the rod under the lowest plane
+    whose cross-section is at least 5 % of the ball's largest (pi 10^2: a radius of 2.24)."""
+    i, j, k = np.meshgrid(*(np.arange(40),) * 3, indexing="ij")
+    ball = (i - 20) ** 2 + (j - 20) ** 2 + (k - 25) ** 2 <= 100
+    rod = (i == 20) & (j == 20) & (k >= 3)
+    head, cord = _split_cord(ball | rod)
+    areas = ball.sum(axis=(0, 1))
+    base = int(np.nonzero(areas >= 0.05 * areas.max())[0][0])
+    assert 15 < base < 20  # a plane of the ball's bottom cap
+    assert np.array_equal(cord, rod & (k < base)) and np.array_equal(
+        head, (ball | rod) & (k >= base)
+    )
+    empty = np.zeros((4, 4, 4), dtype=bool)
+    assert not any(part.any() for part in _split_cord(empty))
+
+
+def test_spinal_cord_leaves_the_mask_below_the_skull_base():
+    """An ellipsoid brain with a brainstem (a 4 mm rod, 14 mm below it) in the same scene with
+    the cord: its brain voxels are painted as before, the mask (brain and shells) loses only
+    voxels near its bottom, and the rod's lower part is out of it."""
+    volume, mask = ellipsoid_brain(64, 1.0, (18.0, 22.0, 16.0), seed=0)
+    i, j, k = np.indices(mask.shape) - 31.5
+    rod = torch.from_numpy((i**2 + j**2 <= 4) & (k > -30) & (k < 0))
+    mask.data[rod] = 1.0
+    volume.data[rod] = 1.0
+    brain = canonicalize(volume, mask, name="ellipsoid with a brainstem")
+    config = SceneConfig(**{**SMALL.__dict__, "texture": 0.0, "intracranial_mask": True})
+    plain = make_scene(brain, config, seed=4)
+    cut = make_scene(brain, SceneConfig(**{**config.__dict__, "spinal_cord": True}), seed=4)
+    lost = plain.mask & ~cut.mask
+    assert not bool((cut.mask & ~plain.mask).any()) and int(lost.sum()) > 0
+    z = np.argwhere(plain.mask.numpy())[:, 2]
+    assert np.argwhere(lost.numpy())[:, 2].max() < np.percentile(z, 25)
+    assert np.argwhere(cut.mask.numpy())[:, 2].min() >= z.min() + 5  # >= 10 mm of it gone
+    from svr.image import Image, resample_to_grid
+
+    brain_mask = Image(brain.mask.float(), brain.image.affine)
+    inside = resample_to_grid(brain_mask, plain.image, mode="nearest").data > 0.5
+    assert torch.equal(plain.image.data[inside], cut.image.data[inside])
