@@ -262,8 +262,9 @@ def _paint_face(
     """Paint a face below the front of the brain, in place, beyond the skull.
 
     The brain's extent gives the sizes: the face is an ellipsoid of soft tissue under the frontal
-    lobes; each eye (radius 8-12 % of the brain's length, as fetal eyes are) sits under the front
-    of the brain, off the midline, with a dark rim (sclera) and a dark lens at its front.
+    lobes; each eye (radius 8-12 % of the brain's length, about a fetal eye's proportion) sits
+    under the front of the brain, off the midline, with a dark rim (sclera) and a dark lens at
+    its front.
 
     Args:
         scene: (n, n, n) intensities, modified.
@@ -313,9 +314,9 @@ def _paint_face(
                 floor - skull - _uniform(rng, (0.6, 1.2)) * radius,
             ]
         )
-        distance = np.linalg.norm(xyz - centre, axis=-1)
-        scene[(distance <= radius + rim) & outside] = sclera
-        scene[(distance <= radius) & outside] = vitreous
+        from_centre = np.linalg.norm(xyz - centre, axis=-1)
+        scene[(from_centre <= radius + rim) & outside] = sclera
+        scene[(from_centre <= radius) & outside] = vitreous
         lens_centre = centre + np.array([0.0, 0.7 * radius, 0.0])
         scene[(np.linalg.norm(xyz - lens_centre, axis=-1) <= 0.3 * radius) & outside] = lens
 
