@@ -31,8 +31,9 @@ of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion,
 field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
 stacks. ``--sim-faces`` gives the heads faces, ``--sim-spinal-cord`` ends them at the skull
 base and ``--sim-mask-fraction`` cuts the true masks with the slices' profiles
-(``SimulationConfig.mask_fraction``): the conventions of models trained with ``--faces
---spinal-cord --partial-volume-masks``. The brains are the atlas's, as in training:
+(``SimulationConfig.mask_fraction``; ``--sim-grazing-ratio`` only on the slices grazing the
+head's ends): the conventions of models trained with ``--faces --spinal-cord
+--partial-volume-masks [--grazing-only]``. The brains are the atlas's, as in training:
 this measures the scenes and acquisitions held out, not unseen anatomy.
 
 Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
@@ -321,6 +322,7 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
             bias_field=0.2,
             signal_void_probability=0.05,
             mask_fraction=args.sim_mask_fraction,
+            grazing_ratio=args.sim_grazing_ratio,
             seed=seed,
         )
         for stack in simulate_case(make_scene(brain, scene_config, seed=seed), config).stacks:
@@ -392,6 +394,7 @@ def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
         f" (faces: {'yes' if args.sim_faces else 'no'}; "
         f"spinal cord: {'yes' if args.sim_spinal_cord else 'no'}; {convention} masks"
         + ("" if args.sim_mask_fraction is None else f", fraction {args.sim_mask_fraction:g}")
+        + ("" if args.sim_grazing_ratio is None else f", grazing ratio {args.sim_grazing_ratio:g}")
         + ")",
         "",
         "| model | Dice min | Dice mean | recall min | recall mean | not found |",
@@ -444,9 +447,16 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         help="simval: SimulationConfig.mask_fraction of the true masks (default: centre plane)",
     )
+    parser.add_argument(
+        "--sim-grazing-ratio",
+        type=float,
+        help="simval: SimulationConfig.grazing_ratio of the true masks (with --sim-mask-fraction)",
+    )
     parser.add_argument("--results", type=Path, help="markdown file to write (+ .json beside)")
     parser.add_argument("--figures", type=Path, help="folder for the figures")
     args = parser.parse_args(argv)
+    if args.sim_grazing_ratio is not None and args.sim_mask_fraction is None:
+        parser.error("--sim-grazing-ratio needs --sim-mask-fraction")
     torch.set_num_threads(args.threads)
     if args.figures is not None:
         args.figures.mkdir(parents=True, exist_ok=True)

@@ -129,6 +129,7 @@ def stage_settings(
         "faces": args.faces,
         "partial_volume_masks": args.partial_volume_masks,
         "spinal_cord": args.spinal_cord,
+        "grazing_only": args.grazing_only,
     }
 
 
@@ -175,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
         "--partial-volume-masks",
         action="store_true",
         help="slice masks wherever a fifth of the slice's profile is brain (stage_data)",
+    )
+    parser.add_argument(
+        "--grazing-only",
+        action="store_true",
+        help="with --partial-volume-masks: only on slices grazing the head's ends (stage_data)",
     )
     parser.add_argument(
         "--spinal-cord",
@@ -241,7 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         "faces": False,
         "partial_volume_masks": False,
         "spinal_cord": False,
+        "grazing_only": False,
     }
+    if args.grazing_only and not args.partial_volume_masks:
+        parser.error("--grazing-only needs --partial-volume-masks")
     if recorded.exists() and {**defaults, **json.loads(recorded.read_text())} != settings:
         parser.error(
             f"{recorded}: this run folder was started with other settings "
@@ -268,6 +277,7 @@ def main(argv: list[str] | None = None) -> int:
             faces=args.faces,
             partial_volume=args.partial_volume_masks,
             spinal_cord=args.spinal_cord,
+            grazing_only=args.grazing_only,
         )
         if args.segment_all_slices:
             data = dataclasses.replace(data, segment_all_slices=True)

@@ -141,6 +141,10 @@ class StageData:
         segment_all_slices: Whether the segmenter's canvases come from every slice of a stack
             (those without brain teach it to find none there), not only from the brain's
             slices and one beyond each end.
+        mask_fraction: ``SimulationConfig.mask_fraction`` of the slice masks (``None``: the
+            brain on each slice's centre plane).
+        grazing_ratio: ``SimulationConfig.grazing_ratio`` (which slices take the
+            partial-volume mask; ``None``: all).
     """
 
     scene: SceneConfig
@@ -151,6 +155,7 @@ class StageData:
     shift_per_slice: bool = False
     segment_all_slices: bool = False
     mask_fraction: float | None = None
+    grazing_ratio: float | None = None
 
 
 # Shared by both networks' scenes: the head as it looks on fetal T2 stacks (a wide, bright
@@ -179,6 +184,9 @@ _TIGHT_HEAD: dict[str, Any] = {
 # ``partial_volume``: a thick slice's mask holds the brain wherever a fifth of its profile is
 # brain, as manual masks include the slices that graze the top and bottom of the head.
 PARTIAL_VOLUME_MASK_FRACTION = 0.2
+# ``grazing_only``: only the slices whose centre-plane mask is under half their partial-volume
+# mask take it (the top and bottom of the head); the others keep the centre-plane outline.
+GRAZING_RATIO = 0.5
 
 
 def stage_data(
@@ -188,6 +196,7 @@ def stage_data(
     faces: bool = False,
     partial_volume: bool = False,
     spinal_cord: bool = False,
+    grazing_only: bool = False,
 ) -> StageData:
     """The simulation behind the shipped networks.
 
@@ -210,9 +219,18 @@ def stage_data(
             profile is brain (``StageData.mask_fraction`` 0.2), not only on its centre plane.
         spinal_cord: Heads that end at the skull base, the brainstem below it being the
             spinal cord (``SceneConfig.spinal_cord``).
+        grazing_only: With ``partial_volume``, only the slices whose centre-plane mask is
+            under half their partial-volume mask take it (``StageData.grazing_ratio`` 0.5):
+            the slices grazing the head's top and bottom; the others keep the centre plane's.
+
+    Raises:
+        ValueError: If ``grazing_only`` is given without ``partial_volume``.
     """
+    if grazing_only and not partial_volume:
+        raise ValueError("stage_data(): 'grazing_only' needs 'partial_volume'")
     head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces, "spinal_cord": spinal_cord}
     fraction = PARTIAL_VOLUME_MASK_FRACTION if partial_volume else None
+    masks = {"mask_fraction": fraction, "grazing_ratio": GRAZING_RATIO if grazing_only else None}
     if stage == "localiser":
         scene = SceneConfig(
             extent_mm=320.0 if tiles else 400.0,
@@ -229,9 +247,9 @@ def stage_data(
                 (40.0, 130.0),
                 centre_shift_mm=120.0,
                 shift_per_slice=True,
-                mask_fraction=fraction,
+                **masks,
             )
-        return StageData(scene, (1.5, 2.5), (40.0, 130.0), mask_fraction=fraction)
+        return StageData(scene, (1.5, 2.5), (40.0, 130.0), **masks)
     scene = SceneConfig(
         extent_mm=200.0,
         spacing_mm=1.25,
@@ -242,7 +260,7 @@ def stage_data(
         skull_in_mask=tiles,
         **head,
     )
-    return StageData(scene, (0.8, 1.5), (30.0, 50.0), mask_fraction=fraction)
+    return StageData(scene, (0.8, 1.5), (30.0, 50.0), **masks)
 
 
 def _case_simulation(
@@ -263,6 +281,7 @@ def _case_simulation(
         bias_field=float(rng.uniform(0.0, 0.4)),
         signal_void_probability=float(rng.uniform(0.0, 0.15)),
         mask_fraction=data.mask_fraction,
+        grazing_ratio=data.grazing_ratio,
         seed=seed,
     )
 

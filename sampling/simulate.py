@@ -77,6 +77,11 @@ class SimulationConfig:
             the slice's through-plane profile (its PSF) is brain, so that a slice grazing the
             brain's top or bottom, which shows it in partial volume, has it in its mask (as
             manual masks of thick slices are drawn).
+        grazing_ratio: With ``mask_fraction``, which slices take the partial-volume mask:
+            ``None`` for every slice; a number in (0, 1] for only the slices whose centre-plane
+            mask is smaller than this fraction of their partial-volume mask (those grazing the
+            brain's top or bottom, or running along its surface); the others keep the
+            centre-plane mask, so their outline is not widened by the profile's tails.
         seed: Seed of every random choice.
     """
 
@@ -99,6 +104,7 @@ class SimulationConfig:
     random_placement: bool = True
     in_plane_psf: bool = False
     mask_fraction: float | None = None
+    grazing_ratio: float | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -143,6 +149,13 @@ class SimulationConfig:
             raise ValueError(
                 f"SimulationConfig: 'mask_fraction' must be in (0, 1) or None, got {fraction!r}"
             )
+        ratio = self.grazing_ratio
+        if ratio is not None and not (is_finite_number(ratio) and 0 < ratio <= 1):
+            raise ValueError(
+                f"SimulationConfig: 'grazing_ratio' must be in (0, 1] or None, got {ratio!r}"
+            )
+        if ratio is not None and fraction is None:
+            raise ValueError("SimulationConfig: 'grazing_ratio' needs 'mask_fraction'")
         if self.motion == "trajectories" and self.motion_path is None:
             raise ValueError("SimulationConfig: motion='trajectories' needs 'motion_path'")
 
@@ -345,10 +358,7 @@ def simulate_case(
         psf_samples=3 if config.in_plane_psf else 5,
     )
     mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
-    mask_threshold = 0.5
-    if config.mask_fraction is not None:
-        mask_config = dataclasses.replace(mask_config, thickness_mm=config.thickness_mm)
-        mask_threshold = config.mask_fraction
+    thick_mask_config = dataclasses.replace(mask_config, thickness_mm=config.thickness_mm)
     sigma = config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99))
 
     gt_on_device, mask_on_device = gt_volume.to(device), gt_mask.to(device)
@@ -370,8 +380,7 @@ def simulate_case(
         true_poses = se3_compose(se3_inverse(moved), nominal)
         on_device = true_poses.to(device)
         slices = sample_slices(gt_on_device, on_device, slice_config).cpu()
-        masks = sample_slices(mask_on_device, on_device, mask_config) > mask_threshold
-        masks = masks.float().cpu()
+        masks = _slice_masks(mask_on_device, on_device, mask_config, thick_mask_config, config)
         if config.bias_field > 0:
             pts_u = (torch.arange(side, dtype=torch.float64) - (side - 1) / 2) * config.in_plane_mm
             grid = (
@@ -410,6 +419,36 @@ def simulate_case(
         "simulation": asdict(config),
     }
     return SimulatedCase(stacks, gt_volume, gt_mask, info)
+
+
+def _slice_masks(
+    mask: Image,
+    poses: Tensor,
+    centre_plane: SliceConfig,
+    thick: SliceConfig,
+    config: SimulationConfig,
+) -> Tensor:
+    """The slices' brain masks as ``SimulationConfig.mask_fraction`` and ``grazing_ratio`` say.
+
+    Args:
+        mask: The brain mask (0 or 1) in the scanner frame.
+        poses: (K, 4, 4) slice-to-scanner poses (mm).
+        centre_plane: The slices without thickness (the centre-plane masks).
+        thick: The slices with the stack's thickness (the partial-volume masks).
+        config: The acquisition.
+
+    Returns:
+        (K, H, W) float masks (0 or 1) on the CPU.
+    """
+    if config.mask_fraction is None:
+        return (sample_slices(mask, poses, centre_plane) > 0.5).float().cpu()
+    partial = sample_slices(mask, poses, thick) > config.mask_fraction
+    if config.grazing_ratio is not None:
+        centre = sample_slices(mask, poses, centre_plane) > 0.5
+        area = centre.flatten(1).sum(1), partial.flatten(1).sum(1)
+        grazing = area[0] < config.grazing_ratio * area[1]  # (K,)
+        partial = torch.where(grazing[:, None, None], partial, centre)
+    return partial.float().cpu()
 
 
 def _pose_json(T: Tensor) -> dict:

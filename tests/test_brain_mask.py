@@ -232,7 +232,13 @@ def test_faces_cords_and_partial_volume_masks_change_one_field_each(stage):
     partial = stage_data(stage, tiles=True, partial_volume=True)
     assert partial == dataclasses.replace(usual, mask_fraction=0.2)
     config = _case_simulation(partial, False, np.random.default_rng(0), 1)
-    assert config.mask_fraction == 0.2
+    assert config.mask_fraction == 0.2 and config.grazing_ratio is None
+    grazing = stage_data(stage, tiles=True, partial_volume=True, grazing_only=True)
+    assert grazing == dataclasses.replace(partial, grazing_ratio=0.5)
+    config = _case_simulation(grazing, False, np.random.default_rng(0), 1)
+    assert (config.mask_fraction, config.grazing_ratio) == (0.2, 0.5)
+    with pytest.raises(ValueError, match="'grazing_only' needs 'partial_volume'"):
+        stage_data(stage, tiles=True, grazing_only=True)
 
 
 class _Above(torch.nn.Module):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import asdict
@@ -228,6 +229,10 @@ def test_write_case_refuses_to_overwrite(brain, tmp_path):
         ({"mask_fraction": 1.0}, "'mask_fraction'"),
         ({"mask_fraction": float("nan")}, "'mask_fraction'"),
         ({"mask_fraction": True}, "'mask_fraction'"),
+        ({"mask_fraction": 0.2, "grazing_ratio": 0.0}, "'grazing_ratio'"),
+        ({"mask_fraction": 0.2, "grazing_ratio": 1.5}, "'grazing_ratio'"),
+        ({"mask_fraction": 0.2, "grazing_ratio": float("nan")}, "'grazing_ratio'"),
+        ({"grazing_ratio": 0.5}, "'grazing_ratio' needs 'mask_fraction'"),
     ],
 )
 def test_config_validation(kwargs, message):
@@ -254,3 +259,34 @@ def test_partial_volume_masks_hold_the_slices_grazing_the_brain(brain):
     strict = simulate_case(brain, SimulationConfig(**{**asdict(config), "mask_fraction": 0.9}))
     for a, b in zip(thin.stacks, strict.stacks, strict=True):
         assert int(b.mask.data.sum()) < int(a.mask.data.sum())  # a high fraction shrinks it
+
+
+def test_grazing_ratio_gives_the_partial_volume_mask_only_to_slices_grazing_the_brain(brain):
+    """With ``grazing_ratio`` each slice's mask is either its centre-plane mask or its
+    partial-volume mask, the latter exactly where the centre-plane one is under that fraction of
+    it: the slices at the brain's ends take it, the middle slices (whose partial-volume outline
+    is wider too) keep the centre plane's."""
+    config = SimulationConfig(noise=0.0, motion="none", **SMALL)
+    thin = simulate_case(brain, config)
+    thick = simulate_case(brain, dataclasses.replace(config, mask_fraction=0.2))
+    ratio = 0.5
+    graze = simulate_case(
+        brain, dataclasses.replace(config, mask_fraction=0.2, grazing_ratio=ratio)
+    )
+    taken = kept_narrower = 0
+    for a, b, c in zip(thin.stacks, thick.stacks, graze.stacks, strict=True):
+        assert torch.equal(a.image.data, c.image.data)
+        area_a, area_b = a.mask.data.flatten(0, 1).sum(0), b.mask.data.flatten(0, 1).sum(0)
+        for k in range(a.mask.shape[2]):
+            if area_a[k] < ratio * area_b[k]:
+                assert torch.equal(c.mask.data[..., k], b.mask.data[..., k])
+                taken += 1
+            else:
+                assert torch.equal(c.mask.data[..., k], a.mask.data[..., k])
+                kept_narrower += int(area_b[k] > area_a[k] > 0)
+        through = torch.nonzero(area_b > 0)[:, 0]
+        ends = through.min(), through.max()
+        grazing = area_a < ratio * area_b
+        assert bool(grazing[ends[0]] or grazing[ends[1]])  # an end slice takes it
+        assert not bool(grazing[(ends[0] + ends[1]) // 2])  # the middle one keeps its own
+    assert taken > 0 and kept_narrower > 0
