@@ -14,9 +14,10 @@ for the localiser, 10 + 88 min for the width-12 segmenter, on one core each):
         --segmenter-width 12 --model models/pretrained/brain_mask --overwrite
 
 Without ``--tiles`` the first recipe (one 3 mm canvas for the localiser, segmenter trained on
-the brain's slices only, masks inside the skull) is trained. ``--faces``, ``--spinal-cord`` and
-``--partial-volume-masks`` (heads with a face and eyes over a neck, heads ending at the skull
-base, slice masks through the slice's thickness) train the variants of
+the brain's slices only, masks inside the skull) is trained. ``--faces``, ``--spinal-cord``,
+``--partial-volume-masks`` and ``--grazing-only`` (heads with a face and eyes over a neck, heads
+ending at the skull base, slice masks through the slice's thickness, the latter only on the
+slices grazing the head's ends) train the variants of
 ``benchmarks/results/brain-masks-variants.md``; the shipped model uses none of them. A stage
 caches its simulated examples (``OUT/STAGE/examples.pt``) and resumes from its newest
 checkpoint, so an interrupted run goes on where it stopped. The atlas (``--atlas``) supplies
