@@ -230,7 +230,7 @@ def stage_data(
         raise ValueError("stage_data(): 'grazing_only' needs 'partial_volume'")
     head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces, "spinal_cord": spinal_cord}
     fraction = PARTIAL_VOLUME_MASK_FRACTION if partial_volume else None
-    masks = {"mask_fraction": fraction, "grazing_ratio": GRAZING_RATIO if grazing_only else None}
+    ratio = GRAZING_RATIO if grazing_only else None
     if stage == "localiser":
         scene = SceneConfig(
             extent_mm=320.0 if tiles else 400.0,
@@ -247,9 +247,12 @@ def stage_data(
                 (40.0, 130.0),
                 centre_shift_mm=120.0,
                 shift_per_slice=True,
-                **masks,
+                mask_fraction=fraction,
+                grazing_ratio=ratio,
             )
-        return StageData(scene, (1.5, 2.5), (40.0, 130.0), **masks)
+        return StageData(
+            scene, (1.5, 2.5), (40.0, 130.0), mask_fraction=fraction, grazing_ratio=ratio
+        )
     scene = SceneConfig(
         extent_mm=200.0,
         spacing_mm=1.25,
@@ -260,7 +263,7 @@ def stage_data(
         skull_in_mask=tiles,
         **head,
     )
-    return StageData(scene, (0.8, 1.5), (30.0, 50.0), **masks)
+    return StageData(scene, (0.8, 1.5), (30.0, 50.0), mask_fraction=fraction, grazing_ratio=ratio)
 
 
 def _case_simulation(
