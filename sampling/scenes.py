@@ -239,9 +239,8 @@ def _split_cord(brain_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not area.any():
         return brain_mask, np.zeros_like(brain_mask)
     base = int(np.nonzero(area >= CORD_AREA_FRACTION * area.max())[0][0])
-    cord = brain_mask.copy()
-    cord[:, :, base:] = False
-    return brain_mask & ~cord, cord
+    below = np.arange(brain_mask.shape[2]) < base  # (n,) planes under the base
+    return brain_mask & ~below, brain_mask & below
 
 
 def _neck_direction(rng: np.random.Generator) -> np.ndarray:

@@ -7,6 +7,7 @@ import pytest
 import torch
 from synthetic import ellipsoid_brain
 
+from svr.image import Image, resample_to_grid
 from svr.sampling.scenes import (
     SceneConfig,
     _neck_direction,
@@ -30,8 +31,6 @@ def test_scene_keeps_the_brain_and_its_mask(brain):
     assert scene.image.shape == scene.mask.shape == (60, 60, 60)
     assert scene.image.data.dtype == torch.float32 and scene.mask.dtype == torch.bool
     # at scale 1 the mask is the brain's mask resampled (nearest) onto the scene grid
-    from svr.image import Image, resample_to_grid
-
     brain_mask = Image(brain.mask.float(), brain.image.affine)
     want = resample_to_grid(brain_mask, scene.image, mode="nearest").data > 0.5
     assert torch.equal(scene.mask, want)
@@ -280,8 +279,6 @@ def test_spinal_cord_leaves_the_mask_below_the_skull_base():
     z = np.argwhere(plain.mask.numpy())[:, 2]
     assert np.argwhere(lost.numpy())[:, 2].max() < np.percentile(z, 25)
     assert np.argwhere(cut.mask.numpy())[:, 2].min() >= z.min() + 5  # >= 10 mm of it gone
-    from svr.image import Image, resample_to_grid
-
     brain_mask = Image(brain.mask.float(), brain.image.affine)
     inside = resample_to_grid(brain_mask, plain.image, mode="nearest").data > 0.5
     assert torch.equal(plain.image.data[inside], cut.image.data[inside])
