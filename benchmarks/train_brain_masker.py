@@ -17,7 +17,8 @@ Without ``--tiles`` the first recipe (one 3 mm canvas for the localiser, segment
 the brain's slices only, masks inside the skull) is trained. ``--faces``, ``--spinal-cord``,
 ``--partial-volume-masks`` and ``--grazing-only`` (heads with a face and eyes over a neck, heads
 ending at the skull base, slice masks through the slice's thickness, the latter only on the
-slices grazing the head's ends) train the variants of
+slices grazing the head's ends) and ``--segmenter-context 1`` (a 2.5D segmenter that sees each
+slice with one neighbour on either side; give it to ``assemble`` too) train the variants of
 ``benchmarks/results/brain-masks-variants.md``; the shipped model uses none of them. A stage
 caches its simulated examples (``OUT/STAGE/examples.pt``) and resumes from its newest
 checkpoint, so an interrupted run goes on where it stopped. The atlas (``--atlas``) supplies
@@ -34,6 +35,7 @@ import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -48,6 +50,7 @@ from svr.models.brain_mask_train import (
     train_network,
 )
 from svr.models.checkpoint import latest_checkpoint, load_checkpoint
+from svr.models.segmentation import SegmentationConfig
 from svr.sampling.volume import atlas_volume_paths, load_volumes
 
 MODEL_CARD = """\
@@ -134,6 +137,24 @@ def stage_settings(
     }
 
 
+def recorded_settings(path: Path) -> dict[str, Any]:
+    """A stage's recorded settings, with the defaults of settings added since it was written."""
+    # (runs recorded before a setting existed had its default)
+    settings: dict[str, Any] = {
+        "tight_heads": False,
+        "faces": False,
+        "partial_volume_masks": False,
+        "spinal_cord": False,
+        "grazing_only": False,
+        **json.loads(path.read_text()),
+    }
+    mask = settings["mask_config"]
+    for name in ("localiser", "segmenter"):
+        if name in mask:  # (e.g. in_channels, added with 2.5D segmenters)
+            mask[name] = asdict(SegmentationConfig(**mask[name]))
+    return settings
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stage", choices=["localiser", "segmenter", "assemble"])
@@ -194,6 +215,13 @@ def main(argv: list[str] | None = None) -> int:
         default=BrainMaskConfig().segmenter.width,
         help="channels of the segmenter's first level (give the same to assemble)",
     )
+    parser.add_argument(
+        "--segmenter-context",
+        type=int,
+        default=BrainMaskConfig().segmenter_context,
+        help="neighbouring slices on either side the segmenter sees (0: 2D; give the same to "
+        "assemble)",
+    )
     parser.add_argument("--model", type=Path, help="assemble: the model folder to write")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
@@ -201,7 +229,11 @@ def main(argv: list[str] | None = None) -> int:
     mask_config = BrainMaskConfig(**(TILED if args.tiles else {}))
     mask_config = dataclasses.replace(
         mask_config,
-        segmenter=dataclasses.replace(mask_config.segmenter, width=args.segmenter_width),
+        segmenter=dataclasses.replace(
+            mask_config.segmenter,
+            width=args.segmenter_width,
+            in_channels=1 + 2 * args.segmenter_context,
+        ),
     )
     config = BrainMaskTrainingConfig(
         cases=args.cases,
@@ -223,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             recorded = args.out / stage / SETTINGS
             if recorded.exists():
                 wanted = stage_settings(stage, mask_config, config, args)["mask_config"]
-                if json.loads(recorded.read_text())["mask_config"] != wanted:
+                if recorded_settings(recorded)["mask_config"] != wanted:
                     parser.error(f"{recorded}: trained for another mask config (--tiles?)")
             checkpoint = load_checkpoint(newest)
             getattr(masker, stage).load_state_dict(checkpoint.state_dict)
@@ -242,17 +274,9 @@ def main(argv: list[str] | None = None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     settings = stage_settings(stage, mask_config, config, args)
     recorded = folder / SETTINGS
-    # (runs recorded before a setting existed had its default)
-    defaults = {
-        "tight_heads": False,
-        "faces": False,
-        "partial_volume_masks": False,
-        "spinal_cord": False,
-        "grazing_only": False,
-    }
     if args.grazing_only and not args.partial_volume_masks:
         parser.error("--grazing-only needs --partial-volume-masks")
-    if recorded.exists() and {**defaults, **json.loads(recorded.read_text())} != settings:
+    if recorded.exists() and recorded_settings(recorded) != settings:
         parser.error(
             f"{recorded}: this run folder was started with other settings "
             f"({json.loads(recorded.read_text())}); give another --out"

@@ -16,7 +16,10 @@ A clinical stack shows the whole maternal abdomen; the brain is a small part of 
    or every slice of the stack)
    is resampled onto a finer canvas (``segmenter_size`` pixels of ``segmenter_mm``) centred on
    the brain, the segmenter predicts the brain there (averaged with its prediction on the
-   left-right flipped canvas) and the probabilities go back onto the stack grid.
+   left-right flipped canvas) and the probabilities go back onto the stack grid. A 2.5D
+   segmenter (``segmenter.in_channels`` = 1 + 2 c) sees each slice with its c neighbours on
+   either side as channels (:func:`neighbour_slices`), so that it knows where in the head a
+   slice lies (the skull base, the vertex).
 3. **Clean up.** The largest 3D component is kept and holes are filled slice by slice; a piece
    of a slice stays only if it joins the brain through the neighbouring slices (per-slice
    consistency: the brain is one body through the stack). With ``opening_mm`` the mask is
@@ -67,6 +70,7 @@ __all__ = [
     "canvas_to_slices",
     "clean_up_mask",
     "load_brain_masker",
+    "neighbour_slices",
     "normalise_stack",
     "open_mask",
     "save_brain_masker",
@@ -94,8 +98,9 @@ class BrainMaskConfig:
             (overlapping by half) rather than one canvas centred on it.
         segmenter_mm: Pixel size of the segmenter's canvas, mm, > 0.
         segmenter_size: Side of the segmenter's canvas, pixels (a multiple of 16).
-        localiser: The localiser U-Net's shape.
-        segmenter: The segmenter U-Net's shape.
+        localiser: The localiser U-Net's shape (one input channel).
+        segmenter: The segmenter U-Net's shape; ``in_channels`` = 1 + 2 c (odd) makes it 2.5D:
+            each slice comes with its c neighbours on either side (:attr:`segmenter_context`).
         threshold: Probability above which a voxel is brain, in (0, 1).
         min_volume_ml: Smallest brain accepted by the localiser, millilitres (cm^3), >= 0.
         slice_margin: Slices beyond the localised brain's first and last that are segmented
@@ -140,6 +145,16 @@ class BrainMaskConfig:
                 raise ValueError(f"BrainMaskConfig: '{name}' must be a number > 0, got {value!r}")
             if not math.isfinite(value):
                 raise ValueError(f"BrainMaskConfig: '{name}' must be finite, got {value!r}")
+        if self.localiser.in_channels != 1:
+            raise ValueError(
+                "BrainMaskConfig: 'localiser.in_channels' must be 1, "
+                f"got {self.localiser.in_channels!r}"
+            )
+        if self.segmenter.in_channels % 2 != 1:
+            raise ValueError(
+                "BrainMaskConfig: 'segmenter.in_channels' must be odd (a slice and as many "
+                f"neighbours on either side), got {self.segmenter.in_channels!r}"
+            )
         for name, net in (("localiser", self.localiser), ("segmenter", self.segmenter)):
             size = getattr(self, f"{name}_size")
             step = 2**net.depth
@@ -177,6 +192,11 @@ class BrainMaskConfig:
             raise ValueError(
                 f"BrainMaskConfig: 'percentile' must be in (0, 100], got {self.percentile!r}"
             )
+
+    @property
+    def segmenter_context(self) -> int:
+        """Neighbouring slices on either side that the segmenter sees (0: 2D)."""
+        return (self.segmenter.in_channels - 1) // 2
 
     def to_dict(self) -> dict[str, Any]:
         """The config as JSON-serialisable data."""
@@ -259,6 +279,35 @@ def _canvas_axis(centre: Tensor, size: int, pixel_mm: float, spacing: Tensor) ->
     """(2, size) stack voxel coordinates (i, j) of a canvas's pixel rows and columns."""
     offsets = (torch.arange(size, dtype=torch.float64) - (size - 1) / 2) * pixel_mm
     return centre.to(torch.float64)[:, None] + offsets[None] / spacing.to(torch.float64)[:, None]
+
+
+def neighbour_slices(slices: Tensor, context: int) -> Tensor:
+    """Each slice with its ``context`` neighbours on either side as channels (2.5D input).
+
+    Args:
+        slices: (K, 1, I, J) slices in stack order (array axis 2).
+        context: Neighbours on either side, >= 0.
+
+    Returns:
+        (K, 1 + 2 context, I, J): channel c of slice k is slice ``k - context + c``, the first
+        and last slices repeated beyond the stack's ends; ``slices`` itself for ``context`` 0.
+
+    Raises:
+        ValueError: If ``slices`` is not (K, 1, I, J) with K >= 1 or ``context`` is negative.
+    """
+    if slices.dim() != 4 or slices.shape[1] != 1 or slices.shape[0] < 1:
+        raise ValueError(
+            f"neighbour_slices(): 'slices' must be (K, 1, I, J) with K >= 1, "
+            f"got {tuple(slices.shape)}"
+        )
+    if isinstance(context, bool) or not isinstance(context, int) or context < 0:
+        raise ValueError(f"neighbour_slices(): 'context' must be an integer >= 0, got {context!r}")
+    if context == 0:
+        return slices
+    k = slices.shape[0]
+    offsets = torch.arange(-context, context + 1, device=slices.device)
+    index = (torch.arange(k, device=slices.device)[:, None] + offsets[None]).clamp(0, k - 1)
+    return slices[:, 0][index]
 
 
 def slices_to_canvas(
@@ -412,7 +461,7 @@ def clean_up_mask(
 
 @torch.no_grad()
 def _predict(net: BrainUNet, canvases: Tensor, flip: bool, batch: int = 32) -> Tensor:
-    """Sigmoid probabilities of (K, 1, S, S) canvases, optionally averaged with the flipped ones."""
+    """(K, 1, S, S) probabilities of (K, C, S, S) canvases, optionally with the flipped ones'."""
     out = []
     for start in range(0, canvases.shape[0], batch):
         x = canvases[start : start + batch]
@@ -420,7 +469,7 @@ def _predict(net: BrainUNet, canvases: Tensor, flip: bool, batch: int = 32) -> T
         if flip:
             p = 0.5 * (p + torch.sigmoid(net(x.flip(-1))).flip(-1))
         out.append(p)
-    return torch.cat(out) if out else canvases.new_zeros(canvases.shape)
+    return torch.cat(out) if out else canvases.new_zeros((0, 1, *canvases.shape[2:]))
 
 
 def tile_centres(shape: tuple[int, int], spacing: Tensor, tile_mm: float) -> Tensor:
@@ -524,7 +573,7 @@ def segment_stack(
     last = min(int(where[:, 2].max()) + margin, data.shape[2] - 1)
 
     # 2. Segment on fine canvases centred on the brain.
-    chosen = slices[first : last + 1]
+    chosen = neighbour_slices(slices, cfg.segmenter_context)[first : last + 1]
     canvas = slices_to_canvas(chosen, spacing, centre, cfg.segmenter_size, cfg.segmenter_mm)
     fine = _predict(masker.segmenter, canvas, flip=True)
     fine = canvas_to_slices(fine, spacing, centre, cfg.segmenter_mm, shape)

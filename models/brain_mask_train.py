@@ -36,7 +36,12 @@ import torch
 from torch import Tensor
 from torch.nn import functional
 
-from svr.models.brain_mask import BrainMaskConfig, normalise_stack, slices_to_canvas
+from svr.models.brain_mask import (
+    BrainMaskConfig,
+    neighbour_slices,
+    normalise_stack,
+    slices_to_canvas,
+)
 from svr.models.checkpoint import (
     checkpoint_name,
     latest_checkpoint,
@@ -118,7 +123,8 @@ class TrainingExamples:
     """Canvases and their brain targets.
 
     Attributes:
-        inputs: (N, 1, S, S) float16 normalised canvases.
+        inputs: (N, C, S, S) float16 normalised canvases (C > 1: a 2.5D segmenter's slices
+            with their neighbours, :func:`~svr.models.brain_mask.neighbour_slices`).
         targets: (N, 1, S, S) bool brain masks on the same canvases.
     """
 
@@ -367,7 +373,8 @@ def make_examples(
                 where = torch.nonzero(mask).double()
                 error = torch.from_numpy(rng.normal(0.0, 5.0, 2)) / spacing
                 centre = where[:, :2].mean(0) + error
-            slices = image.permute(2, 0, 1)[chosen, None]
+            context = mask_config.segmenter_context if stage == "segmenter" else 0
+            slices = neighbour_slices(image.permute(2, 0, 1)[:, None], context)[chosen]
             labels = mask.permute(2, 0, 1)[chosen, None].float()
             inputs.append(slices_to_canvas(slices, spacing, centre, size, pixel).half())
             targets.append(slices_to_canvas(labels, spacing, centre, size, pixel) > 0.5)
@@ -476,6 +483,10 @@ def train_network(
             x, y = x.flip(-1), y.flip(-1)
         if flips[1] < 0.5:
             x, y = x.flip(-2), y.flip(-2)
+        # (2.5D: the slice order reversed, as in a stack acquired the other way; no draw in 2D,
+        # so 2D runs keep their random stream)
+        if x.shape[1] > 1 and float(torch.rand(1, generator=generator)) < 0.5:
+            x = x.flip(1)
         loss = dice_bce_loss(net(_augment(x, generator, config.intensity_curves)), y)
         optimiser.zero_grad()
         loss.backward()

@@ -1,11 +1,12 @@
 """A small 2D U-Net for fetal brain masks on thick-slice stacks (issue 14, first piece).
 
-:class:`BrainUNet` maps (B, 1, H, W) slices (intensities normalised per stack) to (B, 1, H, W)
-brain logits; H and W must be multiples of ``2 ** depth``. It is small enough to ship inside the
-package (:func:`parameter_bytes`) and fast enough on a CPU for clinical stacks (320 x 320 x 22):
-see ``benchmarks/results/segmentation-speed.md``. :mod:`svr.models.brain_mask` runs two of them
-(localise, then segment) behind ``svr segment-stack``; :mod:`svr.models.brain_mask_train` trains
-them on simulated scenes.
+:class:`BrainUNet` maps (B, C, H, W) slices (intensities normalised per stack; C = 1, or a slice
+with its neighbours for 2.5D) to (B, 1, H, W) brain logits; H and W must be multiples of
+``2 ** depth``. It is small enough to ship inside the package (:func:`parameter_bytes`) and
+fast enough on a CPU for clinical stacks (320 x 320 x 22): see
+``benchmarks/results/segmentation-speed.md``. :mod:`svr.models.brain_mask` runs two of them
+(localise, then segment) behind ``svr segment-stack``; :mod:`svr.models.brain_mask_train`
+trains them on simulated scenes.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ class SegmentationConfig:
     Attributes:
         width: Channels of the first level, >= 1 (doubled at each level down).
         depth: Number of down-sampling levels, >= 1.
+        in_channels: Channels of the input, >= 1 (1 for single slices; 2.5D inputs stack a
+            slice's neighbours as channels).
 
     Raises:
         ValueError: On construction, naming the field, for a value below 1.
@@ -32,9 +35,10 @@ class SegmentationConfig:
 
     width: int = 16
     depth: int = 4
+    in_channels: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("width", "depth"):
+        for name in ("width", "depth", "in_channels"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(
@@ -70,7 +74,8 @@ class BrainUNet(nn.Module):
         w, d = self.config.width, self.config.depth
         widths = [w * 2**i for i in range(d + 1)]
         self.down = nn.ModuleList(
-            [_block(1, widths[0])] + [_block(widths[i], widths[i + 1]) for i in range(d)]
+            [_block(self.config.in_channels, widths[0])]
+            + [_block(widths[i], widths[i + 1]) for i in range(d)]
         )
         self.pool = nn.MaxPool2d(2)
         self.up = nn.ModuleList(
@@ -80,20 +85,23 @@ class BrainUNet(nn.Module):
         self.head = nn.Conv2d(widths[0], 1, 1)
 
     def forward(self, slices: Tensor) -> Tensor:
-        """Brain logits of (B, 1, H, W) slices; H and W multiples of ``2 ** depth``.
+        """Brain logits (B, 1, H, W) of (B, C, H, W) slices.
+
+        C is ``in_channels``; H and W are multiples of ``2 ** depth``.
 
         Raises:
-            ValueError: If the input is not (B, 1, H, W) with such H and W.
+            ValueError: If the input is not (B, C, H, W) with such C, H and W.
         """
         step = 2**self.config.depth
+        channels = self.config.in_channels
         if (
             slices.dim() != 4
-            or slices.shape[1] != 1
+            or slices.shape[1] != channels
             or slices.shape[2] % step
             or slices.shape[3] % step
         ):
             raise ValueError(
-                f"BrainUNet: input must be (B, 1, H, W) with H and W multiples of {step}, "
+                f"BrainUNet: input must be (B, {channels}, H, W) with H and W multiples of {step}, "
                 f"got {tuple(slices.shape)}"
             )
         skips = []

@@ -28,6 +28,7 @@ from svr.models.brain_mask import (
     _localise,
     canvas_to_slices,
     load_brain_masker,
+    neighbour_slices,
     save_brain_masker,
     segment_stack,
     slices_to_canvas,
@@ -305,6 +306,57 @@ def test_config_without_tiles_loads_as_one_canvas():
     assert BrainMaskConfig.from_dict(every.to_dict()) == every
 
 
+def test_neighbour_slices_match_a_loop_with_the_ends_repeated():
+    slices = torch.rand(5, 1, 4, 3, dtype=torch.float64)
+    for context in (1, 2, 6):
+        out = neighbour_slices(slices, context)
+        assert out.shape == (5, 1 + 2 * context, 4, 3)
+        for k in range(5):
+            for c in range(1 + 2 * context):
+                source = min(max(k - context + c, 0), 4)
+                assert torch.equal(out[k, c], slices[source, 0]), (context, k, c)
+    assert neighbour_slices(slices, 0) is slices
+
+
+@pytest.mark.parametrize(
+    ("shape", "context", "message"),
+    [
+        ((5, 2, 4, 3), 1, "'slices' must be"),
+        ((0, 1, 4, 3), 1, "'slices' must be"),
+        ((5, 1, 4, 3), -1, "'context' must be"),
+        ((5, 1, 4, 3), True, "'context' must be"),
+    ],
+)
+def test_neighbour_slices_name_a_bad_argument(shape, context, message):
+    with pytest.raises(ValueError, match=message):
+        neighbour_slices(torch.zeros(shape), context)
+
+
+def test_segmenter_channels_set_the_context_and_round_trip():
+    config = BrainMaskConfig(segmenter=SegmentationConfig(4, 2, in_channels=5))
+    assert config.segmenter_context == 2 and BrainMaskConfig().segmenter_context == 0
+    assert BrainMaskConfig.from_dict(config.to_dict()) == config
+    data = BrainMaskConfig().to_dict()
+    del data["segmenter"]["in_channels"]  # configs written before 2.5D segmenters
+    assert BrainMaskConfig.from_dict(data).segmenter.in_channels == 1
+
+
+@pytest.mark.parametrize(
+    ("field", "net", "message"),
+    [
+        ("localiser", SegmentationConfig(4, 2, in_channels=3), "'localiser.in_channels' must be 1"),
+        (
+            "segmenter",
+            SegmentationConfig(4, 2, in_channels=2),
+            "'segmenter.in_channels' must be odd",
+        ),
+    ],
+)
+def test_config_names_bad_input_channels(field, net, message):
+    with pytest.raises(ValueError, match=message):
+        BrainMaskConfig(**{field: net})
+
+
 def test_canvas_rejects_bad_shapes():
     with pytest.raises(ValueError, match="'slices' must be"):
         slices_to_canvas(torch.zeros(1, 1, 1, 5), torch.ones(2), torch.zeros(2), 16, 1.0)
@@ -345,6 +397,70 @@ def test_tiny_model_finds_the_brain_of_an_unseen_scene(tiny_masker, unseen_stack
     assert result.mask.shape == truth.shape and result.mask.dtype == torch.bool
     assert dice(result.mask, truth) >= 0.8
     assert result.volume_ml == pytest.approx(float(result.mask.sum() * image.spacing.prod()) / 1000)
+
+
+def test_a_2_5d_segmenter_blind_to_its_neighbours_gives_the_2d_mask(tiny_masker, unseen_stack):
+    """The tiny segmenter's weights on the middle channel, zeros on the neighbours' channels:
+    the same probabilities as the 2D model, so the middle channel is the slice itself."""
+    image, _ = unseen_stack
+    wide = dataclasses.replace(TINY, segmenter=SegmentationConfig(4, 2, in_channels=3))
+    masker = BrainMasker(wide)
+    masker.localiser.load_state_dict(tiny_masker.localiser.state_dict())
+    state = dict(tiny_masker.segmenter.state_dict())
+    first = "down.0.0.weight"
+    weight = torch.zeros(state[first].shape[0], 3, *state[first].shape[2:])
+    weight[:, 1:2] = state[first]
+    state[first] = weight
+    masker.segmenter.load_state_dict(state)
+    flat = segment_stack(image, tiny_masker, name="2d")
+    deep = segment_stack(image, masker.eval(), name="2.5d")
+    torch.testing.assert_close(deep.probability, flat.probability, rtol=0, atol=1e-5)
+    assert torch.equal(deep.mask, flat.mask)
+    # with the weights on a neighbour's channel instead, the probabilities change
+    weight = torch.zeros_like(weight)
+    weight[:, 0:1] = state[first][:, 1:2]
+    masker.segmenter.load_state_dict({**state, first: weight})
+    shifted = segment_stack(image, masker.eval(), name="2.5d").probability
+    assert float((shifted - flat.probability).abs().max()) > 0.1
+
+
+def test_2_5d_examples_hold_the_2d_canvas_in_the_middle_and_neighbours_around(phantom):
+    config = BrainMaskTrainingConfig(cases=2, bare_fraction=0.0, seed=5)
+    flat = make_examples([phantom], "segmenter", TINY, config, TINY_DATA)
+    wide = dataclasses.replace(TINY, segmenter=SegmentationConfig(4, 2, in_channels=3))
+    deep = make_examples([phantom], "segmenter", wide, config, TINY_DATA)
+    assert deep.inputs.shape == (flat.inputs.shape[0], 3, *flat.inputs.shape[2:])
+    assert torch.equal(deep.inputs[:, 1:2], flat.inputs)
+    assert torch.equal(deep.targets, flat.targets)
+    # consecutive canvases of a stack: this one's lower neighbour is the previous one's slice
+    follows = [
+        torch.equal(deep.inputs[n, 0], deep.inputs[n - 1, 1])
+        and torch.equal(deep.inputs[n - 1, 2], deep.inputs[n, 1])
+        for n in range(1, deep.inputs.shape[0])
+    ]
+    assert sum(follows) >= len(follows) - 6  # (at most one break per stack: 2 cases, <= 3 each)
+
+
+def test_2_5d_training_reverses_the_slice_order_of_some_batches(monkeypatch):
+    import svr.models.brain_mask_train as module
+
+    seen = []
+    real = module._augment
+
+    def spy(x, generator, curves=0.0):
+        seen.append(x.clone())
+        return real(x, generator, curves)
+
+    monkeypatch.setattr(module, "_augment", spy)
+    generator = torch.Generator().manual_seed(0)
+    slices = torch.rand(4, 1, 16, 16, generator=generator)
+    inputs = torch.cat([slices, 2 + slices, 4 + slices], 1).half()  # channel means ~0.5, 2.5, 4.5
+    examples = TrainingExamples(inputs, slices > 0.5)
+    config = BrainMaskTrainingConfig(steps=12, batch_size=2)
+    train_network(examples, SegmentationConfig(2, 1, in_channels=3), config)
+    reversed_order = [bool(x[:, 0].mean() > x[:, 2].mean()) for x in seen]
+    assert 0 < sum(reversed_order) < len(reversed_order)  # both orders seen
+    assert all(float(x[:, 1].mean()) > 2 for x in seen)  # the middle stays in the middle
 
 
 def test_no_brain_is_an_error_naming_the_stack(tiny_masker, unseen_stack):

@@ -22,7 +22,19 @@ def test_bad_input_shapes_are_named(shape):
         BrainUNet(SegmentationConfig(width=4, depth=2))(torch.randn(*shape))
 
 
-@pytest.mark.parametrize(("field", "value"), [("width", 0), ("depth", 0), ("depth", True)])
+def test_a_multi_channel_unet_takes_its_channels_only():
+    model = BrainUNet(SegmentationConfig(width=4, depth=2, in_channels=3)).eval()
+    with torch.no_grad():
+        out = model(torch.randn(2, 3, 16, 20))
+    assert out.shape == (2, 1, 16, 20)
+    with pytest.raises(ValueError, match=r"input must be \(B, 3, H, W\)"):
+        model(torch.randn(2, 1, 16, 20))
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("width", 0), ("depth", 0), ("depth", True), ("in_channels", 0), ("in_channels", 1.0)],
+)
 def test_config_errors(field, value):
     with pytest.raises(ValueError, match=f"'{field}'"):
         SegmentationConfig(**{field: value})
