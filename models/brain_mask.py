@@ -27,7 +27,9 @@ A clinical stack shows the whole maternal abdomen; the brain is a small part of 
    thinner than the ball, such as a leak along the fluid beside the head or a piece of the body
    joined to the brain by a narrow bridge, are cut, while the brain's bulk is kept; the mask
    within ``regrow_mm`` of the opened one is then given back (the ragged edge that slice motion
-   leaves, which the ball cannot reach into, but not the bulk of a leak).
+   leaves, which the ball cannot reach into, but not the bulk of a leak). A mask under
+   ``min_volume_ml``, over ``max_volume_ml`` or over ``max_stack_fraction`` of the stack (the
+   segmenter taking the whole field of view) is a :class:`BrainNotFoundError` too.
 
 Canvases are cut with the same function (:func:`slices_to_canvas`) at inference and when the
 training examples are made (:mod:`svr.models.brain_mask_train`), so both see the same pixels.
@@ -103,6 +105,11 @@ class BrainMaskConfig:
             each slice comes with its c neighbours on either side (:attr:`segmenter_context`).
         threshold: Probability above which a voxel is brain, in (0, 1).
         min_volume_ml: Smallest brain accepted by the localiser, millilitres (cm^3), >= 0.
+        max_volume_ml: Largest mask accepted, millilitres, > ``min_volume_ml`` (a term fetal
+            head holds about 500 ml).
+        max_stack_fraction: Largest fraction of the stack's voxels a mask may cover, in (0, 1]
+            (a brain fills at most about half of a box cropped tightly around it; a mask over
+            most of the field of view is the segmenter failing, not a brain).
         slice_margin: Slices beyond the localised brain's first and last that are segmented
             too, >= 0; ``None`` segments every slice (then the 3D clean-up alone decides where
             the brain ends, so pieces of other anatomy the segmenter takes for brain in slices
@@ -127,6 +134,8 @@ class BrainMaskConfig:
     segmenter: SegmentationConfig = field(default_factory=lambda: SegmentationConfig(8, 4))
     threshold: float = 0.5
     min_volume_ml: float = 5.0
+    max_volume_ml: float = 1000.0
+    max_stack_fraction: float = 0.8
     slice_margin: int | None = 2
     percentile: float = 99.0
     localiser_tiles: bool = False
@@ -187,6 +196,16 @@ class BrainMaskConfig:
         if not self.min_volume_ml >= 0:
             raise ValueError(
                 f"BrainMaskConfig: 'min_volume_ml' must be >= 0, got {self.min_volume_ml!r}"
+            )
+        if not (is_finite_number(self.max_volume_ml) and self.max_volume_ml > self.min_volume_ml):
+            raise ValueError(
+                "BrainMaskConfig: 'max_volume_ml' must be a finite number > 'min_volume_ml' "
+                f"({self.min_volume_ml!r}), got {self.max_volume_ml!r}"
+            )
+        if not (is_finite_number(self.max_stack_fraction) and 0 < self.max_stack_fraction <= 1):
+            raise ValueError(
+                "BrainMaskConfig: 'max_stack_fraction' must be in (0, 1], "
+                f"got {self.max_stack_fraction!r}"
             )
         if not 0 < self.percentile <= 100:
             raise ValueError(
@@ -540,7 +559,9 @@ def segment_stack(
         ValueError: Naming ``name``, if the stack has non-finite voxels, no positive voxel or an
             in-plane side below 2.
         BrainNotFoundError: Naming ``name``, if the localiser finds no brain of at least
-            ``config.min_volume_ml`` or the segmenter finds nothing where it was localised.
+            ``config.min_volume_ml``, the segmenter finds nothing where it was localised, or
+            the mask is larger than ``config.max_volume_ml`` or ``config.max_stack_fraction``
+            of the stack.
     """
     cfg = masker.config
     data = stack.data
@@ -592,6 +613,13 @@ def segment_stack(
         raise BrainNotFoundError(
             f"{name}: no fetal brain found (the segmented brain is {volume_ml:.1f} ml, expected "
             f"at least {cfg.min_volume_ml:g} ml); pass a mask with --stack-masks"
+        )
+    fraction = float(mask.mean())
+    if volume_ml > cfg.max_volume_ml or fraction > cfg.max_stack_fraction:
+        raise BrainNotFoundError(
+            f"{name}: no fetal brain found (the segmented region is {volume_ml:.0f} ml and "
+            f"{100 * fraction:.0f} % of the stack, expected at most {cfg.max_volume_ml:g} ml and "
+            f"{100 * cfg.max_stack_fraction:g} %); pass a mask with --stack-masks"
         )
     log.info("%s: automatic brain mask of %.1f ml", name, volume_ml)
     return MaskResult(torch.from_numpy(mask), probability, centre, volume_ml)

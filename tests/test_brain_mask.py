@@ -373,6 +373,10 @@ def test_canvas_rejects_bad_shapes():
         ("percentile", 0.0, "'percentile'"),
         ("localiser_tiles", "yes", "'localiser_tiles' must be true or false"),
         ("slice_margin", -1, "'slice_margin' must be an integer >= 0 or null"),
+        ("max_volume_ml", 5.0, "'max_volume_ml' must be a finite number > 'min_volume_ml'"),
+        ("max_volume_ml", float("inf"), "'max_volume_ml'"),
+        ("max_stack_fraction", 0.0, "'max_stack_fraction' must be in"),
+        ("max_stack_fraction", 1.5, "'max_stack_fraction' must be in"),
     ],
 )
 def test_config_names_the_bad_field(field, value, message):
@@ -475,6 +479,22 @@ def test_no_brain_is_an_error_naming_the_stack(tiny_masker, unseen_stack):
             BrainNotFoundError, match=rf"^scan\.nii\.gz: no fetal brain found \({message}"
         ):
             segment_stack(image, blind, name="scan.nii.gz")
+
+
+def test_a_mask_over_the_whole_field_of_view_is_an_error_naming_the_stack(tiny_masker):
+    """A segmenter that takes everything gives an error, never a whole-image mask."""
+    masker = BrainMasker(TINY)
+    masker.load_state_dict(tiny_masker.state_dict())
+    for net in (masker.localiser, masker.segmenter):
+        torch.nn.init.constant_(net.head.bias, 50.0)  # every pixel brain
+    stack = Image(torch.rand(30, 30, 16) + 1.0, torch.diag(torch.tensor([3.0, 3.0, 4.0, 1.0])))
+    with pytest.raises(BrainNotFoundError, match=r"^whole: no fetal brain found .* % of the stack"):
+        segment_stack(stack, masker.eval(), name="whole")
+    # the volume bound alone (the mask covers the stack: 90 x 90 x 64 mm, 518 ml)
+    loose = dataclasses.replace(TINY, max_stack_fraction=1.0, max_volume_ml=400.0)
+    masker.config = loose
+    with pytest.raises(BrainNotFoundError, match=r"518 ml .* at most 400 ml"):
+        segment_stack(stack, masker.eval(), name="whole")
 
 
 def test_bad_stacks_are_refused(tiny_masker, unseen_stack):
