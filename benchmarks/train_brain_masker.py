@@ -17,7 +17,8 @@ Without ``--tiles`` the first recipe (one 3 mm canvas for the localiser, segment
 the brain's slices only, masks inside the skull) is trained. ``--faces``, ``--spinal-cord``,
 ``--partial-volume-masks`` and ``--grazing-only`` (heads with a face and eyes over a neck, heads
 ending at the skull base, slice masks through the slice's thickness, the latter only on the
-slices grazing the head's ends) and ``--segmenter-context 1`` (a 2.5D segmenter that sees each
+slices grazing the head's ends), ``--thick-skulls`` (2-5 mm grey skulls inside the masks, thin
+scalps) and ``--segmenter-context 1`` (a 2.5D segmenter that sees each
 slice with one neighbour on either side; give it to ``assemble`` too) train the variants of
 ``benchmarks/results/brain-masks-variants.md``; the shipped model uses none of them. A stage
 caches its simulated examples (``OUT/STAGE/examples.pt``) and resumes from its newest
@@ -134,6 +135,7 @@ def stage_settings(
         "partial_volume_masks": args.partial_volume_masks,
         "spinal_cord": args.spinal_cord,
         "grazing_only": args.grazing_only,
+        "thick_skulls": args.thick_skulls,
     }
 
 
@@ -146,6 +148,7 @@ def recorded_settings(path: Path) -> dict[str, Any]:
         "partial_volume_masks": False,
         "spinal_cord": False,
         "grazing_only": False,
+        "thick_skulls": False,
         **json.loads(path.read_text()),
     }
     mask = settings["mask_config"]
@@ -203,6 +206,11 @@ def main(argv: list[str] | None = None) -> int:
         "--grazing-only",
         action="store_true",
         help="with --partial-volume-masks: only on slices grazing the head's ends (stage_data)",
+    )
+    parser.add_argument(
+        "--thick-skulls",
+        action="store_true",
+        help="scenes with 2-5 mm grey skulls (in the segmenter's masks) and thin scalps",
     )
     parser.add_argument(
         "--spinal-cord",
@@ -276,6 +284,8 @@ def main(argv: list[str] | None = None) -> int:
     recorded = folder / SETTINGS
     if args.grazing_only and not args.partial_volume_masks:
         parser.error("--grazing-only needs --partial-volume-masks")
+    if args.thick_skulls and args.tight_heads:
+        parser.error("--thick-skulls and --tight-heads exclude each other")
     if recorded.exists() and recorded_settings(recorded) != settings:
         parser.error(
             f"{recorded}: this run folder was started with other settings "
@@ -303,6 +313,7 @@ def main(argv: list[str] | None = None) -> int:
             partial_volume=args.partial_volume_masks,
             spinal_cord=args.spinal_cord,
             grazing_only=args.grazing_only,
+            thick_skulls=args.thick_skulls,
         )
         if args.segment_all_slices:
             data = dataclasses.replace(data, segment_all_slices=True)

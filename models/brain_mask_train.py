@@ -186,6 +186,15 @@ _TIGHT_HEAD: dict[str, Any] = {
     "scalp_mm": (0.3, 3.0),
 }
 
+# ``thick_skulls``: the head as the clinical scan's manual masks outline it: a grey band of 2-5 mm
+# (skull and scalp blurred together by thick slices) inside the mask, and amniotic fluid that may
+# touch it, outside the mask (its voxels where our masks missed the manual ones are mid-grey and
+# where they took in too much, bright: benchmarks/results/brain-masks-variants.md, session 6).
+_THICK_SKULL: dict[str, Any] = {
+    "skull_mm": (2.0, 5.0),
+    "skull_intensity": (0.1, 0.7),
+    "scalp_mm": (0.3, 2.0),
+}
 
 # ``partial_volume``: a thick slice's mask holds the brain wherever a fifth of its profile is
 # brain, as manual masks include the slices that graze the top and bottom of the head.
@@ -203,6 +212,7 @@ def stage_data(
     partial_volume: bool = False,
     spinal_cord: bool = False,
     grazing_only: bool = False,
+    thick_skulls: bool = False,
 ) -> StageData:
     """The simulation behind the shipped networks.
 
@@ -228,13 +238,24 @@ def stage_data(
         grazing_only: With ``partial_volume``, only the slices whose centre-plane mask is
             under half their partial-volume mask take it (``StageData.grazing_ratio`` 0.5):
             the slices grazing the head's top and bottom; the others keep the centre plane's.
+        thick_skulls: Skulls of 2-5 mm that may be grey (intensity 0.1-0.7) under a scalp of
+            0.3-2 mm, so that fluid may nearly touch them (all scenes of either stage; with
+            ``tiles`` the segmenter's masks hold the skull).
 
     Raises:
-        ValueError: If ``grazing_only`` is given without ``partial_volume``.
+        ValueError: If ``grazing_only`` is given without ``partial_volume``, or
+            ``thick_skulls`` with ``tight_heads``.
     """
     if grazing_only and not partial_volume:
         raise ValueError("stage_data(): 'grazing_only' needs 'partial_volume'")
-    head = {**(_TIGHT_HEAD if tight_heads else _HEAD), "face": faces, "spinal_cord": spinal_cord}
+    if thick_skulls and tight_heads:
+        raise ValueError("stage_data(): 'thick_skulls' and 'tight_heads' exclude each other")
+    head = {
+        **(_TIGHT_HEAD if tight_heads else _HEAD),
+        **(_THICK_SKULL if thick_skulls else {}),
+        "face": faces,
+        "spinal_cord": spinal_cord,
+    }
     fraction = PARTIAL_VOLUME_MASK_FRACTION if partial_volume else None
     ratio = GRAZING_RATIO if grazing_only else None
     if stage == "localiser":

@@ -222,6 +222,25 @@ def test_tight_heads_change_only_the_head_layers(stage):
 
 
 @pytest.mark.parametrize("stage", ["localiser", "segmenter"])
+def test_thick_skulls_change_only_the_skull_and_scalp(stage):
+    usual = stage_data(stage, tiles=True)
+    thick = stage_data(stage, tiles=True, thick_skulls=True)
+    changed = {
+        f.name
+        for f in dataclasses.fields(usual.scene)
+        if getattr(usual.scene, f.name) != getattr(thick.scene, f.name)
+    }
+    assert changed == {"skull_mm", "skull_intensity", "scalp_mm"}
+    assert thick.scene.skull_mm[1] > usual.scene.skull_mm[1]
+    assert thick.scene.skull_intensity[1] > usual.scene.skull_intensity[1]
+    assert thick.scene.scalp_mm[0] < usual.scene.scalp_mm[0] and thick.scene.scalp_mm[1] < 4.0
+    assert dataclasses.replace(thick, scene=usual.scene) == usual
+    assert thick.scene.skull_in_mask == (stage == "segmenter")
+    with pytest.raises(ValueError, match="'thick_skulls' and 'tight_heads' exclude each other"):
+        stage_data(stage, tiles=True, thick_skulls=True, tight_heads=True)
+
+
+@pytest.mark.parametrize("stage", ["localiser", "segmenter"])
 def test_faces_cords_and_partial_volume_masks_change_one_field_each(stage):
     usual = stage_data(stage, tiles=True)
     assert not usual.scene.face and usual.mask_fraction is None
