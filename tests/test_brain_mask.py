@@ -205,16 +205,21 @@ def test_tiled_stage_data_spreads_the_localiser_canvases():
     assert segmenter.scene.skull_in_mask and not stage_data("segmenter").scene.skull_in_mask
 
 
+def _changed_fields(a: SceneConfig, b: SceneConfig) -> set[str]:
+    """The names of the fields in which two scene configs differ."""
+    return {f.name for f in dataclasses.fields(a) if getattr(a, f.name) != getattr(b, f.name)}
+
+
 @pytest.mark.parametrize("stage", ["localiser", "segmenter"])
 def test_tight_heads_change_only_the_head_layers(stage):
     usual = stage_data(stage, tiles=True)
     tight = stage_data(stage, tiles=True, tight_heads=True)
-    changed = {
-        f.name
-        for f in dataclasses.fields(usual.scene)
-        if getattr(usual.scene, f.name) != getattr(tight.scene, f.name)
+    assert _changed_fields(usual.scene, tight.scene) == {
+        "csf_mm",
+        "skull_mm",
+        "skull_intensity",
+        "scalp_mm",
     }
-    assert changed == {"csf_mm", "skull_mm", "skull_intensity", "scalp_mm"}
     assert tight.scene.csf_mm[1] < usual.scene.csf_mm[1]
     assert tight.scene.skull_mm[0] < usual.scene.skull_mm[0]
     assert tight.scene.scalp_mm[0] < usual.scene.scalp_mm[0]
@@ -225,12 +230,7 @@ def test_tight_heads_change_only_the_head_layers(stage):
 def test_thick_skulls_change_only_the_skull_and_scalp(stage):
     usual = stage_data(stage, tiles=True)
     thick = stage_data(stage, tiles=True, thick_skulls=True)
-    changed = {
-        f.name
-        for f in dataclasses.fields(usual.scene)
-        if getattr(usual.scene, f.name) != getattr(thick.scene, f.name)
-    }
-    assert changed == {"skull_mm", "skull_intensity", "scalp_mm"}
+    assert _changed_fields(usual.scene, thick.scene) == {"skull_mm", "skull_intensity", "scalp_mm"}
     assert thick.scene.skull_mm[1] > usual.scene.skull_mm[1]
     assert thick.scene.skull_intensity[1] > usual.scene.skull_intensity[1]
     assert thick.scene.scalp_mm[0] < usual.scene.scalp_mm[0] and thick.scene.scalp_mm[1] < 4.0
