@@ -480,7 +480,10 @@ def clean_up_mask(
 
 @torch.no_grad()
 def _predict(net: BrainUNet, canvases: Tensor, flip: bool, batch: int = 32) -> Tensor:
-    """(K, 1, S, S) probabilities of (K, C, S, S) canvases, optionally with the flipped ones'."""
+    """(K, 1, S, S) probabilities of (K, C, S, S) canvases.
+
+    With ``flip``, averaged with the left-right flipped canvases' probabilities, flipped back.
+    """
     out = []
     for start in range(0, canvases.shape[0], batch):
         x = canvases[start : start + batch]

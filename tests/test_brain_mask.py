@@ -475,6 +475,15 @@ def test_2_5d_training_reverses_the_slice_order_of_some_batches(monkeypatch):
         return real(x, generator, curves)
 
     monkeypatch.setattr(module, "_augment", spy)
+    order_draws = []  # torch.rand(1, ...): the only draw of size 1, the slice-order coin
+    real_rand = torch.rand
+
+    def counting_rand(*size, **kwargs):
+        if size == (1,):
+            order_draws.append(1)
+        return real_rand(*size, **kwargs)
+
+    monkeypatch.setattr(module.torch, "rand", counting_rand)
     generator = torch.Generator().manual_seed(0)
     slices = torch.rand(4, 1, 16, 16, generator=generator)
     inputs = torch.cat([slices, 2 + slices, 4 + slices], 1).half()  # channel means ~0.5, 2.5, 4.5
@@ -484,6 +493,10 @@ def test_2_5d_training_reverses_the_slice_order_of_some_batches(monkeypatch):
     reversed_order = [bool(x[:, 0].mean() > x[:, 2].mean()) for x in seen]
     assert 0 < sum(reversed_order) < len(reversed_order)  # both orders seen
     assert all(float(x[:, 1].mean()) > 2 for x in seen)  # the middle stays in the middle
+    assert len(order_draws) == 12  # one coin a step
+    order_draws.clear()  # 2D: no coin, so 2D runs keep the random stream of the shipped weights
+    train_network(TrainingExamples(inputs[:, :1], slices > 0.5), SegmentationConfig(2, 1), config)
+    assert order_draws == []
 
 
 def test_no_brain_is_an_error_naming_the_stack(tiny_masker, unseen_stack):
