@@ -17,20 +17,28 @@ process's peak before the call).
 The reference method is the toolkit's former automatic mask, Otsu (``--auto-masks otsu``), on
 the same stacks (ratio columns).
 
+Part ``masks`` also fuses the automatic masks of each dataset whose stacks are of one fetus
+(the real scan, the phantom, the bench cases; not FaBiAN, whose 4 stacks are of 3 subjects) across
+its stacks, as ``svr segment-stack --fuse-masks`` does
+(:func:`svr.reconstruction.mask_fusion.fuse_stack_masks`, thickness = slice spacing), and scores
+the fused masks in the same way; the fusion's wall time is given per stack.
+
 Part ``recon``: ``svr reconstruct``'s pipeline (default settings, ``--registration stack``) on
-the real scan's stacks in which the model finds a brain, once with the manual masks and once
-with the automatic ones; slice consistency is the mean over slices of the NCC of each observed
-slice with its simulation from the volume (the transforms table's ``ncc`` column). QA figures
-show both reconstructions and the automatic masks.
+the real scan's stacks in which the model finds a brain, once with the manual masks, once
+with the automatic ones and once with the automatic ones fused across stacks; slice consistency
+is the mean over slices of the NCC of each observed slice with its simulation from the volume
+(the transforms table's ``ncc`` column). QA figures show the reconstructions and the automatic
+masks.
 
 Part ``simval`` (not in ``all``): held-out *simulated* whole-uterus stacks, to choose between
 models without the real scan: ``--sim-cases`` scenes (``make_scene`` with the tiled recipe's
 localiser settings, masks up to the skull; scene seeds 5000 and up, while training draws its
 scene seeds at random from [0, 2**31), so a shared scene is improbable), each cut into 2 stacks
-of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate motion, noise, bias
-field and signal voids; every model of ``--sim-models`` (comma-separated) segments the same
-stacks. ``--sim-faces`` gives the heads faces, ``--sim-spinal-cord`` ends them at the skull
-base and ``--sim-mask-fraction`` cuts the true masks with the slices' profiles
+(``--sim-stacks``) of 3.3 mm slices of 1.125 mm pixels (as the clinical scan) with moderate
+motion, noise, bias field and signal voids; every model of ``--sim-models`` (comma-separated)
+segments the same stacks, and with 3 or more stacks per scene its masks of each scene are also
+fused (``MODEL, fused`` rows). ``--sim-faces`` gives the heads faces, ``--sim-spinal-cord`` ends
+them at the skull base and ``--sim-mask-fraction`` cuts the true masks with the slices' profiles
 (``SimulationConfig.mask_fraction``; ``--sim-grazing-ratio`` only on the slices grazing the
 head's ends): the conventions of models trained with ``--faces --spinal-cord
 --partial-volume-masks [--grazing-only]``. The brains are the atlas's, as in training:
@@ -146,18 +154,26 @@ print(before / 1024, peak_kb() / 1024)
 """
 
 
+# Datasets whose stacks are of one fetus (at least 3): their masks are also fused across stacks.
+ONE_FETUS = ("real-mialsrtk-sub01", "sim-svrtk-phantom", "sb28-moderate", "sb24-large")
+
+
 def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
+    from svr.reconstruction.mask_fusion import fuse_stack_masks
+
     masker = load_brain_masker(args.mask_model)
     lines = [
         "| dataset | stack | shape | Dice | recall | precision | Otsu Dice | "
-        "Dice ratio (ours / Otsu) | time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "Dice ratio (ours / Otsu) | time (s) | fused: Dice | recall | precision |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     rows = []
+    fusion_seconds = {}
     for dataset, pairs in datasets(args.data).items():
         stacks = [load_nifti(s) for s, _ in pairs]
         names = [str(s) for s, _ in pairs]
         otsu = otsu_masks(stacks, names)
+        found, part = [], []
         for (stack_path, mask_path), stack, otsu_mask in zip(pairs, stacks, otsu, strict=True):
             truth = mask_on_grid(load_nifti(mask_path), stack)
             began = time.perf_counter()
@@ -168,32 +184,72 @@ def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
                 mask, error = torch.zeros(stack.shape, dtype=torch.bool), str(err)
             seconds = time.perf_counter() - began
             ours, ref = scores(mask, truth), scores(otsu_mask, truth)
-            row = {
-                "dataset": dataset,
-                "stack": stack_path.name,
-                "shape": list(stack.shape),
-                **ours,
-                "otsu_dice": ref["dice"],
-                "seconds": seconds,
-                "error": error,
-            }
-            rows.append(row)
-            ratio = ours["dice"] / ref["dice"] if ref["dice"] > 0 else float("inf")
+            part.append(
+                {
+                    "dataset": dataset,
+                    "stack": stack_path.name,
+                    "shape": list(stack.shape),
+                    **ours,
+                    "otsu_dice": ref["dice"],
+                    "seconds": seconds,
+                    "error": error,
+                }
+            )
+            found.append((stack, mask, truth, not error))
+        if dataset in ONE_FETUS and sum(ok for *_, ok in found) >= 3:
+            kept = [f for f in found if f[3]]
+            began = time.perf_counter()
+            fused = fuse_stack_masks(
+                [f[0] for f in kept],
+                [f[1] for f in kept],
+                [float(f[0].spacing[2]) for f in kept],  # thickness: the slice spacing
+            )
+            fusion_seconds[dataset] = time.perf_counter() - began
+            fused_masks = iter(fused.masks)
+            for row, (_, _, truth, ok) in zip(part, found, strict=True):
+                if ok:
+                    row["fused"] = scores(next(fused_masks), truth)
+        for row in part:
+            ratio = row["dice"] / row["otsu_dice"] if row["otsu_dice"] > 0 else float("inf")
+            fused_cells = (
+                f"{row['fused']['dice']:.3f} | {row['fused']['recall']:.3f} | "
+                f"{row['fused']['precision']:.3f}"
+                if "fused" in row
+                else "- | - | -"
+            )
             lines.append(
-                f"| {dataset} | {stack_path.name} | {'x'.join(map(str, stack.shape))} | "
-                f"{ours['dice']:.3f} | {ours['recall']:.3f} | {ours['precision']:.3f} | "
-                f"{ref['dice']:.3f} | {ratio:.2f} | {seconds:.2f} |"
+                f"| {dataset} | {row['stack']} | {'x'.join(map(str, row['shape']))} | "
+                f"{row['dice']:.3f} | {row['recall']:.3f} | {row['precision']:.3f} | "
+                f"{row['otsu_dice']:.3f} | {ratio:.2f} | {row['seconds']:.2f} | {fused_cells} |"
             )
             print(lines[-1], flush=True)
+        rows += part
     report["stacks"] = rows
-    summary = ["", "| dataset | min Dice | mean Dice | min recall | mean time (s) |"]
-    summary.append("|---|---|---|---|---|")
+    report["fusion_seconds"] = fusion_seconds
+    summary = [
+        "",
+        "| dataset | min Dice | mean Dice | min recall | mean time (s) | fused: min Dice | "
+        "mean Dice | min recall | mean recall | min Dice ratio (fused / own) | fusion time "
+        "per stack (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for dataset in dict.fromkeys(r["dataset"] for r in rows):
         part = [r for r in rows if r["dataset"] == dataset]
+        cells = "- | - | - | - | - | -"
+        with_fused = [r for r in part if "fused" in r]
+        if with_fused:
+            fused_dice = [r["fused"]["dice"] for r in with_fused]
+            fused_recall = [r["fused"]["recall"] for r in with_fused]
+            ratio = min(fused_dice) / min(r["dice"] for r in with_fused)
+            cells = (
+                f"{min(fused_dice):.3f} | {np.mean(fused_dice):.3f} | {min(fused_recall):.3f} | "
+                f"{np.mean(fused_recall):.3f} | {ratio:.3f} | "
+                f"{fusion_seconds[dataset] / len(with_fused):.2f}"
+            )
         summary.append(
             f"| {dataset} | {min(r['dice'] for r in part):.3f} | "
             f"{np.mean([r['dice'] for r in part]):.3f} | {min(r['recall'] for r in part):.3f} | "
-            f"{np.mean([r['seconds'] for r in part]):.2f} |"
+            f"{np.mean([r['seconds'] for r in part]):.2f} | {cells} |"
         )
     real = [r for r in rows if r["dataset"] == "real-mialsrtk-sub01"]
     segmented = [r["stack"] for r in real if not r["error"]] or [real[0]["stack"]]
@@ -248,10 +304,21 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
     config = ReconstructionConfig(registration="stack")
     names = [str(p) for p, _, _, _ in found]
     results = {}
-    for name, masks in (
+    mask_sets = [
         ("manual", [load_nifti(m) for _, m, _, _ in found]),
         ("automatic", [Image(auto.float(), image.affine) for _, _, image, auto in found]),
-    ):
+    ]
+    if len(found) >= 3:
+        from svr.reconstruction.mask_fusion import fuse_stack_masks
+
+        fused = fuse_stack_masks([f[2] for f in found], [f[3] for f in found], 3.0, names)
+        mask_sets.append(
+            (
+                "automatic, fused",
+                [Image(m.float(), f[2].affine) for m, f in zip(fused.masks, found, strict=True)],
+            )
+        )
+    for name, masks in mask_sets:
         began = time.perf_counter()
         stacks = prepare_stacks([f[2] for f in found], masks, 3.0, names=names)
         result = reconstruct(stacks, config)
@@ -265,11 +332,15 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
             "seconds": seconds,
         }
         if args.figures is not None:
-            path = args.figures / f"real-scan-{name}-masks-qa.png"
+            path = args.figures / f"real-scan-{name.replace(', ', '-')}-masks-qa.png"
             qa_figure(result, path, overwrite=True, notes=[f"masks: {name}"])
         print(name, results[name], flush=True)
     report["recon"] = results
     manual, auto = results["manual"], results["automatic"]
+    fused_line = []
+    if "automatic, fused" in results:
+        difference = results["automatic, fused"]["mean_ncc"] - manual["mean_ncc"]
+        fused_line = [f"Fused automatic masks minus manual: {difference:+.4f}."]
     return [
         *lines,
         "",
@@ -286,6 +357,7 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
         "",
         f"Slice consistency, automatic minus manual: {auto['mean_ncc'] - manual['mean_ncc']:+.4f} "
         "(target: within 0.01).",
+        *fused_line,
     ]
 
 
@@ -311,7 +383,7 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
         rng = np.random.default_rng(seed)
         brain = brains[int(rng.integers(len(brains)))]
         config = SimulationConfig(
-            num_stacks=2,
+            num_stacks=args.sim_stacks,
             thickness_mm=3.3,
             spacing_mm=3.3,
             in_plane_mm=1.125,
@@ -403,22 +475,41 @@ def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
     report["simval"] = {}
     for model in args.sim_models.split(","):
         masker = load_brain_masker(model)
-        rows = []
+        rows, masks, found = [], [], []
         for name, image, truth in stacks:
             try:
                 mask = segment_stack(image, masker, name=name).mask
+                found.append(True)
             except BrainNotFoundError:
                 mask = torch.zeros_like(truth)
+                found.append(False)
             rows.append(scores(mask, truth))
-        dice = [r["dice"] for r in rows]
-        recall = [r["recall"] for r in rows]
-        missed = sum(1 for r in rows if r["dice"] == 0)
-        report["simval"][model] = rows
-        lines.append(
-            f"| {model} | {min(dice):.3f} | {np.mean(dice):.3f} | {min(recall):.3f} | "
-            f"{np.mean(recall):.3f} | {missed} |"
-        )
-        print(lines[-1], flush=True)
+            masks.append(mask)
+        results = {model: rows}
+        if args.sim_stacks >= 3:  # each scene's stacks fused (scenes where all were found)
+            from svr.reconstruction.mask_fusion import fuse_stack_masks
+
+            fused_rows = list(rows)
+            for case in dict.fromkeys(name for name, _, _ in stacks):
+                members = [n for n, (name, _, _) in enumerate(stacks) if name == case]
+                if not all(found[n] for n in members):
+                    continue
+                fused = fuse_stack_masks(
+                    [stacks[n][1] for n in members], [masks[n] for n in members], 3.3
+                )
+                for n, mask in zip(members, fused.masks, strict=True):
+                    fused_rows[n] = scores(mask, stacks[n][2])
+            results[f"{model}, fused"] = fused_rows
+        for label, part in results.items():
+            dice = [r["dice"] for r in part]
+            recall = [r["recall"] for r in part]
+            missed = sum(1 for r in part if r["dice"] == 0)
+            report["simval"][label] = part
+            lines.append(
+                f"| {label} | {min(dice):.3f} | {np.mean(dice):.3f} | {min(recall):.3f} | "
+                f"{np.mean(recall):.3f} | {missed} |"
+            )
+            print(lines[-1], flush=True)
     return lines
 
 
@@ -431,6 +522,13 @@ def main(argv: list[str] | None = None) -> int:
         "--part", choices=["masks", "recon", "all", "simval", "opening"], default="all"
     )
     parser.add_argument("--sim-cases", type=int, default=8, help="simval: number of scenes")
+    parser.add_argument(
+        "--sim-stacks",
+        type=int,
+        default=2,
+        help="simval: stacks per scene; with 3 or more, each scene's masks are also fused "
+        "(fuse_stack_masks) and scored",
+    )
     parser.add_argument(
         "--sim-models", default="default", help="simval: comma-separated models to compare"
     )

@@ -13,7 +13,9 @@ and 1), in any orientation, posed in the scanner's world frame by its affine. Pr
    voxels above the stack's Otsu threshold inside the region that every stack's field of view
    covers (each stack covering the boxes of its voxels), then the largest 3D connected component
    with its holes filled, which suits only stacks already cropped around the brain (the brain is
-   the largest bright object seen by all stacks).
+   the largest bright object seen by all stacks). With ``StackConfig.fuse_masks`` the network's
+   masks of 3 or more stacks are then made to agree in 3D
+   (:func:`svr.reconstruction.mask_fusion.fuse_stack_masks`).
 2. **Crop.** In-plane (axes 0 and 1) to the mask's bounding box over all planes plus
    ``crop_margin_mm``, clipped to the array; along k to the planes from the first to the last
    with mask (a contiguous range; planes with an empty mask inside it are kept and dropped later
@@ -86,6 +88,9 @@ class StackConfig:
             levels (SimpleITK's default).
         auto_mask: How stacks without a mask get one: ``"otsu"`` or ``"network"`` (module
             docstring). The ``svr`` commands default to ``"network"``.
+        fuse_masks: Whether the network's automatic masks are fused across the stacks (all of
+            one fetus, at least 3; :mod:`svr.reconstruction.mask_fusion`). Needs
+            ``auto_mask="network"``.
     """
 
     crop_margin_mm: float = 5.0
@@ -93,6 +98,7 @@ class StackConfig:
     n4_shrink_factor: int = 2
     n4_iterations: tuple[int, ...] = (50, 50, 50, 50)
     auto_mask: AutoMask = "otsu"
+    fuse_masks: bool = False
 
     def __post_init__(self) -> None:
         if self.auto_mask not in AUTO_MASKS:
@@ -100,6 +106,8 @@ class StackConfig:
                 f"StackConfig: 'auto_mask' must be one of {', '.join(AUTO_MASKS)}, "
                 f"got {self.auto_mask!r}"
             )
+        if self.fuse_masks and self.auto_mask != "network":
+            raise ValueError("StackConfig: 'fuse_masks' needs auto_mask='network'")
         if not (math.isfinite(self.crop_margin_mm) and self.crop_margin_mm >= 0):
             raise ValueError(
                 f"StackConfig: 'crop_margin_mm' must be >= 0, got {self.crop_margin_mm}"
@@ -192,8 +200,9 @@ def prepare_stacks(
 
     Raises:
         ImageError: Beginning with the stack's or mask's name (see :func:`load_stacks`).
-        ValueError: For no stacks or a count mismatch of masks, names or thicknesses, or a
-            thickness that is not a positive number.
+        ValueError: For no stacks or a count mismatch of masks, names or thicknesses, a
+            thickness that is not a positive number, or ``config.fuse_masks`` with fewer than 3
+            stacks.
     """
     config = StackConfig() if config is None else config
     count = len(images)
@@ -222,6 +231,16 @@ def prepare_stacks(
             result = segment_stack(image, networks, name=name, device=device)
             log.info("%s: automatic brain mask (network), %.0f ml", name, result.volume_ml)
             brains.append(result.mask)
+        if config.fuse_masks:
+            from svr.reconstruction.mask_fusion import fuse_stack_masks
+
+            fused = fuse_stack_masks(images, brains, widths, names, device=device)
+            brains = fused.masks
+            log.info(
+                "automatic brain masks fused across %d stacks (Dice with their own: %s)",
+                count,
+                ", ".join(f"{value:.3f}" for value in fused.agreement),
+            )
     elif masks is None:
         brains = [
             _automatic_mask(image, images[:n] + images[n + 1 :], name)

@@ -702,6 +702,47 @@ def test_reconstruct_uses_automatic_masks_and_says_so(tiny_masker, phantom, tmp_
     assert f"(mask automatic (network, --mask-model {model}))" in log
 
 
+def _three_stacks(phantom, tmp_path, seed: int):
+    """Three stacks of an unseen scene (files) and their true masks."""
+    from svr.image import save_nifti
+
+    scene = make_scene(phantom, TINY_DATA.scene, seed=seed)
+    config = SimulationConfig(num_stacks=3, in_plane_mm=2.5, thickness_mm=3.5, margin_mm=45.0)
+    case = simulate_case(scene, config)
+    paths = [str(save_nifti(s.image, tmp_path / f"s{n}.nii.gz")) for n, s in enumerate(case.stacks)]
+    return paths, [s.mask.data > 0.5 for s in case.stacks]
+
+
+def test_segment_stack_fuses_the_masks_of_one_fetus(tiny_masker, phantom, tmp_path, caplog):
+    caplog.set_level(logging.INFO)
+    stacks, truths = _three_stacks(phantom, tmp_path, seed=99)
+    model = save_brain_masker(tiny_masker, tmp_path / "model")
+    outs = [str(tmp_path / f"m{n}.nii.gz") for n in range(3)]
+    argv = ["segment-stack", "--input-stacks", *stacks, "--output-stack-masks", *outs]
+    argv += ["--fuse-masks", "--thicknesses", "3.5", "--mask-model", str(model), "-q"]
+    assert main(argv) == 0
+    assert caplog.text.count("fused brain mask") == 3
+    for stack, out, truth in zip(stacks, outs, truths, strict=True):
+        written = nib.load(out)
+        np.testing.assert_array_equal(written.affine, nib.load(stack).affine)
+        assert dice(torch.from_numpy(np.asarray(written.dataobj) > 0), truth) >= 0.8
+
+
+def test_register_fuses_automatic_masks_and_says_so(tiny_masker, phantom, tmp_path, caplog):
+    caplog.set_level(logging.INFO)
+    stacks, _ = _three_stacks(phantom, tmp_path, seed=7)
+    model = save_brain_masker(tiny_masker, tmp_path / "model")
+    argv = ["register", "--input-stacks", *stacks, "--thicknesses", "3.5", "--iterations", "1"]
+    argv += ["--sr-iterations", "1", "--output-resolution", "3", "--mask-model", str(model)]
+    argv += ["--output-transforms", str(tmp_path / "t.csv"), "--output-log", str(tmp_path / "l")]
+    argv += ["--registration", "stack", "--fuse-masks"]
+    assert main(argv) == 0
+    log = (tmp_path / "l").read_text()
+    assert "automatic brain masks fused across 3 stacks" in log
+    assert f"(mask automatic (network, --mask-model {model}, fused across stacks))" in log
+    assert "fuse_masks: True" in log
+
+
 # --- the shipped model ---------------------------------------------------------------------------
 
 SHIPPED = brain_mask_model_path()

@@ -550,6 +550,78 @@ def _cases() -> list[Case]:
         )
     add(
         Case(
+            "segment-stack-fuse-two-stacks",
+            "segment-stack",
+            [
+                "--input-stacks",
+                "{stack}",
+                "{stack}",
+                "--output-stack-masks",
+                "{out}/a.nii.gz",
+                "{out}/b.nii.gz",
+                "--fuse-masks",
+            ],
+            ["--fuse-masks: needs at least 3 stacks of one fetus, got 2"],
+        )
+    )
+    add(
+        Case(
+            "segment-stack-thicknesses-without-fusion",
+            "segment-stack",
+            ["--thicknesses", "3"],
+            ["--thicknesses: used only with --fuse-masks"],
+        )
+    )
+    add(
+        Case(
+            "segment-stack-thickness-count",
+            "segment-stack",
+            [
+                "--input-stacks",
+                "{stack}",
+                "{stack}",
+                "{stack}",
+                "--output-stack-masks",
+                "{out}/a.nii.gz",
+                "{out}/b.nii.gz",
+                "{out}/c.nii.gz",
+                "--fuse-masks",
+                "--thicknesses",
+                "3",
+                "3",
+            ],
+            ["--thicknesses: got 2 values for 3 stacks"],
+        )
+    )
+    for command in ("register", "reconstruct"):
+        add(
+            Case(
+                f"{command}-fuse-given-masks",
+                command,
+                ["--fuse-masks"],
+                ["--fuse-masks: only for automatic masks (give no --stack-masks)"],
+            )
+        )
+        add(
+            Case(
+                f"{command}-fuse-otsu",
+                command,
+                ["--fuse-masks", "--auto-masks", "otsu"],
+                ["--fuse-masks: needs --auto-masks network"],
+                drop=["--stack-masks"],
+            )
+        )
+        add(
+            Case(
+                f"{command}-fuse-one-stack",
+                command,
+                ["--fuse-masks"],
+                ["--fuse-masks: needs at least 3 stacks of one fetus, got 1"],
+                drop=["--stack-masks"],
+            )
+        )
+    add(
+        Case(
             "segment-stack-pose-model",
             "segment-stack",
             ["--mask-model", "{model}"],

@@ -45,7 +45,9 @@ with their simulation is below --ncc-threshold, and edge-preserving super-resolu
 Stacks are cropped to their brain masks and normalised; without --stack-masks each stack's brain
 is found automatically (--auto-masks network, as `svr segment-stack` does; the log and the QA
 figure say so; accurate on stacks cropped around the brain, looser than manual masks on
-whole-uterus scans; a stack without a found brain stops the command with an error). The output
+whole-uterus scans; a stack without a found brain stops the command with an error; with
+--fuse-masks the masks of 3 or more stacks are made to agree in 3D, as `svr segment-stack
+--fuse-masks` does). The output
 volume is in canonical atlas space with --registration cnn and in the scanner's world frame
 otherwise. --output-transforms writes one row per slice (stack file, k index, pose of the file's
 k-plane as 6-vector and matrix, frame, NCC, EM weight, excluded); --output-slices a NeSVoR-style
@@ -117,6 +119,13 @@ def add_options(
         default="default",
         metavar="CHECKPOINT_DIR",
         help=f"{MASK_MODEL_HELP} (for --auto-masks network)",
+    )
+    inputs.add_argument(
+        "--fuse-masks",
+        action="store_true",
+        help="make the automatic masks (--auto-masks network, 3 or more stacks) agree in 3D: "
+        "the stacks are registered rigidly on their own masks and each stack's mask becomes the "
+        "vote of all of them, as `svr segment-stack --fuse-masks` does",
     )
     inputs.add_argument(
         "--thicknesses",
@@ -270,6 +279,7 @@ _OPTIONS = {
 def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
     """The dataclass configs the options describe, after the checks argparse cannot do."""
     from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS
     from svr.reconstruction.stacks import StackConfig
 
     count = len(args.input_stacks)
@@ -285,7 +295,19 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
         )
     if args.template is not None and not 0 <= args.template < count:
         raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
-    stack_config = StackConfig(bias_correction=args.bias_correction, auto_mask=args.auto_masks)
+    if args.fuse_masks and args.stack_masks is not None:
+        raise CliError("--fuse-masks: only for automatic masks (give no --stack-masks)")
+    if args.fuse_masks and args.auto_masks != "network":
+        raise CliError("--fuse-masks: needs --auto-masks network")
+    if args.fuse_masks and count < MIN_FUSED_STACKS:
+        raise CliError(
+            f"--fuse-masks: needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
+        )
+    stack_config = StackConfig(
+        bias_correction=args.bias_correction,
+        auto_mask=args.auto_masks,
+        fuse_masks=args.fuse_masks,
+    )
     try:
         config = ReconstructionConfig(
             output_resolution_mm=args.output_resolution,
@@ -383,7 +405,8 @@ def _mask_source(args: argparse.Namespace) -> str:
     if args.stack_masks is not None:
         return "given (--stack-masks)"
     if args.auto_masks == "network":
-        return f"automatic (network, --mask-model {args.mask_model})"
+        fused = ", fused across stacks" if args.fuse_masks else ""
+        return f"automatic (network, --mask-model {args.mask_model}{fused})"
     return "automatic (otsu)"
 
 

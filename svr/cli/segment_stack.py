@@ -14,6 +14,7 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     check_outputs,
+    positive_float,
     resolve_device,
 )
 
@@ -31,9 +32,22 @@ leaks and pieces of the body joined by narrow bridges) and its holes filled. A s
 no brain is found is an error naming the stack (no mask is written). All inputs are checked and
 all masks computed before any file is written.
 
+With --fuse-masks the stacks are taken to be of one fetus (at least 3, in different
+orientations): they are registered rigidly on their own masks, every stack's mask is spread into
+3D through its slices' PSF, and the masks vote: a pixel is brain where more than 65 % of the vote
+(the stacks' masks simulated on its slice) says so, not where less than 35 % does, and in between
+the stack's own mask decides. This mends what one view gets wrong, above all the slices at the
+ends of the head and pockets of fluid beside it; on the real whole-uterus scan it raises the
+Dice against manual masks from 0.87-0.90 to 0.91-0.92 per stack (it costs some Dice on cropped
+stacks with large motion, where the rigid stack registration cannot align the slices: 0.94-0.97
+to 0.92-0.95 on the sb24-large bench case). A stack whose mask disagrees with the others' (Dice
+below 0.7) keeps its own, with a warning.
+
 examples:
   svr segment-stack --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz \\
       --output-stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --output-qa masks.png
+  svr segment-stack --input-stacks run*.nii.gz --output-stack-masks mask1.nii.gz \\
+      mask2.nii.gz mask3.nii.gz mask4.nii.gz --fuse-masks --thicknesses 3
   svr segment-stack --input-stacks run1.nii.gz --output-stack-masks run1_mask.nii.gz \\
       --device cuda --overwrite
 """
@@ -68,6 +82,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         metavar="CHECKPOINT_DIR",
         help=MASK_MODEL_HELP,
     )
+    p.add_argument(
+        "--fuse-masks",
+        action="store_true",
+        help="the stacks are of one fetus (at least 3): register them and make their masks "
+        "agree in 3D (see above)",
+    )
+    p.add_argument(
+        "--thicknesses",
+        nargs="+",
+        type=positive_float,
+        metavar="MM",
+        help="slice thickness in mm for --fuse-masks: one for all stacks or one per stack "
+        "(default: each stack's slice spacing, with a warning)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_common_options(p)
 
@@ -76,12 +104,25 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
     from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
     from svr.models.brain_mask import load_brain_masker, segment_stack
+    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS, fuse_stack_masks
     from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure
 
     if len(args.output_stack_masks) != len(args.input_stacks):
         raise CliError(
             f"--output-stack-masks: got {len(args.output_stack_masks)} paths for "
             f"{len(args.input_stacks)} stacks; give one per stack"
+        )
+    count = len(args.input_stacks)
+    if args.fuse_masks and count < MIN_FUSED_STACKS:
+        raise CliError(
+            f"--fuse-masks: needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
+        )
+    if args.thicknesses is not None and not args.fuse_masks:
+        raise CliError("--thicknesses: used only with --fuse-masks")
+    if args.thicknesses is not None and len(args.thicknesses) not in (1, count):
+        raise CliError(
+            f"--thicknesses: got {len(args.thicknesses)} values for {count} stacks; give one for "
+            "all stacks or one per stack"
         )
     check_outputs(
         [
@@ -104,20 +145,31 @@ def run(args: argparse.Namespace) -> int:
         began = time.perf_counter()
         results.append(segment_stack(stack, masker, name=str(path), device=device))
         log.info("%s: %.2f s", path, time.perf_counter() - began)
-    for path, out, result in zip(args.input_stacks, args.output_stack_masks, results, strict=True):
-        save_mask_like(result.mask, path, out, args.overwrite)
+    masks = [result.mask for result in results]
+    if args.fuse_masks:
+        began = time.perf_counter()
+        names = [str(path) for path in args.input_stacks]
+        fused = fuse_stack_masks(stacks, masks, args.thicknesses, names, device=device)
+        masks = fused.masks
+        log.info("mask fusion: %.2f s", time.perf_counter() - began)
+    for path, out, mask in zip(args.input_stacks, args.output_stack_masks, masks, strict=True):
+        save_mask_like(mask, path, out, args.overwrite)
     written = list(args.output_stack_masks)
     if args.output_qa is not None:
         figure = masks_figure(
             [
-                (str(path), stack, result.mask)
-                for path, stack, result in zip(args.input_stacks, stacks, results, strict=True)
+                (str(path), stack, mask)
+                for path, stack, mask in zip(args.input_stacks, stacks, masks, strict=True)
             ],
             args.output_qa,
             args.overwrite,
-            title="automatic brain masks (svr segment-stack)",
+            title="automatic brain masks (svr segment-stack"
+            + (", fused across stacks)" if args.fuse_masks else ")"),
         )
         written.append(str(figure))
-    volumes = ", ".join(f"{r.volume_ml:.0f}" for r in results)
+    volumes = ", ".join(
+        f"{float(mask.sum()) * float(stack.spacing.prod()) / 1000:.0f}"
+        for mask, stack in zip(masks, stacks, strict=True)
+    )
     print(f"wrote {', '.join(written)}: brain volumes {volumes} ml")
     return 0
