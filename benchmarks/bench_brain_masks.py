@@ -44,6 +44,12 @@ head's ends): the conventions of models trained with ``--faces --spinal-cord
 --partial-volume-masks [--grazing-only]``. The brains are the atlas's, as in training:
 this measures the scenes and acquisitions held out, not unseen anatomy.
 
+Part ``consistency`` (not in ``all``): how well the manual masks of the real scan agree with
+each other: each stack's manual mask against the vote of the other five stacks' manual masks on
+its planes (:func:`svr.reconstruction.mask_fusion.leave_one_out_votes` above 0.5, with the slice
+poses of a reconstruction with the manual masks, excluded slices left out), beside the automatic
+masks' Dice, own and fused.
+
 Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
 ``regrow_mm``) swept over settings on every stack of part ``masks`` and of part ``simval``: the
 ``--mask-model`` probabilities of each stack are computed once and cleaned up with each setting
@@ -361,6 +367,55 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
     ]
 
 
+def part_consistency(args: argparse.Namespace, report: dict) -> list[str]:
+    """How well the other stacks' manual masks predict each stack's (the masks' own agreement)."""
+    from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.mask_fusion import fuse_stack_masks, leave_one_out_votes
+    from svr.reconstruction.pipeline import reconstruct
+    from svr.reconstruction.stacks import prepare_stacks
+
+    pairs = datasets(args.data)["real-mialsrtk-sub01"]
+    images = [load_nifti(s) for s, _ in pairs]
+    manual = [
+        mask_on_grid(load_nifti(m), image) for (_, m), image in zip(pairs, images, strict=True)
+    ]
+    names = [p.name for p, _ in pairs]
+    stacks = prepare_stacks(images, [load_nifti(m) for _, m in pairs], 3.0, names=names)
+    result = reconstruct(stacks, ReconstructionConfig(registration="stack"), progress=False)
+    kept = result.slices.subset(~result.excluded)
+    votes = leave_one_out_votes(images, manual, kept, [3.0] * len(images))
+    masker = load_brain_masker(args.mask_model)
+    own = [
+        segment_stack(image, masker, name=n).mask for image, n in zip(images, names, strict=True)
+    ]
+    fused = fuse_stack_masks(images, own, 3.0, names).masks
+    lines = [
+        "",
+        "Manual masks of the real scan against the vote of the other 5 stacks' manual masks",
+        "(`leave_one_out_votes` > 0.5, slice poses of a reconstruction with the manual masks), and",
+        "the automatic masks (own, fused) against the manual ones:",
+        "",
+        "| stack | manual vs the others' manual | automatic vs manual | fused vs manual |",
+        "|---|---|---|---|",
+    ]
+    rows = []
+    for name, vote, truth, mine, joint in zip(names, votes, manual, own, fused, strict=True):
+        row = {
+            "stack": name,
+            "manual_vs_others": scores(vote > 0.5, truth)["dice"],
+            "automatic": scores(mine, truth)["dice"],
+            "fused": scores(joint, truth)["dice"],
+        }
+        rows.append(row)
+        lines.append(
+            f"| {name} | {row['manual_vs_others']:.3f} | {row['automatic']:.3f} | "
+            f"{row['fused']:.3f} |"
+        )
+        print(lines[-1], flush=True)
+    report["consistency"] = rows
+    return lines
+
+
 def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tensor]]:
     """The held-out simulated stacks of part ``simval``: (case name, stack, bool brain mask)."""
     import dataclasses
@@ -519,7 +574,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mask-model", default="default")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument(
-        "--part", choices=["masks", "recon", "all", "simval", "opening"], default="all"
+        "--part",
+        choices=["masks", "recon", "all", "simval", "opening", "consistency"],
+        default="all",
     )
     parser.add_argument("--sim-cases", type=int, default=8, help="simval: number of scenes")
     parser.add_argument(
@@ -568,6 +625,8 @@ def main(argv: list[str] | None = None) -> int:
         lines += part_simval(args, report)
     if args.part == "opening":
         lines += part_opening(args, report)
+    if args.part == "consistency":
+        lines += part_consistency(args, report)
     if args.results is not None:
         args.results.write_text("\n".join(lines) + "\n")
         args.results.with_suffix(".json").write_text(json.dumps(report, indent=2) + "\n")

@@ -53,7 +53,14 @@ from svr.reconstruction.superres import output_grid, scattered_data_approximatio
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FusedMasks", "MaskFusionConfig", "all_plane_poses", "fuse_masks", "fuse_stack_masks"]
+__all__ = [
+    "FusedMasks",
+    "MaskFusionConfig",
+    "all_plane_poses",
+    "fuse_masks",
+    "fuse_stack_masks",
+    "leave_one_out_votes",
+]
 
 # Stacks needed for a vote (two stacks would only give their intersection).
 MIN_FUSED_STACKS = 3
@@ -264,6 +271,120 @@ def _dice(a: np.ndarray, b: np.ndarray) -> float:
     return 2.0 * int((a & b).sum()) / total if total else 1.0
 
 
+class _Ballot:
+    """The stacks' masks spread into one volume and simulated back (module docstring, 1-3)."""
+
+    def __init__(
+        self,
+        stacks: Sequence[Image],
+        masks: Sequence[np.ndarray],
+        slices: SliceSet,
+        thicknesses: Sequence[float],
+        cfg: MaskFusionConfig,
+        device: torch.device | str,
+    ) -> None:
+        poses = all_plane_poses(slices, stacks)
+        planes = _plane_set(stacks, masks, thicknesses, poses, slices.frame, cfg.footprint_mm)
+        self.planes = planes.to(device)
+        self.grid = output_grid(self.planes, cfg.resolution_mm)
+        self.stacks = stacks
+        self.device = device
+        self.parts = []  # per stack: its planes' rows, projector, PSF points, observed values
+        for index in range(len(stacks)):
+            rows = self.planes.stack_slices(index)
+            projector = SliceProjector(
+                self.grid, self.planes.subset(rows), psf_samples=cfg.psf_samples
+            )
+            points = projector.grid_points(self.planes.poses[rows])
+            observed = projector.gather(self.planes.images[rows])
+            self.parts.append((rows, projector, points, observed))
+
+    def volume(self, members: Sequence[bool]) -> Tensor:
+        """The members' masks spread into 3D, each on its own, and averaged.
+
+        Each is 0 where its planes do not reach: beyond its footprint a stack says "no brain".
+        """
+        volume = torch.zeros(self.grid.shape, device=self.device)
+        for (_, projector, points, observed), member in zip(self.parts, members, strict=True):
+            if member:
+                ones = torch.ones_like(observed)
+                volume += scattered_data_approximation(projector, points, observed, ones)
+        return volume / sum(members)
+
+    def level(self, index: int, volume: Tensor) -> np.ndarray:
+        """The vote on stack ``index``'s planes: ``volume`` simulated there, (I, J, K)."""
+        rows, projector, points, _ = self.parts[index]
+        i, j, _ = self.stacks[index].shape
+        level = torch.zeros((len(rows), *self.planes.size), device=volume.device)
+        simulated = projector.forward(volume, points).float()
+        level.view(len(rows), -1)[projector.slice_of, projector.pixel_of] = simulated
+        return level[:, :i, :j].permute(1, 2, 0).cpu().numpy()
+
+
+def leave_one_out_votes(
+    stacks: Sequence[Image],
+    masks: Sequence[Tensor],
+    slices: SliceSet,
+    thicknesses: Sequence[float],
+    config: MaskFusionConfig | None = None,
+    device: torch.device | str = "cpu",
+) -> list[Tensor]:
+    """Each stack's planes as the other stacks' masks see them: how consistent masks are.
+
+    For manual masks this measures how well the masks of the other stacks (through the
+    registration and the PSF) predict each stack's own: ``votes[k] > 0.5`` against ``masks[k]``.
+
+    Args:
+        stacks: The (I, J, K) stacks as read, at least 3.
+        masks: Per stack, its (I, J, K) bool mask on the stack's grid.
+        slices: The stacks' slices registered into one frame (as :func:`fuse_masks`).
+        thicknesses: Per stack, the slice thickness, mm.
+        config: Grid, footprint and PSF (its threshold and margins are not used).
+        device: Where to compute (the results are on the CPU).
+
+    Returns:
+        Per stack, the (I, J, K) float32 vote of all the other stacks on its planes.
+
+    Raises:
+        ValueError: For fewer than 3 stacks, or a mask not on its stack's grid.
+    """
+    cfg = MaskFusionConfig() if config is None else config
+    names = list(slices.stack_names)
+    own = _checked_masks(stacks, masks, thicknesses, names, "leave_one_out_votes")
+    ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device)
+    out = []
+    for index in range(len(stacks)):
+        others = [n != index for n in range(len(stacks))]
+        out.append(torch.from_numpy(ballot.level(index, ballot.volume(others))))
+    return out
+
+
+def _checked_masks(
+    stacks: Sequence[Image],
+    masks: Sequence[Tensor],
+    thicknesses: Sequence[float],
+    names: Sequence[str],
+    caller: str,
+) -> list[np.ndarray]:
+    """The masks as bool arrays, checked: at least 3 stacks, one mask each, on its grid."""
+    count = len(stacks)
+    if count < MIN_FUSED_STACKS:
+        raise ValueError(
+            f"{caller}(): needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
+        )
+    for what, given in (("masks", masks), ("thicknesses", thicknesses), ("names", names)):
+        if len(given) != count:
+            raise ValueError(f"{caller}(): got {len(given)} {what} for {count} stacks")
+    own = [m.detach().cpu().numpy().astype(bool) for m in masks]
+    for mask, stack, name in zip(own, stacks, names, strict=True):
+        if mask.shape != tuple(stack.shape):
+            raise ValueError(
+                f"{caller}(): the mask of {name} has shape {mask.shape}, expected its stack's "
+                f"{tuple(stack.shape)}"
+            )
+    return own
+
+
 def fuse_masks(
     stacks: Sequence[Image],
     masks: Sequence[Tensor],
@@ -295,55 +416,22 @@ def fuse_masks(
     """
     cfg = MaskFusionConfig() if config is None else config
     count = len(stacks)
-    if count < MIN_FUSED_STACKS:
-        raise ValueError(
-            f"fuse_masks(): needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
-        )
     names = list(slices.stack_names if names is None else names)
-    for what, given in (("masks", masks), ("thicknesses", thicknesses), ("names", names)):
-        if len(given) != count:
-            raise ValueError(f"fuse_masks(): got {len(given)} {what} for {count} stacks")
-    own = [m.detach().cpu().numpy().astype(bool) for m in masks]
-    for mask, stack, name in zip(own, stacks, names, strict=True):
-        if mask.shape != tuple(stack.shape):
-            raise ValueError(
-                f"fuse_masks(): the mask of {name} has shape {mask.shape}, expected its stack's "
-                f"{tuple(stack.shape)}"
-            )
+    own = _checked_masks(stacks, masks, thicknesses, names, "fuse_masks")
     from svr.models.brain_mask import clean_up_mask
 
-    poses = all_plane_poses(slices, stacks)
-    planes = _plane_set(stacks, own, thicknesses, poses, slices.frame, cfg.footprint_mm)
-    planes = planes.to(device)
-    grid = output_grid(planes, cfg.resolution_mm)
-    parts = []  # per stack: its planes' rows, projector, PSF points and observed mask values
-    for index in range(count):
-        rows = planes.stack_slices(index)
-        projector = SliceProjector(grid, planes.subset(rows), psf_samples=cfg.psf_samples)
-        points = projector.grid_points(planes.poses[rows])
-        parts.append((rows, projector, points, projector.gather(planes.images[rows])))
+    ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device)
 
     def vote(members: Sequence[bool]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        # each member's mask spread into 3D on its own, where its planes reach, and 0 elsewhere
-        # (beyond its footprint a stack says "no brain"); the members' volumes averaged
-        volume = torch.zeros(grid.shape, device=device)
-        for (_, projector, points, observed), member in zip(parts, members, strict=True):
-            if member:
-                ones = torch.ones_like(observed)
-                volume += scattered_data_approximation(projector, points, observed, ones)
-        volume /= sum(members)
+        volume = ballot.volume(members)
         masks_out, levels_out = [], []
-        for (rows, projector, points, _), stack, mask in zip(parts, stacks, own, strict=True):
-            i, j, _ = stack.shape
-            level = torch.zeros((len(rows), *planes.size), device=device)
-            simulated = projector.forward(volume, points).float()
-            level.view(len(rows), -1)[projector.slice_of, projector.pixel_of] = simulated
-            level_ijk = level[:, :i, :j].permute(1, 2, 0).cpu().numpy()
+        for index, (stack, mask) in enumerate(zip(stacks, own, strict=True)):
+            level = ballot.level(index, volume)
             spacing = stack.spacing.cpu().double().numpy()
-            sure = level_ijk > cfg.threshold + cfg.own_margin
-            brain = sure | (mask & (level_ijk > cfg.threshold - cfg.own_margin))
+            sure = level > cfg.threshold + cfg.own_margin
+            brain = sure | (mask & (level > cfg.threshold - cfg.own_margin))
             masks_out.append(clean_up_mask(brain, spacing))
-            levels_out.append(level_ijk)
+            levels_out.append(level)
         return masks_out, levels_out
 
     fused, levels = vote([True] * count)

@@ -17,6 +17,7 @@ from svr.reconstruction.mask_fusion import (
     all_plane_poses,
     fuse_masks,
     fuse_stack_masks,
+    leave_one_out_votes,
 )
 from svr.reconstruction.slices import extract_slices
 from svr.reconstruction.stacks import prepare_stacks
@@ -149,6 +150,22 @@ def test_the_own_mask_decides_where_the_vote_is_near_the_threshold(stacks, margi
     assert float(result.votes[1][pocket].max()) < 0.5  # out-voted by the other three
     outvoted = pocket & (result.votes[1] < 0.5 - margin)
     assert outvoted.sum() > 0 and not bool((result.masks[1] & outvoted).any())
+
+
+def test_leave_one_out_votes_see_each_stack_through_the_others_only(stacks):
+    images, truth = stacks
+    own = [m.clone() for m in truth]
+    own[0][40:47, 16:32, 5:11] = True  # a pocket only stack 0 takes in
+    slices = _scanner_slices(images, own)
+    votes = leave_one_out_votes(images, own, slices, [SLICE_MM] * 4)
+    pocket = torch.zeros_like(own[0])
+    pocket[40:47, 16:32, 5:11] = True
+    pocket &= ~truth[0]
+    assert float(votes[0][pocket].max()) < 0.5  # its own pocket has no say on its planes
+    for vote, mask in zip(votes, truth, strict=True):
+        assert dice(vote > 0.5, mask) > 0.95
+    fused = fuse_masks(images, own, slices, [SLICE_MM] * 4, MaskFusionConfig(own_margin=0.0))
+    assert float(fused.votes[0][pocket].max()) > float(votes[0][pocket].max())
 
 
 def test_a_stack_that_disagrees_keeps_its_own_mask_and_has_no_vote(stacks, caplog):
