@@ -36,7 +36,6 @@ the slices misaligned (``benchmarks/results/brain-masks.md``).
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -45,11 +44,16 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.geometry import se3_compose, se3_inverse
 from svr.image import Image, stack_slice_poses
+from svr.models.brain_mask import clean_up_mask
 from svr.reconstruction.operators import SliceProjector
-from svr.reconstruction.slices import SliceSet, array_poses, plane_poses
+from svr.reconstruction.pipeline import stack_registration
+from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
+from svr.reconstruction.stacks import prepare_stacks
 from svr.reconstruction.superres import output_grid, scattered_data_approximation
+from svr.sampling._validation import is_finite_number
 
 log = logging.getLogger(__name__)
 
@@ -96,46 +100,26 @@ class MaskFusionConfig:
     psf_samples: int = 5
 
     def __post_init__(self) -> None:
-        def number(name: str) -> float:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ValueError(f"MaskFusionConfig: '{name}' must be a number, got {value!r}")
-            return float(value)
+        def fail(name: str, expected: str) -> None:
+            raise ConfigFieldError("MaskFusionConfig", name, expected, getattr(self, name))
 
         for name in ("resolution_mm", "registration_mm"):
-            if not (math.isfinite(number(name)) and number(name) > 0):
-                raise ValueError(
-                    f"MaskFusionConfig: '{name}' must be a finite number > 0, got "
-                    f"{getattr(self, name)!r}"
-                )
-        if not (math.isfinite(number("footprint_mm")) and number("footprint_mm") >= 0):
-            raise ValueError(
-                f"MaskFusionConfig: 'footprint_mm' must be a finite number >= 0, got "
-                f"{self.footprint_mm!r}"
-            )
-        if not 0 < number("threshold") < 1:
-            raise ValueError(
-                f"MaskFusionConfig: 'threshold' must be in (0, 1), got {self.threshold!r}"
-            )
-        if not 0 <= number("own_margin") < min(self.threshold, 1 - self.threshold):
-            raise ValueError(
-                "MaskFusionConfig: 'own_margin' must be in [0, min(threshold, 1 - threshold)), "
-                f"got {self.own_margin!r}"
-            )
-        if not 0 <= number("min_agreement") <= 1:
-            raise ValueError(
-                f"MaskFusionConfig: 'min_agreement' must be in [0, 1], got {self.min_agreement!r}"
-            )
+            if not (is_finite_number(getattr(self, name)) and getattr(self, name) > 0):
+                fail(name, "a finite number > 0")
+        if not (is_finite_number(self.footprint_mm) and self.footprint_mm >= 0):
+            fail("footprint_mm", "a finite number >= 0")
+        if not (is_finite_number(self.threshold) and 0 < self.threshold < 1):
+            fail("threshold", "in (0, 1)")
+        limit = min(self.threshold, 1 - self.threshold)
+        if not (is_finite_number(self.own_margin) and 0 <= self.own_margin < limit):
+            fail("own_margin", "in [0, min(threshold, 1 - threshold))")
+        if not (is_finite_number(self.min_agreement) and 0 <= self.min_agreement <= 1):
+            fail("min_agreement", "in [0, 1]")
         samples = self.psf_samples
-        if (
-            isinstance(samples, bool)
-            or not isinstance(samples, int)
-            or samples < 1
-            or not samples % 2
-        ):
-            raise ValueError(
-                f"MaskFusionConfig: 'psf_samples' must be an odd integer >= 1, got {samples!r}"
-            )
+        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+            fail("psf_samples", "an odd integer >= 1")
+        if samples % 2 == 0:
+            fail("psf_samples", "an odd integer >= 1")
 
 
 @dataclass(frozen=True)
@@ -418,8 +402,6 @@ def fuse_masks(
     count = len(stacks)
     names = list(slices.stack_names if names is None else names)
     own = _checked_masks(stacks, masks, thicknesses, names, "fuse_masks")
-    from svr.models.brain_mask import clean_up_mask
-
     ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device)
 
     def vote(members: Sequence[bool]) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -485,10 +467,6 @@ def fuse_stack_masks(
         ValueError: As :func:`fuse_masks`; for a thickness that is not a positive number.
         ImageError: A mask that is empty or does not overlap its stack (its name first).
     """
-    from svr.reconstruction.pipeline import stack_registration
-    from svr.reconstruction.slices import extract_slices
-    from svr.reconstruction.stacks import prepare_stacks
-
     cfg = MaskFusionConfig() if config is None else config
     if len(stacks) < MIN_FUSED_STACKS:
         raise ValueError(

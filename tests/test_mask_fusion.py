@@ -233,7 +233,8 @@ def test_fusion_refuses_too_few_stacks_and_masks_off_their_grid(stacks):
         ("min_agreement", 1.5, r"'min_agreement' must be in \[0, 1\]"),
         ("own_margin", 0.5, r"'own_margin' must be in \[0, min\(threshold, 1 - threshold\)\)"),
         ("psf_samples", 4, "'psf_samples' must be an odd integer >= 1"),
-        ("threshold", "0.5", "'threshold' must be a number"),
+        ("threshold", "0.5", r"'threshold' must be in \(0, 1\), got '0.5'"),
+        ("psf_samples", 3.0, "'psf_samples' must be an odd integer >= 1"),
     ],
 )
 def test_config_names_the_bad_field(field, value, message):

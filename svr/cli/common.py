@@ -139,6 +139,33 @@ def positive_float(text: str) -> float:
     return value
 
 
+def check_thickness_count(thicknesses: list[float] | None, count: int) -> None:
+    """Refuse a ``--thicknesses`` list that is neither one value nor one per stack.
+
+    Raises:
+        CliError: Naming ``--thicknesses``.
+    """
+    if thicknesses is not None and len(thicknesses) not in (1, count):
+        raise CliError(
+            f"--thicknesses: got {len(thicknesses)} values for {count} stacks; give one for "
+            "all stacks or one per stack"
+        )
+
+
+def check_fusion_count(count: int) -> None:
+    """Refuse ``--fuse-masks`` with fewer stacks than a vote needs.
+
+    Raises:
+        CliError: Naming ``--fuse-masks``.
+    """
+    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS
+
+    if count < MIN_FUSED_STACKS:
+        raise CliError(
+            f"--fuse-masks: needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
+        )
+
+
 def check_finite(args: argparse.Namespace, *options: str) -> None:
     """Refuse NaN and infinite values of float options that the library checks only for sign.
 

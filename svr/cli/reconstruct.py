@@ -20,7 +20,9 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_fusion_count,
     check_outputs,
+    check_thickness_count,
     positive_float,
     positive_int,
     resolve_device,
@@ -279,7 +281,6 @@ _OPTIONS = {
 def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
     """The dataclass configs the options describe, after the checks argparse cannot do."""
     from svr.reconstruction.config import ReconstructionConfig
-    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS
     from svr.reconstruction.stacks import StackConfig
 
     count = len(args.input_stacks)
@@ -288,21 +289,15 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
             f"--stack-masks: got {len(args.stack_masks)} masks for {count} stacks; give none or "
             "one per stack"
         )
-    if args.thicknesses is not None and len(args.thicknesses) not in (1, count):
-        raise CliError(
-            f"--thicknesses: got {len(args.thicknesses)} values for {count} stacks; give one for "
-            "all stacks or one per stack"
-        )
+    check_thickness_count(args.thicknesses, count)
     if args.template is not None and not 0 <= args.template < count:
         raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
     if args.fuse_masks and args.stack_masks is not None:
         raise CliError("--fuse-masks: only for automatic masks (give no --stack-masks)")
     if args.fuse_masks and args.auto_masks != "network":
         raise CliError("--fuse-masks: needs --auto-masks network")
-    if args.fuse_masks and count < MIN_FUSED_STACKS:
-        raise CliError(
-            f"--fuse-masks: needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
-        )
+    if args.fuse_masks:
+        check_fusion_count(count)
     stack_config = StackConfig(
         bias_correction=args.bias_correction,
         auto_mask=args.auto_masks,

@@ -13,7 +13,9 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_fusion_count,
     check_outputs,
+    check_thickness_count,
     positive_float,
     resolve_device,
 )
@@ -104,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
     from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
     from svr.models.brain_mask import load_brain_masker, segment_stack
-    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS, fuse_stack_masks
+    from svr.reconstruction.mask_fusion import fuse_stack_masks
     from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure
 
     if len(args.output_stack_masks) != len(args.input_stacks):
@@ -112,18 +114,11 @@ def run(args: argparse.Namespace) -> int:
             f"--output-stack-masks: got {len(args.output_stack_masks)} paths for "
             f"{len(args.input_stacks)} stacks; give one per stack"
         )
-    count = len(args.input_stacks)
-    if args.fuse_masks and count < MIN_FUSED_STACKS:
-        raise CliError(
-            f"--fuse-masks: needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
-        )
+    if args.fuse_masks:
+        check_fusion_count(len(args.input_stacks))
     if args.thicknesses is not None and not args.fuse_masks:
         raise CliError("--thicknesses: used only with --fuse-masks")
-    if args.thicknesses is not None and len(args.thicknesses) not in (1, count):
-        raise CliError(
-            f"--thicknesses: got {len(args.thicknesses)} values for {count} stacks; give one for "
-            "all stacks or one per stack"
-        )
+    check_thickness_count(args.thicknesses, len(args.input_stacks))
     check_outputs(
         [
             *(("--output-stack-masks", path, NIFTI_SUFFIXES) for path in args.output_stack_masks),
