@@ -8,14 +8,16 @@ same head, so their masks can vote. :func:`fuse_masks`:
 1. gives every k-plane of every stack a pose in one frame: the registered pose of its slice where
    the registration had one, otherwise the motion of the nearest registered slice of the same
    stack applied to the plane (the planes beyond a mask's ends, which registration never sees);
-2. spreads each stack's mask (0 / 1), plane by plane, into a volume of its own through the
-   acquisition model (PSF-weighted average, as the reconstruction's first estimate,
+2. spreads each stack's mask (0 / 1), or where given the segmentation network's probability of
+   brain behind it (soft votes, so that a pixel the network was unsure of counts as such),
+   plane by plane, into a volume of its own through the acquisition model (PSF-weighted
+   average, as the reconstruction's first estimate,
    :func:`~svr.reconstruction.superres.scattered_data_approximation`) over the stack's footprint
    (the in-plane outline of its mask on any slice, widened by ``MaskFusionConfig.footprint_mm``,
    on every plane, so that planes without brain vote too), 0 where its planes do not reach (a
    stack says "no brain" beyond its footprint), and averages the stacks' volumes;
 3. simulates every stack's planes from that volume (the vote: the fraction of the stacks whose
-   masks hold each pixel), and calls a pixel brain where the vote exceeds
+   masks hold each pixel, or their mean probability), and calls a pixel brain where the vote exceeds
    ``MaskFusionConfig.threshold`` by more than ``own_margin``, not where it falls short of it by
    more than that, and as the stack's own mask says in between (where misregistration and the
    PSF blur the vote at the outline, the stack's own sharper outline is kept); then one body
@@ -27,10 +29,11 @@ warning; if fewer than 3 stacks remain, every stack keeps its own. :func:`fuse_s
 registers the stacks first (rigidly, as ``svr reconstruct --registration stack`` starts) and
 fuses.
 
-On the real clinical scan (6 whole-uterus stacks) fusion raises the automatic masks' Dice
-against the manual ones from 0.868-0.900 to 0.907 or more on every stack; on cropped stacks with
-large motion (bench case sb24-large) it costs 0.01-0.02, the rigid stack registration leaving
-the slices misaligned (``benchmarks/results/brain-masks.md``).
+On the real clinical scan (6 whole-uterus stacks) fusion with soft votes raises the automatic
+masks' Dice against the manual ones from 0.868-0.900 to 0.908-0.919 (recall 0.884-0.906, against
+0.864-0.896 with votes of the masks); on cropped stacks with large motion (bench case sb24-large)
+it costs 0.01 (0.928-0.959 from 0.939-0.967), the rigid stack registration leaving the slices
+misaligned (``benchmarks/results/brain-masks.md``).
 """
 
 from __future__ import annotations
@@ -132,7 +135,8 @@ class FusedMasks:
         agreement: Per stack, the Dice between its own mask and the fused one.
         kept_own: Per stack, whether it kept its own mask (and was left out of the vote).
         votes: Per stack, the (I, J, K) float32 vote on its planes: the fraction of the voting
-            stacks whose masks hold each pixel, through the PSF (0 beyond the footprints).
+            stacks whose masks hold each pixel (with probabilities, their mean probability of
+            brain), through the PSF (0 beyond the footprints).
     """
 
     masks: list[Tensor]
@@ -202,22 +206,27 @@ def _plane_set(
     poses: Sequence[Tensor],
     frame: str,
     footprint_mm: float,
+    values: Sequence[np.ndarray] | None = None,
 ) -> SliceSet:
-    """Every plane of every stack as one slice set: the mask as image, the footprint as mask."""
+    """Every plane of every stack as one slice set: the vote as image, the footprint as mask.
+
+    The vote is the stack's mask, or its soft vote where ``values`` are given.
+    """
     height = max(stack.shape[0] for stack in stacks)
     width = max(stack.shape[1] for stack in stacks)
     images, footprints, spacing, thickness, planes, scanner = [], [], [], [], [], []
     stack_ids, indices = [], []
-    for index, (stack, mask, t, pose) in enumerate(
-        zip(stacks, masks, thicknesses, poses, strict=True)
+    votes = masks if values is None else values
+    for index, (stack, mask, vote, t, pose) in enumerate(
+        zip(stacks, masks, votes, thicknesses, poses, strict=True)
     ):
         i, j, k = stack.shape
         step = stack.spacing.cpu().double().numpy()
-        values = np.zeros((k, height, width), dtype=np.float32)
-        values[:, :i, :j] = np.moveaxis(mask, 2, 0)
+        plane_values = np.zeros((k, height, width), dtype=np.float32)
+        plane_values[:, :i, :j] = np.moveaxis(vote, 2, 0)
         region = np.zeros((k, height, width), dtype=bool)
         region[:, :i, :j] = _footprint(mask, step, footprint_mm)[None]
-        images.append(torch.from_numpy(values))
+        images.append(torch.from_numpy(plane_values))
         footprints.append(torch.from_numpy(region))
         spacing.append(torch.from_numpy(step[:2]).repeat(k, 1))
         thickness.append(torch.full((k,), float(t), dtype=torch.float64))
@@ -266,9 +275,12 @@ class _Ballot:
         thicknesses: Sequence[float],
         cfg: MaskFusionConfig,
         device: torch.device | str,
+        values: Sequence[np.ndarray] | None = None,
     ) -> None:
         poses = all_plane_poses(slices, stacks)
-        planes = _plane_set(stacks, masks, thicknesses, poses, slices.frame, cfg.footprint_mm)
+        planes = _plane_set(
+            stacks, masks, thicknesses, poses, slices.frame, cfg.footprint_mm, values
+        )
         self.planes = planes.to(device)
         self.grid = output_grid(self.planes, cfg.resolution_mm)
         self.stacks = stacks
@@ -284,7 +296,7 @@ class _Ballot:
             self.parts.append((rows, projector, points, observed))
 
     def volume(self, members: Sequence[bool]) -> Tensor:
-        """The members' masks spread into 3D, each on its own, and averaged.
+        """The members' masks (or soft votes) spread into 3D, each on its own, and averaged.
 
         Each is 0 where its planes do not reach: beyond its footprint a stack says "no brain".
         """
@@ -369,6 +381,32 @@ def _checked_masks(
     return own
 
 
+def _checked_probabilities(
+    probabilities: Sequence[Tensor] | None, own: Sequence[np.ndarray], names: Sequence[str]
+) -> list[np.ndarray] | None:
+    """The soft votes as float32 arrays, checked: one per mask, on its grid, in [0, 1]."""
+    if probabilities is None:
+        return None
+    if len(probabilities) != len(own):
+        raise ValueError(
+            f"fuse_masks(): got {len(probabilities)} probabilities for {len(own)} stacks"
+        )
+    out = []
+    for value, mask, name in zip(probabilities, own, names, strict=True):
+        array = value.detach().cpu().numpy().astype(np.float32)
+        if array.shape != mask.shape:
+            raise ValueError(
+                f"fuse_masks(): the probabilities of {name} have shape {array.shape}, expected "
+                f"its stack's {mask.shape}"
+            )
+        if not (np.isfinite(array).all() and array.min() >= 0 and array.max() <= 1):
+            raise ValueError(
+                f"fuse_masks(): the probabilities of {name} must be finite and in [0, 1]"
+            )
+        out.append(array)
+    return out
+
+
 def fuse_masks(
     stacks: Sequence[Image],
     masks: Sequence[Tensor],
@@ -377,6 +415,7 @@ def fuse_masks(
     config: MaskFusionConfig | None = None,
     names: Sequence[str] | None = None,
     device: torch.device | str = "cpu",
+    probabilities: Sequence[Tensor] | None = None,
 ) -> FusedMasks:
     """Make the brain masks of one fetus's stacks agree (module docstring).
 
@@ -390,19 +429,25 @@ def fuse_masks(
         config: Settings; default :class:`MaskFusionConfig`'s.
         names: The stacks' names, for the log; default ``slices.stack_names``.
         device: Where to compute (the results are on the CPU).
+        probabilities: Per stack, the (I, J, K) probability of brain behind its mask (e.g.
+            :attr:`svr.models.brain_mask.MaskResult.probability`), in [0, 1]: the stacks vote
+            with it (soft votes) instead of their masks; ``None`` to vote with the masks. The
+            footprints and the own-mask margin still use the masks.
 
     Returns:
         The fused masks and, per stack, its agreement with its own mask.
 
     Raises:
-        ValueError: For fewer than 3 stacks, or counts of masks, thicknesses or names that do
-            not match the stacks, or a mask not on its stack's grid.
+        ValueError: For fewer than 3 stacks, or counts of masks, thicknesses, names or
+            probabilities that do not match the stacks, a mask or probabilities not on its
+            stack's grid, or probabilities outside [0, 1].
     """
     cfg = MaskFusionConfig() if config is None else config
     count = len(stacks)
     names = list(slices.stack_names if names is None else names)
     own = _checked_masks(stacks, masks, thicknesses, names, "fuse_masks")
-    ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device)
+    soft = _checked_probabilities(probabilities, own, names)
+    ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device, soft)
 
     def vote(members: Sequence[bool]) -> tuple[list[np.ndarray], list[np.ndarray]]:
         volume = ballot.volume(members)
@@ -447,6 +492,7 @@ def fuse_stack_masks(
     names: Sequence[str] | None = None,
     config: MaskFusionConfig | None = None,
     device: torch.device | str = "cpu",
+    probabilities: Sequence[Tensor] | None = None,
 ) -> FusedMasks:
     """Register the stacks rigidly (on their own masks) and fuse their masks (:func:`fuse_masks`).
 
@@ -459,6 +505,7 @@ def fuse_stack_masks(
         names: The stacks' names, for messages; default ``"stack 0"``, ...
         config: Settings; default :class:`MaskFusionConfig`'s.
         device: Where to compute (the results are on the CPU).
+        probabilities: Soft votes, as :func:`fuse_masks` takes them.
 
     Returns:
         As :func:`fuse_masks`.
@@ -476,6 +523,10 @@ def fuse_stack_masks(
     names = [f"stack {n}" for n in range(len(stacks))] if names is None else list(names)
     if len(masks) != len(stacks):
         raise ValueError(f"fuse_stack_masks(): got {len(masks)} masks for {len(stacks)} stacks")
+    if probabilities is not None and len(probabilities) != len(stacks):
+        raise ValueError(
+            f"fuse_stack_masks(): got {len(probabilities)} probabilities for {len(stacks)} stacks"
+        )
     prepared = prepare_stacks(
         stacks,
         [Image(m.float(), s.affine) for m, s in zip(masks, stacks, strict=True)],
@@ -486,4 +537,6 @@ def fuse_stack_masks(
     poses, template = stack_registration(slices, cfg.registration_mm)
     log.info("mask fusion: stacks registered to %s", names[template])
     widths = [stack.thickness_mm for stack in prepared]
-    return fuse_masks(stacks, masks, slices.with_poses(poses), widths, cfg, names, device)
+    return fuse_masks(
+        stacks, masks, slices.with_poses(poses), widths, cfg, names, device, probabilities
+    )

@@ -226,15 +226,18 @@ def prepare_stacks(
             if isinstance(masker, BrainMasker)
             else load_brain_masker("default" if masker is None else masker, device)
         )
-        brains = []
+        brains, probabilities = [], []
         for image, name in zip(images, names, strict=True):
             result = segment_stack(image, networks, name=name, device=device)
             log.info("%s: automatic brain mask (network), %.0f ml", name, result.volume_ml)
             brains.append(result.mask)
+            probabilities.append(result.probability)
         if config.fuse_masks:
             from svr.reconstruction.mask_fusion import fuse_stack_masks
 
-            fused = fuse_stack_masks(images, brains, widths, names, device=device)
+            fused = fuse_stack_masks(
+                images, brains, widths, names, device=device, probabilities=probabilities
+            )
             brains = fused.masks
             log.info(
                 "automatic brain masks fused across %d stacks (Dice with their own: %s)",

@@ -208,6 +208,80 @@ def test_registered_fusion_finds_a_moved_stack(stacks):
     assert dice(result.masks[1], truth[1]) > 0.9
 
 
+def _world(image: Image) -> np.ndarray:
+    """(I, J, K, 3) world coordinates of the voxel centres, mm."""
+    index = np.stack(np.indices(tuple(image.shape)), axis=-1).astype(np.float64)
+    affine = image.affine.numpy()
+    return index @ affine[:3, :3].T + affine[:3, 3]
+
+
+def test_soft_votes_are_the_probabilities_through_the_same_acquisition_model(stacks):
+    images, truth = stacks
+    slices = _scanner_slices(images, truth)
+    hard = fuse_masks(images, truth, slices, [SLICE_MM] * 4)
+    same = fuse_masks(images, truth, slices, [SLICE_MM] * 4, probabilities=[m * 1.0 for m in truth])
+    for a, b, u, v in zip(hard.masks, same.masks, hard.votes, same.votes, strict=True):
+        assert torch.equal(a, b)
+        torch.testing.assert_close(u, v)
+    # the vote is linear in what the stacks say: probabilities 0.8 inside the masks give 0.8x
+    scaled = fuse_masks(
+        images, truth, slices, [SLICE_MM] * 4, probabilities=[0.8 * m for m in truth]
+    )
+    for u, v in zip(hard.votes, scaled.votes, strict=True):
+        torch.testing.assert_close(v, 0.8 * u, atol=1e-5, rtol=1e-4)
+
+
+def test_soft_votes_take_in_what_the_network_was_unsure_of_in_two_stacks_of_four(stacks):
+    """Two stacks' masks lose the top of the head, where their network said 0.45.
+
+    Voting with the masks, the vote there is 0.5 and each stack's own mask decides, so those two
+    keep missing it; voting with the probabilities, it is (1 + 1 + 0.45 + 0.45) / 4 = 0.725
+    away from the head's surface and the cut (which the PSF blurs) and within the coronal
+    stack's footprint (10 mm beyond its mask's outline: z < 14 mm).
+    """
+    images, truth = stacks
+    heights = [_world(image)[..., 2] for image in images]
+    top = [torch.from_numpy(z > 4.0) & m for z, m in zip(heights, truth, strict=True)]
+    own = [m & ~t if n < 2 else m.clone() for n, (m, t) in enumerate(zip(truth, top, strict=True))]
+    probabilities = [m.float() + 0.45 * (t & ~m).float() for m, t in zip(own, top, strict=True)]
+    slices = _scanner_slices(images, own)
+    hard = fuse_masks(images, own, slices, [SLICE_MM] * 4)
+    soft = fuse_masks(images, own, slices, [SLICE_MM] * 4, probabilities=probabilities)
+    for n in range(2):
+        spacing = images[n].spacing.double().numpy()
+        depth = ndimage.distance_transform_edt(truth[n].numpy(), sampling=spacing)
+        inner = (depth > 5) & (heights[n] > 6.0) & (heights[n] < 14.0)
+        deep = top[n] & torch.from_numpy(inner)
+        assert deep.sum() > 100
+        torch.testing.assert_close(
+            soft.votes[n][deep], torch.full((int(deep.sum()),), 0.725), atol=0.01, rtol=0
+        )
+        assert not bool(hard.masks[n][top[n]].any())
+        assert bool(soft.masks[n][deep].all())
+        assert dice(soft.masks[n], truth[n]) > 0.9 > 0.8 > dice(hard.masks[n], truth[n])
+
+
+def test_fusion_refuses_probabilities_that_do_not_fit(stacks):
+    images, truth = stacks
+    slices = _scanner_slices(images[:3], truth[:3])
+    good = [m.float() for m in truth[:3]]
+    with pytest.raises(ValueError, match="got 2 probabilities for 3 stacks"):
+        fuse_masks(images[:3], truth[:3], slices, [SLICE_MM] * 3, probabilities=good[:2])
+    with pytest.raises(ValueError, match=r"the probabilities of b have shape \(48, 48, 15\)"):
+        bad = [good[0], good[1][:, :, :-1], good[2]]
+        fuse_masks(
+            images[:3], truth[:3], slices, [SLICE_MM] * 3, names=list("abc"), probabilities=bad
+        )
+    for value in (1.5, math.nan):
+        bad = [good[0], good[1], good[2] * value]
+        with pytest.raises(ValueError, match="the probabilities of c must be finite and in"):
+            fuse_masks(
+                images[:3], truth[:3], slices, [SLICE_MM] * 3, names=list("abc"), probabilities=bad
+            )
+    with pytest.raises(ValueError, match=r"fuse_stack_masks\(\): got 1 probabilities for 3"):
+        fuse_stack_masks(images[:3], truth[:3], SLICE_MM, probabilities=good[:1])
+
+
 def test_fusion_refuses_too_few_stacks_and_masks_off_their_grid(stacks):
     images, truth = stacks
     slices = _scanner_slices(images[:2], truth[:2])
