@@ -7,10 +7,18 @@ fit), and prints one table with the peers' figures from ``../shared/reference/pe
 and the ratios ours / peer. Wall time, CPU time (user + sys) and peak resident memory are those of
 the child process (``os.wait4``); the time per phase comes from the run's ``--output-log``.
 
+``--masks`` chooses where the brain masks come from: ``manual`` (the case's ``masks/``, the
+default), ``network`` (none given: ``svr reconstruct`` finds them with the shipped network),
+``fused`` (the network's masks fused across the stacks, ``--fuse-masks``) or ``otsu``
+(``--auto-masks otsu``). With more than one, the table also gives each automatic kind's PSNR
+difference from the manual masks' on the same case and registration (issue 14: automatic masks
+must not cost the reconstruction).
+
 Run from the repository root (``--threads 2`` for the 2-core comparison)::
 
     python benchmarks/bench_reconstruct.py [--cases sb28-moderate sb24-large]
-        [--registrations stack cnn] [--device cpu] [--out runs/bench-reconstruct]
+        [--registrations stack cnn] [--masks manual network fused otsu] [--device cpu]
+        [--out runs/bench-reconstruct]
 """
 
 from __future__ import annotations
@@ -27,6 +35,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 PEER_NAMES = ("SVRTK", "NeSVoR")
+MASK_KINDS = ("manual", "network", "fused", "otsu")
+
+
+def mask_options(kind: str, masks: list[Path]) -> list[str]:
+    """``svr reconstruct``'s mask options for a kind of ``--masks``."""
+    if kind == "manual":
+        return ["--stack-masks", *map(str, masks)]
+    if kind == "fused":
+        return ["--fuse-masks"]
+    return ["--auto-masks", kind]
 
 
 def peer_figures(path: Path) -> dict[tuple[str, str], dict[str, float]]:
@@ -84,6 +102,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=["sb28-moderate", "sb24-large"])
     parser.add_argument("--registrations", nargs="+", default=["stack", "cnn"])
+    parser.add_argument("--masks", nargs="+", default=["manual"], choices=MASK_KINDS)
     parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
     parser.add_argument("--scorer", type=Path, default=SHARED / "tools" / "score_recon.py")
     parser.add_argument("--peers", type=Path, default=SHARED / "reference" / "peer_results.md")
@@ -102,12 +121,13 @@ def main() -> int:
         thickness = json.loads((folder / "case.json").read_text())["thickness"]
         stacks = sorted((folder / "stacks").glob("*.nii.gz"))
         masks = [folder / "masks" / s.name.replace(".nii.gz", "_mask.nii.gz") for s in stacks]
-        for registration in args.registrations:
-            stem = args.out / f"{case}-{registration}"
+        for registration, kind in [(r, k) for r in args.registrations for k in args.masks]:
+            method = registration if kind == "manual" else f"{registration}, {kind} masks"
+            stem = args.out / (f"{case}-{registration}" + ("" if kind == "manual" else f"-{kind}"))
             command = [
                 sys.executable, "-m", "svr", "reconstruct",
                 "--input-stacks", *map(str, stacks),
-                "--stack-masks", *map(str, masks),
+                *mask_options(kind, masks),
                 "--thicknesses", *map(str, thickness),
                 "--registration", registration,
                 "--output-volume", f"{stem}.nii.gz",
@@ -119,7 +139,7 @@ def main() -> int:
             ]  # fmt: skip
             code, wall, cpu, rss = run_child(command, args.threads)
             if code != 0:
-                print(f"{case} {registration}: svr reconstruct failed ({code})", file=sys.stderr)
+                print(f"{case} {method}: svr reconstruct failed ({code})", file=sys.stderr)
                 return 1
             score = json.loads(
                 subprocess.run(
@@ -128,30 +148,42 @@ def main() -> int:
                 ).stdout.strip().splitlines()[-1]
             )  # fmt: skip
             phases = phase_times(Path(f"{stem}.log"))
-            rows.append((case, registration, score, wall, cpu, rss, phases))
-            print(f"{case} {registration}: {score} wall {wall:.1f} s, CPU {cpu:.1f} s, "
+            rows.append((case, method, score, wall, cpu, rss, phases))
+            print(f"{case} {method}: {score} wall {wall:.1f} s, CPU {cpu:.1f} s, "
                   f"peak {rss:.0f} MB; phases {phases}", flush=True)  # fmt: skip
 
     print("\n| case | method | PSNR (dB) | SSIM | NCC | wall (s) | CPU (s) | peak (MB) |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
-    for case, registration, score, wall, cpu, rss, _ in rows:
-        quality = f"{score['psnr']:.2f} | {score['ssim']:.4f} | {score['ncc']:.4f}"
-        print(f"| {case} | ours, {registration} | {quality} | {wall:.1f} | {cpu:.1f} | {rss:.0f} |")
+    for case in args.cases:
+        for _, method, score, wall, cpu, rss, _ in [row for row in rows if row[0] == case]:
+            quality = f"{score['psnr']:.2f} | {score['ssim']:.4f} | {score['ncc']:.4f}"
+            print(f"| {case} | ours, {method} | {quality} | {wall:.1f} | {cpu:.1f} | {rss:.0f} |")
         for peer in PEER_NAMES:
             p = peers.get((case, peer))
             if p:
                 print(f"| {case} | {peer} (peer_results.md) | {p['psnr']:.2f} | {p['ssim']:.3f} | "
                       f"{p['ncc']:.3f} | — | {p.get('cpu_s', float('nan')):.0f} | — |")  # fmt: skip
     print("\nRatios ours / peer (PSNR difference in dB):")
-    for case, registration, score, _, cpu, _, _ in rows:
+    for case, method, score, _, cpu, _, _ in rows:
         for peer in PEER_NAMES:
             p = peers.get((case, peer))
             if p:
                 cpu_ratio = f", CPU time x{cpu / p['cpu_s']:.2f}" if "cpu_s" in p else ""
                 print(
-                    f"  {case} {registration} vs {peer}: PSNR {score['psnr'] - p['psnr']:+.2f} dB, "
+                    f"  {case} {method} vs {peer}: PSNR {score['psnr'] - p['psnr']:+.2f} dB, "
                     f"SSIM x{score['ssim'] / p['ssim']:.3f}, NCC x{score['ncc'] / p['ncc']:.3f}"
                     f"{cpu_ratio}"
+                )
+    manual = {(case, method): score for case, method, score, *_ in rows}
+    automatic = [row for row in rows if row[1].endswith(" masks")]
+    if automatic:
+        print("\nAutomatic masks against the manual masks (same case and registration):")
+        for case, method, score, *_ in automatic:
+            ref = manual.get((case, method.split(",")[0]))
+            if ref:
+                print(
+                    f"  {case} {method}: PSNR {score['psnr'] - ref['psnr']:+.2f} dB, "
+                    f"SSIM x{score['ssim'] / ref['ssim']:.3f}, NCC x{score['ncc'] / ref['ncc']:.3f}"
                 )
     return 0
 
