@@ -127,7 +127,9 @@ def add_options(
         action="store_true",
         help="make the automatic masks (--auto-masks network, 3 or more stacks) agree in 3D: "
         "the stacks are registered rigidly on their own masks and each stack's mask becomes the "
-        "vote of all of them, as `svr segment-stack --fuse-masks` does",
+        "vote of all of them, as `svr segment-stack --fuse-masks` does (with large motion between "
+        "the stacks the rigid registration misaligns the vote: measured up to 3.2 dB worse on "
+        "simulated cases, benchmarks/results/reconstruction-masks.md)",
     )
     inputs.add_argument(
         "--thicknesses",
