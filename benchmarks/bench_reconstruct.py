@@ -174,12 +174,12 @@ def main() -> int:
                     f"SSIM x{score['ssim'] / p['ssim']:.3f}, NCC x{score['ncc'] / p['ncc']:.3f}"
                     f"{cpu_ratio}"
                 )
-    manual = {(case, method): score for case, method, score, *_ in rows}
+    scored = {(case, method): score for case, method, score, *_ in rows}
     automatic = [row for row in rows if row[1].endswith(" masks")]
     if automatic:
         print("\nAutomatic masks against the manual masks (same case and registration):")
         for case, method, score, *_ in automatic:
-            ref = manual.get((case, method.split(",")[0]))
+            ref = scored.get((case, method.split(",")[0]))  # the manual masks' run
             if ref:
                 print(
                     f"  {case} {method}: PSNR {score['psnr'] - ref['psnr']:+.2f} dB, "

@@ -346,7 +346,7 @@ def leave_one_out_votes(
     """
     cfg = MaskFusionConfig() if config is None else config
     names = list(slices.stack_names)
-    own = _checked_masks(stacks, masks, thicknesses, names, "leave_one_out_votes")
+    own, _ = _checked_masks(stacks, masks, thicknesses, names, "leave_one_out_votes")
     ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device)
     out = []
     for index in range(len(stacks)):
@@ -361,50 +361,44 @@ def _checked_masks(
     thicknesses: Sequence[float],
     names: Sequence[str],
     caller: str,
-) -> list[np.ndarray]:
-    """The masks as bool arrays, checked: at least 3 stacks, one mask each, on its grid."""
+    probabilities: Sequence[Tensor] | None = None,
+) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """The masks as bool arrays and the probabilities (if given) as float32 arrays, checked.
+
+    At least 3 stacks; one mask, thickness, name (and probability map) each; masks and
+    probabilities on their stack's grid; probabilities finite and in [0, 1].
+    """
     count = len(stacks)
     if count < MIN_FUSED_STACKS:
         raise ValueError(
             f"{caller}(): needs at least {MIN_FUSED_STACKS} stacks of one fetus, got {count}"
         )
-    for what, given in (("masks", masks), ("thicknesses", thicknesses), ("names", names)):
-        if len(given) != count:
-            raise ValueError(f"{caller}(): got {len(given)} {what} for {count} stacks")
+    given = {"masks": masks, "thicknesses": thicknesses, "names": names}
+    if probabilities is not None:
+        given["probabilities"] = probabilities
+    for what, values in given.items():
+        if len(values) != count:
+            raise ValueError(f"{caller}(): got {len(values)} {what} for {count} stacks")
     own = [m.detach().cpu().numpy().astype(bool) for m in masks]
-    for mask, stack, name in zip(own, stacks, names, strict=True):
-        if mask.shape != tuple(stack.shape):
+    soft = (
+        None
+        if probabilities is None
+        else [p.detach().cpu().numpy().astype(np.float32) for p in probabilities]
+    )
+    for n, (stack, name) in enumerate(zip(stacks, names, strict=True)):
+        for arrays, what in ((own, "mask of {} has"), (soft, "probabilities of {} have")):
+            if arrays is not None and arrays[n].shape != tuple(stack.shape):
+                raise ValueError(
+                    f"{caller}(): the {what.format(name)} shape {arrays[n].shape}, expected "
+                    f"its stack's {tuple(stack.shape)}"
+                )
+        if soft is not None and not (
+            np.isfinite(soft[n]).all() and soft[n].min() >= 0 and soft[n].max() <= 1
+        ):
             raise ValueError(
-                f"{caller}(): the mask of {name} has shape {mask.shape}, expected its stack's "
-                f"{tuple(stack.shape)}"
+                f"{caller}(): the probabilities of {name} must be finite and in [0, 1]"
             )
-    return own
-
-
-def _checked_probabilities(
-    probabilities: Sequence[Tensor] | None, own: Sequence[np.ndarray], names: Sequence[str]
-) -> list[np.ndarray] | None:
-    """The soft votes as float32 arrays, checked: one per mask, on its grid, in [0, 1]."""
-    if probabilities is None:
-        return None
-    if len(probabilities) != len(own):
-        raise ValueError(
-            f"fuse_masks(): got {len(probabilities)} probabilities for {len(own)} stacks"
-        )
-    out = []
-    for value, mask, name in zip(probabilities, own, names, strict=True):
-        array = value.detach().cpu().numpy().astype(np.float32)
-        if array.shape != mask.shape:
-            raise ValueError(
-                f"fuse_masks(): the probabilities of {name} have shape {array.shape}, expected "
-                f"its stack's {mask.shape}"
-            )
-        if not (np.isfinite(array).all() and array.min() >= 0 and array.max() <= 1):
-            raise ValueError(
-                f"fuse_masks(): the probabilities of {name} must be finite and in [0, 1]"
-            )
-        out.append(array)
-    return out
+    return own, soft
 
 
 def fuse_masks(
@@ -445,8 +439,7 @@ def fuse_masks(
     cfg = MaskFusionConfig() if config is None else config
     count = len(stacks)
     names = list(slices.stack_names if names is None else names)
-    own = _checked_masks(stacks, masks, thicknesses, names, "fuse_masks")
-    soft = _checked_probabilities(probabilities, own, names)
+    own, soft = _checked_masks(stacks, masks, thicknesses, names, "fuse_masks", probabilities)
     ballot = _Ballot(stacks, own, slices, thicknesses, cfg, device, soft)
 
     def vote(members: Sequence[bool]) -> tuple[list[np.ndarray], list[np.ndarray]]:
@@ -521,12 +514,11 @@ def fuse_stack_masks(
             f"got {len(stacks)}"
         )
     names = [f"stack {n}" for n in range(len(stacks))] if names is None else list(names)
-    if len(masks) != len(stacks):
-        raise ValueError(f"fuse_stack_masks(): got {len(masks)} masks for {len(stacks)} stacks")
-    if probabilities is not None and len(probabilities) != len(stacks):
-        raise ValueError(
-            f"fuse_stack_masks(): got {len(probabilities)} probabilities for {len(stacks)} stacks"
-        )
+    for what, given in (("masks", masks), ("probabilities", probabilities)):
+        if given is not None and len(given) != len(stacks):  # before the registration's cost
+            raise ValueError(
+                f"fuse_stack_masks(): got {len(given)} {what} for {len(stacks)} stacks"
+            )
     prepared = prepare_stacks(
         stacks,
         [Image(m.float(), s.affine) for m, s in zip(masks, stacks, strict=True)],
