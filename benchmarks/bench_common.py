@@ -10,6 +10,10 @@ from pathlib import Path
 
 import torch
 
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+ATLAS = SHARED / "data" / "atlas" / "sb-fidon2021"
+MOTION = SHARED / "data" / "motion" / "svort_fetal_motion_trajectories.npz"
+
 
 def add_device_options(parser: argparse.ArgumentParser, cuda_note: str = "") -> None:
     """Add ``--threads`` (torch CPU threads, default 2) and ``--device cpu|cuda|all``."""
@@ -90,3 +94,43 @@ def reconstruct_default(stacks: list, registration: str, model=None):
         model=model if registration == "cnn" else None,
         progress=False,
     )
+
+
+def simulate_cases(folder: Path, specs: dict[str, tuple[str, str, float, int, int]]) -> list[Path]:
+    """Simulate cases into ``folder`` (kept between runs) with ``svr simulate``.
+
+    Args:
+        folder: Where the case folders go (bench layout: ``stacks/``, ``masks/``, ``case.json``,
+            ground truth).
+        specs: Case name -> (atlas age folder under ``ATLAS``, stack orientations, scale of the
+            real fetal motion trajectories, number of stacks, seed). Thickness 3 mm, bias field
+            0.2.
+
+    Returns:
+        The case folders, in the order of ``specs``.
+    """
+    out = []
+    for name, (age, orientations, scale, stacks, seed) in specs.items():
+        case = folder / name
+        if not (case / "case.json").exists():
+            subprocess.run(
+                [
+                    sys.executable, "-m", "svr", "simulate",
+                    "--output-dir", str(case),
+                    "--input-volume", str(ATLAS / age / "srr.nii.gz"),
+                    "--input-mask", str(ATLAS / age / "mask.nii.gz"),
+                    "--num-stacks", str(stacks),
+                    "--orientations", orientations,
+                    "--thickness", "3",
+                    "--motion", "trajectories",
+                    "--motion-path", str(MOTION),
+                    "--motion-scale", str(scale),
+                    "--bias-field", "0.2",
+                    "--seed", str(seed),
+                    "--device", "cpu",
+                    "--quiet",
+                ],
+                check=True,
+            )  # fmt: skip
+        out.append(case)
+    return out

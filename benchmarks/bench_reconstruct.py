@@ -1,11 +1,12 @@
 """Reconstruction benchmark: quality, time per phase, CPU time and peak memory on the bench cases.
 
-Runs ``svr reconstruct`` as a child process on each bench case (``../shared/data/bench``) with
-each registration, scores the volume with the shared yardstick (``../shared/tools/score_recon.py``:
-PSNR, SSIM and NCC inside the ground-truth brain mask after rigid alignment and a linear intensity
-fit), and prints one table with the peers' figures from ``../shared/reference/peer_results.md``
-and the ratios ours / peer. Wall time, CPU time (user + sys) and peak resident memory are those of
-the child process (``os.wait4``); the time per phase comes from the run's ``--output-log``.
+Runs ``svr reconstruct`` as a child process on each bench case (``../shared/data/bench``) and on
+each simulated case asked for, with each registration, mask source and schedule, scores the
+volume with the shared yardstick (``../shared/tools/score_recon.py``: PSNR, SSIM and NCC inside
+the ground-truth brain mask after rigid alignment and a linear intensity fit), and prints one
+table with the peers' figures from ``../shared/reference/peer_results.md`` and the ratios ours /
+peer. Wall time, CPU time (user + sys) and peak resident memory are those of the child process
+(``os.wait4``); the time per phase and the rounds come from the run's ``--output-log``.
 
 ``--masks`` chooses where the brain masks come from: ``manual`` (the case's ``masks/``, the
 default), ``network`` (none given: ``svr reconstruct`` finds them with the shipped network),
@@ -14,11 +15,18 @@ default), ``network`` (none given: ``svr reconstruct`` finds them with the shipp
 difference from the manual masks' on the same case and registration (issue 14: automatic masks
 must not cost the reconstruction).
 
+``--schedules fixed adaptive`` runs both schedules of ``svr reconstruct --schedule`` and prints
+each case's gain of the adaptive schedule over the fixed one (PSNR, SSIM, wall and CPU time as
+ratios, rounds run and whether the slices converged). ``--simulated`` adds cases simulated with
+``svr simulate`` from atlas ages other than the bench cases', with real fetal motion trajectories
+scaled by 0.3-1.0 and orthogonal or oblique stacks (:data:`SIMULATED`; kept in ``--cases-dir``).
+
 Run from the repository root (``--threads 2`` for the 2-core comparison)::
 
     python benchmarks/bench_reconstruct.py [--cases sb28-moderate sb24-large]
-        [--registrations stack cnn] [--masks manual network fused otsu] [--device cpu]
-        [--out runs/bench-reconstruct]
+        [--simulated ga21-traj1.0-obl ...] [--registrations stack cnn]
+        [--masks manual network fused otsu] [--schedules fixed adaptive] [--device cpu]
+        [--out runs/bench-reconstruct] [--results benchmarks/results/NAME.md]
 """
 
 from __future__ import annotations
@@ -32,10 +40,23 @@ import sys
 import time
 from pathlib import Path
 
+from bench_common import simulate_cases
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 PEER_NAMES = ("SVRTK", "NeSVoR")
 MASK_KINDS = ("manual", "network", "fused", "otsu")
+SCHEDULES = ("adaptive", "fixed")
+# name: (atlas age folder, orientations, motion scale of the real trajectories, stacks, seed);
+# ages other than the bench cases' (24, 28).
+SIMULATED = {
+    "ga21-traj1.0-obl": ("GA21_notoperated", "oblique", 1.0, 4, 121),
+    "ga22-traj0.5-orth": ("GA22_notoperated", "orthogonal", 0.5, 3, 122),
+    "ga25-traj0.3-obl": ("GA25_operated", "oblique", 0.3, 4, 125),
+    "ga26-traj1.0-orth": ("GA26_operated", "orthogonal", 1.0, 3, 126),
+    "ga30-traj0.7-obl": ("GA30_operated", "oblique", 0.7, 4, 130),
+    "ga33-traj0.5-orth": ("GA33_operated", "orthogonal", 0.5, 3, 133),
+}
 
 
 def mask_options(kind: str, masks: list[Path]) -> list[str]:
@@ -98,15 +119,27 @@ def phase_times(log: Path) -> dict[str, float]:
     return phases
 
 
+def rounds_run(log: Path) -> str:
+    """The ``rounds:`` line of a ``--output-log`` summary (``"?"`` if absent)."""
+    for line in log.read_text().splitlines():
+        if line.startswith("rounds: "):
+            return line.removeprefix("rounds: ")
+    return "?"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", default=["sb28-moderate", "sb24-large"])
+    parser.add_argument("--cases", nargs="*", default=["sb28-moderate", "sb24-large"])
+    parser.add_argument("--simulated", nargs="*", default=[], choices=list(SIMULATED))
+    parser.add_argument("--cases-dir", type=Path, default=ROOT / "runs" / "simulated-cases")
     parser.add_argument("--registrations", nargs="+", default=["stack", "cnn"])
     parser.add_argument("--masks", nargs="+", default=["manual"], choices=MASK_KINDS)
+    parser.add_argument("--schedules", nargs="+", default=["adaptive"], choices=SCHEDULES)
     parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
     parser.add_argument("--scorer", type=Path, default=SHARED / "tools" / "score_recon.py")
     parser.add_argument("--peers", type=Path, default=SHARED / "reference" / "peer_results.md")
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-reconstruct")
+    parser.add_argument("--results", type=Path, help="also write the report (.md, .json beside)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -115,21 +148,35 @@ def main() -> int:
         return 1
     args.out.mkdir(parents=True, exist_ok=True)
     peers = peer_figures(args.peers)
+    folders = [args.data / case for case in args.cases]
+    folders += simulate_cases(args.cases_dir, {name: SIMULATED[name] for name in args.simulated})
+    report: list[str] = []
+
+    def say(line: str = "") -> None:
+        print(line, flush=True)
+        report.append(line)
+
     rows = []
-    for case in args.cases:
-        folder = args.data / case
+    for folder in folders:
+        case = folder.name
         thickness = json.loads((folder / "case.json").read_text())["thickness"]
         stacks = sorted((folder / "stacks").glob("*.nii.gz"))
         masks = [folder / "masks" / s.name.replace(".nii.gz", "_mask.nii.gz") for s in stacks]
-        for registration, kind in [(r, k) for r in args.registrations for k in args.masks]:
+        runs = [(r, k, c) for r in args.registrations for k in args.masks for c in args.schedules]
+        for registration, kind, schedule in runs:
             method = registration if kind == "manual" else f"{registration}, {kind} masks"
-            stem = args.out / (f"{case}-{registration}" + ("" if kind == "manual" else f"-{kind}"))
+            if len(args.schedules) > 1:
+                method += f", {schedule}"
+            stem = args.out / "-".join(
+                [case, registration] + ([] if kind == "manual" else [kind]) + [schedule]
+            )
             command = [
                 sys.executable, "-m", "svr", "reconstruct",
                 "--input-stacks", *map(str, stacks),
                 *mask_options(kind, masks),
                 "--thicknesses", *map(str, thickness),
                 "--registration", registration,
+                "--schedule", schedule,
                 "--output-volume", f"{stem}.nii.gz",
                 "--output-transforms", f"{stem}.csv",
                 "--output-qa", f"{stem}.png",
@@ -148,43 +195,82 @@ def main() -> int:
                 ).stdout.strip().splitlines()[-1]
             )  # fmt: skip
             phases = phase_times(Path(f"{stem}.log"))
-            rows.append((case, method, score, wall, cpu, rss, phases))
+            rounds = rounds_run(Path(f"{stem}.log"))
+            rows.append(
+                {"case": case, "method": method, "registration": registration, "masks": kind,
+                 "schedule": schedule, "score": score, "wall_s": wall, "cpu_s": cpu,
+                 "peak_mb": rss, "phases_s": phases, "rounds": rounds}
+            )  # fmt: skip
             print(f"{case} {method}: {score} wall {wall:.1f} s, CPU {cpu:.1f} s, "
-                  f"peak {rss:.0f} MB; phases {phases}", flush=True)  # fmt: skip
+                  f"peak {rss:.0f} MB; rounds {rounds}; phases {phases}", flush=True)  # fmt: skip
 
-    print("\n| case | method | PSNR (dB) | SSIM | NCC | wall (s) | CPU (s) | peak (MB) |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
-    for case in args.cases:
-        for _, method, score, wall, cpu, rss, _ in [row for row in rows if row[0] == case]:
-            quality = f"{score['psnr']:.2f} | {score['ssim']:.4f} | {score['ncc']:.4f}"
-            print(f"| {case} | ours, {method} | {quality} | {wall:.1f} | {cpu:.1f} | {rss:.0f} |")
+    say("| case | method | PSNR (dB) | SSIM | NCC | wall (s) | CPU (s) | peak (MB) | rounds |")
+    say("|---|---|---:|---:|---:|---:|---:|---:|---|")
+    for folder in folders:
+        for row in [row for row in rows if row["case"] == folder.name]:
+            sc = row["score"]
+            say(f"| {row['case']} | ours, {row['method']} | {sc['psnr']:.2f} | {sc['ssim']:.4f} | "
+                f"{sc['ncc']:.4f} | {row['wall_s']:.1f} | {row['cpu_s']:.1f} | "
+                f"{row['peak_mb']:.0f} | {row['rounds']} |")  # fmt: skip
         for peer in PEER_NAMES:
-            p = peers.get((case, peer))
+            p = peers.get((folder.name, peer))
             if p:
-                print(f"| {case} | {peer} (peer_results.md) | {p['psnr']:.2f} | {p['ssim']:.3f} | "
-                      f"{p['ncc']:.3f} | — | {p.get('cpu_s', float('nan')):.0f} | — |")  # fmt: skip
-    print("\nRatios ours / peer (PSNR difference in dB):")
-    for case, method, score, _, cpu, _, _ in rows:
+                say(f"| {folder.name} | {peer} (peer_results.md) | {p['psnr']:.2f} | "
+                    f"{p['ssim']:.3f} | {p['ncc']:.3f} | — | "
+                    f"{p.get('cpu_s', float('nan')):.0f} | — | |")  # fmt: skip
+    ratios = []
+    for row in rows:
         for peer in PEER_NAMES:
-            p = peers.get((case, peer))
+            p = peers.get((row["case"], peer))
             if p:
-                cpu_ratio = f", CPU time x{cpu / p['cpu_s']:.2f}" if "cpu_s" in p else ""
-                print(
-                    f"  {case} {method} vs {peer}: PSNR {score['psnr'] - p['psnr']:+.2f} dB, "
-                    f"SSIM x{score['ssim'] / p['ssim']:.3f}, NCC x{score['ncc'] / p['ncc']:.3f}"
-                    f"{cpu_ratio}"
+                sc = row["score"]
+                cpu_ratio = f", CPU time x{row['cpu_s'] / p['cpu_s']:.2f}" if "cpu_s" in p else ""
+                ratios.append(
+                    f"  {row['case']} {row['method']} vs {peer}: PSNR "
+                    f"{sc['psnr'] - p['psnr']:+.2f} dB, SSIM x{sc['ssim'] / p['ssim']:.3f}, "
+                    f"NCC x{sc['ncc'] / p['ncc']:.3f}{cpu_ratio}"
                 )
-    scored = {(case, method): score for case, method, score, *_ in rows}
-    automatic = [row for row in rows if row[1].endswith(" masks")]
+    if ratios:
+        say()
+        say("Ratios ours / peer (PSNR difference in dB):")
+        for line in ratios:
+            say(line)
+    by_key = {(r["case"], r["registration"], r["masks"], r["schedule"]): r for r in rows}
+    automatic = [r for r in rows if r["masks"] != "manual"]
     if automatic:
-        print("\nAutomatic masks against the manual masks (same case and registration):")
-        for case, method, score, *_ in automatic:
-            ref = scored.get((case, method.split(",")[0]))  # the manual masks' run
+        say()
+        say("Automatic masks against the manual masks (same case, registration and schedule):")
+        for row in automatic:
+            ref = by_key.get((row["case"], row["registration"], "manual", row["schedule"]))
             if ref:
-                print(
-                    f"  {case} {method}: PSNR {score['psnr'] - ref['psnr']:+.2f} dB, "
-                    f"SSIM x{score['ssim'] / ref['ssim']:.3f}, NCC x{score['ncc'] / ref['ncc']:.3f}"
-                )
+                sc, rs = row["score"], ref["score"]
+                say(f"  {row['case']} {row['method']}: PSNR {sc['psnr'] - rs['psnr']:+.2f} dB, "
+                    f"SSIM x{sc['ssim'] / rs['ssim']:.3f}, "
+                    f"NCC x{sc['ncc'] / rs['ncc']:.3f}")  # fmt: skip
+    adaptive = [r for r in rows if r["schedule"] == "adaptive"]
+    pairs = [
+        (row, by_key[(row["case"], row["registration"], row["masks"], "fixed")])
+        for row in adaptive
+        if (row["case"], row["registration"], row["masks"], "fixed") in by_key
+    ]
+    if pairs:
+        say()
+        say("Adaptive schedule against the fixed one (same case, registration and masks):")
+        say()
+        say("| case | method | PSNR fixed | PSNR adaptive | gain (dB) | SSIM ratio | "
+            "wall ratio | CPU ratio | rounds (adaptive) |")  # fmt: skip
+        say("|---|---|---:|---:|---:|---:|---:|---:|---|")
+        for row, ref in pairs:
+            sc, rs = row["score"], ref["score"]
+            say(f"| {row['case']} | {row['registration']}, {row['masks']} masks | "
+                f"{rs['psnr']:.2f} | {sc['psnr']:.2f} | {sc['psnr'] - rs['psnr']:+.2f} | "
+                f"x{sc['ssim'] / rs['ssim']:.3f} | x{row['wall_s'] / ref['wall_s']:.2f} | "
+                f"x{row['cpu_s'] / ref['cpu_s']:.2f} | {row['rounds']} |")  # fmt: skip
+    if args.results is not None:
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text("\n".join(report) + "\n", encoding="utf-8")
+        args.results.with_suffix(".json").write_text(json.dumps(rows, indent=1) + "\n")
+        print(f"wrote {args.results} and {args.results.with_suffix('.json')}")
     return 0
 
 

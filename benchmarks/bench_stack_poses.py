@@ -28,14 +28,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import load_case_stacks, reconstruct_default, run_scorer, true_slice_poses
+from bench_common import (
+    load_case_stacks,
+    reconstruct_default,
+    run_scorer,
+    simulate_cases,
+    true_slice_poses,
+)
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.geometry.averaging import robust_mean_pose
@@ -47,9 +52,6 @@ from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
-ATLAS = SHARED / "data" / "atlas" / "sb-fidon2021"
-MOTION = SHARED / "data" / "motion" / "svort_fetal_motion_trajectories.npz"
-
 # name: (atlas age folder, orientations, motion scale of the real trajectories, stacks, seed)
 SIMULATED = {
     "ga24-traj0.5-orth": ("GA24_notoperated", "orthogonal", 0.5, 3, 11),
@@ -59,51 +61,6 @@ SIMULATED = {
     "ga32-traj0.5-obl": ("GA32_operated", "oblique", 0.5, 4, 15),
     "ga32-traj1.0-orth": ("GA32_operated", "orthogonal", 1.0, 3, 16),
 }
-
-
-def simulate_cases(folder: Path, names: list[str]) -> list[Path]:
-    """Simulate the named cases into ``folder`` (kept between runs) with ``svr simulate``."""
-    out = []
-    for name in names:
-        age, orientations, scale, stacks, seed = SIMULATED[name]
-        case = folder / name
-        if not (case / "case.json").exists():
-            subprocess.run(
-                [
-                    sys.executable,
-                    "-m",
-                    "svr",
-                    "simulate",
-                    "--output-dir",
-                    str(case),
-                    "--input-volume",
-                    str(ATLAS / age / "srr.nii.gz"),
-                    "--input-mask",
-                    str(ATLAS / age / "mask.nii.gz"),
-                    "--num-stacks",
-                    str(stacks),
-                    "--orientations",
-                    orientations,
-                    "--thickness",
-                    "3",
-                    "--motion",
-                    "trajectories",
-                    "--motion-path",
-                    str(MOTION),
-                    "--motion-scale",
-                    str(scale),
-                    "--bias-field",
-                    "0.2",
-                    "--seed",
-                    str(seed),
-                    "--device",
-                    "cpu",
-                    "--quiet",
-                ],
-                check=True,
-            )
-        out.append(case)
-    return out
 
 
 def case_truth(case: Path, slices: SliceSet) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,7 +201,7 @@ def main() -> int:
     args.cases_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     cases = [SHARED / "data" / "bench" / c for c in args.bench]
-    cases += simulate_cases(args.cases_dir, args.simulated)
+    cases += simulate_cases(args.cases_dir, {name: SIMULATED[name] for name in args.simulated})
     model = load_pose_model(args.model)
     planes = model.config.symmetry_planes
     all_rows, slice_rows, recon = [], [], []

@@ -9,11 +9,16 @@ from torch import Tensor
 
 from svr.errors import ConfigFieldError
 from svr.image import Image
+from svr.reconstruction.convergence import RoundRecord
 from svr.reconstruction.slices import SliceSet
 
-__all__ = ["REGISTRATIONS", "ReconstructionConfig", "ReconstructionResult"]
+__all__ = ["REGISTRATIONS", "SCHEDULES", "ReconstructionConfig", "ReconstructionResult"]
 
 REGISTRATIONS = ("cnn", "stack", "none")
+SCHEDULES = ("adaptive", "fixed")
+# Default number of rounds of the fixed schedule and default cap of the adaptive one.
+FIXED_ROUNDS = 5
+ADAPTIVE_MAX_ROUNDS = 16
 
 
 @dataclass(frozen=True)
@@ -29,9 +34,19 @@ class ReconstructionConfig:
             template registration, scanner space) or ``"none"`` (the scanner's slice poses).
         template: Index of the template stack for ``"stack"`` registration, or ``None`` to pick
             the stack with the most brain voxels.
-        outer_iterations: Rounds of (SVR, super-resolution); SVR is skipped in the first.
+        schedule: How many rounds run. ``"adaptive"``: slice-to-volume registration rounds
+            continue while the slices still move (:mod:`svr.reconstruction.convergence`), slices
+            that have stopped moving are no longer registered, slices that still fit badly get
+            a wider search, pixels just outside the masks are observed as background, and the
+            volume is reconstructed anew at the final poses. ``"fixed"``: exactly
+            ``outer_iterations`` rounds with the per-round settings, as fetal-svr 0.1.0 ran them
+            (reproduces its outputs bit for bit).
+        outer_iterations: ``"fixed"``: the number of rounds of (SVR, super-resolution), SVR
+            skipped in the first (``None``: 5). ``"adaptive"``: the most rounds, the first
+            (super-resolution only) and the final one included (``None``: 16).
         sr_iterations: Conjugate-gradient iterations of super-resolution per round (one per round,
-            or a single number for all).
+            or a single number for all). The adaptive schedule uses the last value for the final
+            round and the others, the last of them repeating, for the rounds before it.
         svr_levels: Resolution levels of slice-to-volume registration (coarse to fine).
         svr_iterations: Levenberg-Marquardt steps per SVR level.
         packets: Interleaved packets per stack (acquisition order ``k = 0, 2, 4, ..., 1, 3, ...``
@@ -43,7 +58,8 @@ class ReconstructionConfig:
             being registered one by one.
         regularization: Weight of the edge-preserving regulariser per round (one per round, or
             a single number for all): strong while poses are still rough, so that registration
-            sees a clean volume, weaker at the end for detail.
+            sees a clean volume, weaker at the end for detail (the adaptive schedule reads it as
+            ``sr_iterations``).
         edge_delta: Intensity difference (in normalised units) above which an edge is preserved.
         robust: EM voxel- and slice-level outlier weights (Kuklisova-Murgasova).
         ncc_threshold: Slices whose NCC with their simulation is below this are excluded.
@@ -54,6 +70,18 @@ class ReconstructionConfig:
         cnn_min_support: ``"cnn"``: a stack whose fraction of supporting slices is below this
             keeps stack registration (the model is unsure of it), in [0, 1].
         seed: Random seed.
+        converged_deg: ``"adaptive"``: a registered slice whose rotation changed by more than
+            this (degrees) in a round is still moving.
+        converged_mm: ``"adaptive"``: likewise for the displacement of its centre (mm).
+        converged_fraction: ``"adaptive"``: the rounds stop once at most this fraction of the
+            registrable slices is still moving, in [0, 1).
+        background_mm: ``"adaptive"``: ``(inner, outer)`` distances from each slice's mask
+            (mm, in the slice plane) between which pixels are observed as background by
+            super-resolution; the inner gap leaves the partial-volume rim of the brain alone.
+            ``(0, 0)`` for none.
+        recapture: ``"adaptive"``: from the second one-by-one round on, slices whose NCC is far
+            below the others' (median - 3 MAD) get a wider search
+            (:func:`svr.reconstruction.pipeline.recapture`), at most twice each.
 
     Raises:
         ConfigFieldError: On construction, naming the field and what it accepts.
@@ -62,7 +90,8 @@ class ReconstructionConfig:
     output_resolution_mm: float = 0.8
     registration: str = "stack"
     template: int | None = None
-    outer_iterations: int = 5
+    schedule: str = "adaptive"
+    outer_iterations: int | None = None
     sr_iterations: tuple[int, ...] = (7, 7, 7, 7, 21)
     svr_levels: int = 3
     svr_iterations: int = 6
@@ -77,6 +106,18 @@ class ReconstructionConfig:
     cnn_max_deviation_mm: float = 20.0
     cnn_min_support: float = 0.5
     seed: int = 0
+    converged_deg: float = 0.3
+    converged_mm: float = 0.15
+    converged_fraction: float = 0.1
+    background_mm: tuple[float, float] = (2.0, 5.0)
+    recapture: bool = True
+
+    @property
+    def rounds(self) -> int:
+        """The fixed schedule's number of rounds, or the adaptive schedule's cap."""
+        if self.outer_iterations is not None:
+            return self.outer_iterations
+        return FIXED_ROUNDS if self.schedule == "fixed" else ADAPTIVE_MAX_ROUNDS
 
     def __post_init__(self) -> None:
         def fail(name: str, expected: str) -> None:
@@ -101,8 +142,24 @@ class ReconstructionConfig:
             fail("registration", f"one of {', '.join(REGISTRATIONS)}")
         if self.template is not None and not is_int(self.template, 0):
             fail("template", "None or a stack index >= 0")
+        if self.schedule not in SCHEDULES:
+            fail("schedule", f"one of {', '.join(SCHEDULES)}")
+        if self.outer_iterations is not None and not is_int(self.outer_iterations, 1):
+            fail("outer_iterations", "None or an integer >= 1")
+        for name in ("converged_deg", "converged_mm"):
+            if not (is_number(getattr(self, name)) and getattr(self, name) >= 0):
+                fail(name, "a finite number >= 0")
+        if not (is_number(self.converged_fraction) and 0 <= self.converged_fraction < 1):
+            fail("converged_fraction", "in [0, 1)")
+        band = self.background_mm
+        if not (
+            isinstance(band, tuple)
+            and len(band) == 2
+            and all(is_number(v) and v >= 0 for v in band)
+            and band[0] <= band[1]
+        ):
+            fail("background_mm", "a tuple (inner, outer) of numbers with 0 <= inner <= outer")
         for name, minimum in (
-            ("outer_iterations", 1),
             ("svr_levels", 1),
             ("svr_iterations", 1),
             ("packets", 1),
@@ -127,8 +184,9 @@ class ReconstructionConfig:
             and all(is_number(v) and v >= 0 for v in self.regularization)
         ):
             fail("regularization", "a non-empty tuple of finite numbers >= 0")
-        if not isinstance(self.robust, bool):
-            fail("robust", "a bool")
+        for name in ("robust", "recapture"):
+            if not isinstance(getattr(self, name), bool):
+                fail(name, "a bool")
         if not (is_number(self.ncc_threshold) and -1 <= self.ncc_threshold <= 1):
             fail("ncc_threshold", "in [-1, 1]")
         if not (is_number(self.cnn_min_support) and 0 <= self.cnn_min_support <= 1):
@@ -151,6 +209,9 @@ class ReconstructionResult:
         timings_s: Wall time of each phase in seconds, in order.
         initialisation_notes: Per stack, why ``"cnn"`` kept what it kept (support, flipped
             slices, NCC); empty for other registrations.
+        rounds: What each round did (:class:`~svr.reconstruction.convergence.RoundRecord`).
+        converged: ``"adaptive"``: whether the slices stopped moving before the cap on rounds
+            (``None`` for the fixed schedule, or when no registration round ran).
     """
 
     volume: Image
@@ -163,3 +224,5 @@ class ReconstructionResult:
     initialisation: tuple[str, ...]
     timings_s: dict[str, float] = field(default_factory=dict)
     initialisation_notes: tuple[str, ...] = ()
+    rounds: tuple[RoundRecord, ...] = ()
+    converged: bool | None = None

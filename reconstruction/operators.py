@@ -112,17 +112,28 @@ class SliceProjector:
         slices: The slices (their masks, spacing and thickness are used; poses are arguments).
         psf_samples: Gauss-Hermite nodes along the normal (odd; 1 samples the plane only).
         in_plane_psf: Include the in-plane PSF (the isotropic blur ``B``).
+        pixels: (N, H, W) bool, the pixels to model; default ``slices.masks``.
     """
 
     def __init__(
-        self, grid: VolumeGrid, slices: SliceSet, psf_samples: int = 5, in_plane_psf: bool = True
+        self,
+        grid: VolumeGrid,
+        slices: SliceSet,
+        psf_samples: int = 5,
+        in_plane_psf: bool = True,
+        pixels: Tensor | None = None,
     ) -> None:
         self.grid = grid
         self.num_slices = len(slices)
         self.size = slices.size
         self.pixel_mm = float(slices.spacing_mm.min())
         device = slices.device
-        index = torch.nonzero(slices.masks)  # (P, 3): slice, a, b
+        if pixels is not None and tuple(pixels.shape) != tuple(slices.masks.shape):
+            raise ValueError(
+                f"SliceProjector: 'pixels' must have shape {tuple(slices.masks.shape)}, "
+                f"got {tuple(pixels.shape)}"
+            )
+        index = torch.nonzero(slices.masks if pixels is None else pixels)  # (P, 3): slice, a, b
         self.slice_of = index[:, 0]
         self.pixel_of = index[:, 1] * self.size[1] + index[:, 2]
         h, w = self.size
@@ -210,11 +221,18 @@ class SliceProjector:
         """``A x``: (P',) pixel values simulated from an (I, J, K) volume at :meth:`grid_points`."""
         return self.sample(self.blur(volume), points)
 
-    def adjoint(self, values: Tensor, points: Tensor) -> Tensor:
-        """``A^T y``: (P',) pixel values spread back onto the (I, J, K) grid."""
+    def spread(self, values: Tensor, points: Tensor) -> Tensor:
+        """``S^T y``: (P',) values spread onto the (I, J, K) grid, without the in-plane blur.
+
+        The adjoint of :meth:`sample`; :meth:`adjoint` is ``B`` applied to it.
+        """
         with torch.enable_grad():
             x = torch.zeros(
                 self.grid.shape, dtype=values.dtype, device=values.device, requires_grad=True
             )
             (spread,) = torch.autograd.grad(self.sample(x, points), x, grad_outputs=values)
-        return self.blur(spread)
+        return spread
+
+    def adjoint(self, values: Tensor, points: Tensor) -> Tensor:
+        """``A^T y``: (P',) pixel values spread back onto the (I, J, K) grid."""
+        return self.blur(self.spread(values, points))

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,16 +31,18 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from svr.geometry import se3_compose, se3_inverse
+from svr.geometry import se3_compose, se3_inverse, so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.models.network import SlicePoseNet
 from svr.reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses
 from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
+from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
 from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
 from svr.reconstruction.robust import robust_weights
 from svr.reconstruction.slices import SliceSet, Stack, extract_slices
 from svr.reconstruction.superres import (
+    Background,
     coverage,
     output_grid,
     scattered_data_approximation,
@@ -68,6 +71,12 @@ _T = TypeVar("_T")
 
 STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
 SVR_PSF_SAMPLES = 3
+# recapture(): the turn of the rotated starts (degrees) and the NCC a start must gain.
+RECAPTURE_ANGLE_DEG = 10.0
+RECAPTURE_MARGIN = 0.01
+# The adaptive schedule stops registering a slice once it has moved less than half the
+# convergence thresholds in this many one-by-one rounds in a row.
+QUIET_ROUNDS = 2
 
 
 class _Timer:
@@ -399,6 +408,8 @@ class Acquisition(NamedTuple):
         observed: (P,) observed values of the P modelled (masked) pixels, in ``projector``'s
             pixel order.
         brain_pixels: (N,) int64 number of masked pixels of each slice.
+        background: The acquisition model of the background pixels
+            (:func:`background_pixels`), or ``None`` for none.
     """
 
     slices: SliceSet
@@ -407,6 +418,7 @@ class Acquisition(NamedTuple):
     svr_projector: SliceProjector
     observed: Tensor
     brain_pixels: Tensor
+    background: SliceProjector | None = None
 
     def points(self, poses: Tensor) -> Tensor:
         """(K, P, 3) float32 ``grid_sample`` coordinates of every PSF node of every modelled pixel.
@@ -416,19 +428,68 @@ class Acquisition(NamedTuple):
         """
         return self.projector.grid_points(poses)
 
+    def background_points(self, poses: Tensor) -> Tensor | None:
+        """(K, B, 3) grid coordinates of the background pixels, or ``None`` without them.
 
-def acquisition_model(slices: SliceSet, grid: VolumeGrid) -> Acquisition:
+        Args:
+            poses: (N, 4, 4) slice poses: slice-plane mm -> the grid's frame (mm).
+        """
+        return None if self.background is None else self.background.grid_points(poses)
+
+
+def background_pixels(slices: SliceSet, inner_mm: float, outer_mm: float) -> Tensor:
+    """The pixels between ``inner_mm`` and ``outer_mm`` from each slice's mask, in its plane.
+
+    A brain mask cuts the slice where the (blurred) brain fades out; the pixels just outside it
+    still hold some brain (partial volume), those a little farther out hold none. The distance is
+    the chessboard distance in pixels of the slices' smallest in-plane spacing.
+
+    Args:
+        slices: The slices.
+        inner_mm: Pixels nearer to the mask than this are left out (mm, >= 0).
+        outer_mm: Pixels up to this distance are kept (mm, >= ``inner_mm``).
+
+    Returns:
+        (N, H, W) bool, none of them inside a mask; all false for ``outer_mm = 0``.
+    """
+    if not 0 <= inner_mm <= outer_mm:
+        raise ValueError(
+            "background_pixels(): need 0 <= 'inner_mm' <= 'outer_mm', got "
+            f"{inner_mm} and {outer_mm}"
+        )
+    pixel = float(slices.spacing_mm.min())
+
+    def grown(mm: float) -> Tensor:
+        width = round(mm / pixel)
+        if width <= 0:
+            return slices.masks
+        return (
+            torch.nn.functional.max_pool2d(
+                slices.masks[:, None].float(), 2 * width + 1, stride=1, padding=width
+            )[:, 0]
+            > 0.5
+        )
+
+    return grown(outer_mm) & ~grown(inner_mm)
+
+
+def acquisition_model(
+    slices: SliceSet, grid: VolumeGrid, background_mm: tuple[float, float] = (0.0, 0.0)
+) -> Acquisition:
     """The acquisition model of ``slices`` on ``grid`` (the setup of :func:`reconstruct`'s rounds).
 
     Args:
         slices: The slices; their poses' frame must be ``grid``'s frame.
         grid: The volume grid (:func:`svr.reconstruction.superres.output_grid` in
             :func:`reconstruct`).
+        background_mm: ``(inner, outer)`` band of background pixels around the masks
+            (:func:`background_pixels`); ``(0, 0)`` for none.
 
     Returns:
         The projectors, the observed pixel values and the slices' brain pixel counts.
     """
     projector = SliceProjector(grid, slices)
+    band = background_pixels(slices, *background_mm)
     return Acquisition(
         slices=slices,
         grid=grid,
@@ -436,6 +497,7 @@ def acquisition_model(slices: SliceSet, grid: VolumeGrid) -> Acquisition:
         svr_projector=SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES),
         observed=projector.gather(slices.images),
         brain_pixels=slices.masks.flatten(1).sum(1),
+        background=SliceProjector(grid, slices, pixels=band) if bool(band.any()) else None,
     )
 
 
@@ -463,6 +525,7 @@ def svr_pass(
     group_size: int = 1,
     slice_weights: Tensor | None = None,
     anchor: bool = True,
+    active: Tensor | None = None,
 ) -> Tensor:
     """One slice-to-volume registration pass: every group of slices rigidly aligned to ``volume``.
 
@@ -484,25 +547,145 @@ def svr_pass(
         anchor: Take the common rigid motion of all slices back out of the corrections, so that
             the volume stays in the frame of ``poses`` (as every round of :func:`reconstruct`
             does); ``False`` returns the registered poses as they are.
+        active: (N,) bool, with ``group_size = 1``: only these slices are registered (and
+            computed); the others keep their poses. ``None`` for all.
 
     Returns:
         (N, 4, 4) float64 registered poses in the same frame.
     """
     slices = acquisition.slices
-    groups = slice_groups(slices, config.packets, group_size)
-    # Slices with little brain carry too little signal to be registered alone.
-    small = (acquisition.brain_pixels < config.min_slice_pixels) if group_size == 1 else None
-    registered = register_rigid(
-        acquisition.svr_projector,
-        volume,
-        slices.images,
-        poses,
-        groups,
-        RegistrationConfig(levels=config.svr_levels, iterations=config.svr_iterations),
-        fixed=small,
-        slice_weights=slice_weights,
-    )
+    settings = RegistrationConfig(levels=config.svr_levels, iterations=config.svr_iterations)
+    if active is not None and group_size == 1:
+        if active.shape != (len(slices),):
+            raise ValueError(
+                f"svr_pass(): 'active' must have shape ({len(slices)},), got {tuple(active.shape)}"
+            )
+        active = active.to(poses.device, torch.bool)
+        # Slices with little brain keep their pose: too little signal to be registered alone.
+        active = active & (acquisition.brain_pixels >= config.min_slice_pixels).to(active)
+        registered = poses.to(torch.float64).clone()
+        if bool(active.any()):
+            subset = slices.subset(active)
+            registered[active] = register_rigid(
+                SliceProjector(acquisition.grid, subset, psf_samples=SVR_PSF_SAMPLES),
+                volume,
+                subset.images,
+                poses[active],
+                torch.arange(len(subset), device=poses.device),
+                settings,
+                slice_weights=None if slice_weights is None else slice_weights[active],
+            ).to(registered)
+    else:
+        groups = slice_groups(slices, config.packets, group_size)
+        small = (acquisition.brain_pixels < config.min_slice_pixels) if group_size == 1 else None
+        registered = register_rigid(
+            acquisition.svr_projector,
+            volume,
+            slices.images,
+            poses,
+            groups,
+            settings,
+            fixed=small,
+            slice_weights=slice_weights,
+        )
     return _anchored(registered, poses) if anchor else registered
+
+
+def recapture(
+    acquisition: Acquisition,
+    volume: Tensor,
+    poses: Tensor,
+    start_poses: Tensor,
+    candidates: Tensor,
+    config: ReconstructionConfig,
+    angle_deg: float = RECAPTURE_ANGLE_DEG,
+) -> tuple[Tensor, Tensor]:
+    """A wider search for slices that still fit badly: several starts, one more coarse level.
+
+    Each slice in ``candidates`` is registered alone from its current pose, from the poses its
+    temporal neighbours' motion gives it (the corrections that moved the previous and next slice
+    of its packet since ``start_poses``, applied to it), and from its current pose turned by
+    ``+-angle_deg`` about each of its own axes, with ``config.svr_levels + 1`` levels (the extra
+    one at twice the coarsest blur). It takes the result that matches its simulation from
+    ``volume`` best (NCC over its brain pixels), if that beats its current pose.
+
+    Args:
+        acquisition: The acquisition model.
+        volume: (I, J, K) volume on ``acquisition.grid``.
+        poses: (N, 4, 4) current poses.
+        start_poses: (N, 4, 4) the poses the rounds started from (for the neighbours' motion).
+        candidates: (N,) bool, the slices to search for.
+        config: Settings (``packets``, ``svr_levels``, ``svr_iterations``).
+        angle_deg: The turn of the rotated starts (degrees).
+
+    Returns:
+        (N, 4, 4) float64 poses (changed only where a search found a better fit) and (N,) bool,
+        the slices whose pose changed.
+    """
+    slices = acquisition.slices
+    device = poses.device
+    poses = poses.to(torch.float64)
+    changed = torch.zeros(len(slices), dtype=torch.bool, device=device)
+    index = torch.nonzero(candidates.to(device)).flatten()
+    if index.numel() == 0:
+        return poses, changed
+    starts, owners = [], []
+    neighbour = _packet_neighbours(slices, config.packets)
+    motion = poses @ torch.linalg.inv(start_poses.to(poses))
+    turns = [
+        so3_exp(sign * math.radians(angle_deg) * axis)
+        for axis in torch.eye(3, dtype=torch.float64, device=device)
+        for sign in (1, -1)
+    ]
+    for i in index.tolist():
+        own = [poses[i]]
+        for j in neighbour[i]:
+            own.append(motion[j] @ start_poses[i].to(poses))
+        for turn in turns:
+            turned = poses[i].clone()
+            turned[:3, :3] = poses[i, :3, :3] @ turn
+            own.append(turned)
+        starts += own
+        owners += [i] * len(own)
+    owner = torch.tensor(owners, device=device)
+    subset = slices.subset(owner)
+    projector = SliceProjector(acquisition.grid, subset, psf_samples=SVR_PSF_SAMPLES)
+    settings = RegistrationConfig(levels=config.svr_levels + 1, iterations=config.svr_iterations)
+    found = register_rigid(
+        projector,
+        volume,
+        subset.images,
+        torch.stack(starts),
+        torch.arange(len(owner), device=device),
+        settings,
+    )
+    observed = projector.gather(subset.images)
+    ncc = slice_ncc(projector, projector.forward(volume, projector.grid_points(found)), observed)
+    current = slice_ncc(
+        projector, projector.forward(volume, projector.grid_points(torch.stack(starts))), observed
+    )
+    for i in index.tolist():
+        mine = torch.nonzero(owner == i).flatten()
+        best = mine[int(ncc[mine].argmax())]
+        # The current pose as it is (first start) is the bar to beat.
+        if float(ncc[best]) > float(current[mine[0]]) + RECAPTURE_MARGIN:
+            poses[i] = found[best]
+            changed[i] = True
+    return poses, changed
+
+
+def _packet_neighbours(slices: SliceSet, packets: int) -> list[list[int]]:
+    """Per slice, the slices acquired just before and after it in its stack's packet."""
+    key = slices.stack_ids * packets + slices.slice_indices % packets
+    order = torch.argsort(key * (int(slices.slice_indices.max()) + 1) + slices.slice_indices)
+    out: list[list[int]] = [[] for _ in range(len(slices))]
+    sorted_key = key[order].tolist()
+    ranked = order.tolist()
+    for a in range(len(ranked)):
+        for b in (a - 1, a + 1):
+            if 0 <= b < len(ranked) and sorted_key[b] == sorted_key[a]:
+                out[ranked[a]].append(ranked[b])
+    return out
 
 
 class OutlierWeights(NamedTuple):
@@ -519,6 +702,9 @@ class OutlierWeights(NamedTuple):
         slice_weights: (N,) EM slice inlier probabilities (likewise).
         weights: (P,) the data weights of super-resolution: the pixel weight times its slice's
             weight, 0 for the pixels of excluded slices.
+        background_weights: (B,) the weights of the background pixels (their posterior inlier
+            probability under the pixels' residual model times their slice's weight, 0 for
+            excluded slices), or ``None`` when none were weighted.
     """
 
     scales: Tensor
@@ -527,6 +713,7 @@ class OutlierWeights(NamedTuple):
     pixel_weights: Tensor
     slice_weights: Tensor
     weights: Tensor
+    background_weights: Tensor | None = None
 
 
 def reject_outliers(
@@ -536,6 +723,7 @@ def reject_outliers(
     config: ReconstructionConfig,
     pixel_weights: Tensor | None = None,
     slice_weights: Tensor | None = None,
+    background_points: Tensor | None = None,
 ) -> OutlierWeights:
     """Per-slice intensity scales, EM outlier weights and NCC exclusion at the current volume.
 
@@ -544,7 +732,10 @@ def reject_outliers(
     ``config.ncc_threshold`` are excluded unless they have fewer than
     ``config.min_slice_pixels`` brain pixels (their NCC is noise: they rely on the EM weights
     alone); with ``config.robust`` the EM pixel and slice weights are recomputed from the scaled
-    residuals (:func:`svr.reconstruction.robust.robust_weights`).
+    residuals (:func:`svr.reconstruction.robust.robust_weights`). Background pixels, when given,
+    are weighted by their posterior inlier probability under the same residual model (their
+    residual is ``0 - c A x``): where other slices put brain, a misplaced slice's background is
+    an outlier and does not carve the brain.
 
     Args:
         acquisition: The acquisition model.
@@ -553,6 +744,8 @@ def reject_outliers(
         config: Settings (``ncc_threshold``, ``min_slice_pixels``, ``robust``).
         pixel_weights: (P,) previous pixel weights, or ``None`` for all 1 (the first round).
         slice_weights: (N,) previous slice weights, or ``None`` for all 1 (the first round).
+        background_points: (K, B, 3) grid points of the background pixels
+            (:meth:`Acquisition.background_points`), or ``None`` to weight none.
 
     Returns:
         The scales, NCCs, exclusions and weights.
@@ -568,13 +761,22 @@ def reject_outliers(
     ncc = slice_ncc(projector, simulated, observed)
     # NCC of slices with little brain is noise: those rely on the EM weights alone.
     excluded = (ncc < config.ncc_threshold) & (acquisition.brain_pixels >= config.min_slice_pixels)
+    robust = None
     if config.robust:
         robust = robust_weights(
             observed - scales[projector.slice_of] * simulated, projector.slice_of, num_slices
         )
         pixel_weights, slice_weights = robust.pixel, robust.slice
-    weights = pixel_weights * (slice_weights * (~excluded))[projector.slice_of]
-    return OutlierWeights(scales, ncc, excluded, pixel_weights, slice_weights, weights)
+    kept = slice_weights * (~excluded)
+    weights = pixel_weights * kept[projector.slice_of]
+    background = None
+    if acquisition.background is not None and background_points is not None:
+        b_of = acquisition.background.slice_of
+        background = kept[b_of]
+        if robust is not None:
+            b_simulated = acquisition.background.forward(volume, background_points)
+            background = background * robust.pixel_posterior(-scales[b_of] * b_simulated)
+    return OutlierWeights(scales, ncc, excluded, pixel_weights, slice_weights, weights, background)
 
 
 def super_resolve(
@@ -584,6 +786,8 @@ def super_resolve(
     outliers: OutlierWeights,
     config: ReconstructionConfig,
     round_index: int,
+    background_points: Tensor | None = None,
+    settings: tuple[float, int] | None = None,
 ) -> Tensor:
     """Conjugate-gradient super-resolution from ``volume``, as round ``round_index`` does it.
 
@@ -598,10 +802,28 @@ def super_resolve(
         outliers: The data weights and per-slice scales (:func:`reject_outliers`).
         config: Settings.
         round_index: The round (>= 0).
+        background_points: (K, B, 3) grid points of the background pixels: with the weights
+            ``outliers.background_weights`` they join the data term as observed background
+            (:class:`svr.reconstruction.superres.Background`); ``None`` for none.
+        settings: ``(regularization, CG iterations)`` instead of the round's from ``config``.
 
     Returns:
         (I, J, K) non-negative volume on ``acquisition.grid``.
     """
+    background = None
+    if (
+        acquisition.background is not None
+        and background_points is not None
+        and outliers.background_weights is not None
+    ):
+        background = Background(
+            acquisition.background, background_points, outliers.background_weights
+        )
+    if settings is None:
+        settings = (
+            _per_round(config.regularization, round_index),
+            _per_round(config.sr_iterations, round_index),
+        )
     return super_resolution(
         acquisition.projector,
         points,
@@ -609,9 +831,10 @@ def super_resolve(
         outliers.weights,
         outliers.scales,
         volume,
-        _per_round(config.sr_iterations, round_index),
-        _per_round(config.regularization, round_index),
+        settings[1],
+        settings[0],
         config.edge_delta,
+        background,
     )
 
 
@@ -659,6 +882,290 @@ def finalise(
     return FinalVolume(volume * mask, mask, ncc)
 
 
+@dataclasses.dataclass
+class _RoundState:
+    """What the rounds change: poses (and their grid points), weights and the volume."""
+
+    poses: Tensor
+    points: Tensor
+    background_points: Tensor | None
+    pixel_w: Tensor
+    slice_w: Tensor
+    excluded: Tensor
+    volume: Tensor
+
+
+def _register(
+    model: Acquisition,
+    state: _RoundState,
+    config: ReconstructionConfig,
+    timer: _Timer,
+    group_size: int,
+    active: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """One slice-to-volume registration pass on ``state``; returns each slice's pose change."""
+    with timer.phase("slice-to-volume registration"):
+        before = state.poses
+        state.poses = svr_pass(
+            model,
+            state.volume,
+            before,
+            config,
+            group_size,
+            slice_weights=state.slice_w * (~state.excluded),
+            active=active,
+        )
+        state.points = model.points(state.poses)
+        state.background_points = model.background_points(state.poses)
+    return pose_change(before, state.poses)
+
+
+def _reconstruct_volume(
+    model: Acquisition,
+    state: _RoundState,
+    config: ReconstructionConfig,
+    timer: _Timer,
+    round_index: int,
+    settings: tuple[float, int] | None = None,
+) -> OutlierWeights:
+    """Outlier weights then super-resolution on ``state``; returns the weights."""
+    with timer.phase("outlier rejection"):
+        outliers = reject_outliers(
+            model,
+            state.volume,
+            state.points,
+            config,
+            state.pixel_w,
+            state.slice_w,
+            state.background_points,
+        )
+        state.pixel_w, state.slice_w = outliers.pixel_weights, outliers.slice_weights
+        state.excluded = outliers.excluded
+    with timer.phase("super-resolution"):
+        state.volume = super_resolve(
+            model,
+            state.volume,
+            state.points,
+            outliers,
+            config,
+            round_index,
+            state.background_points,
+            settings,
+        )
+    return outliers
+
+
+def _record(
+    index: int,
+    stage: str,
+    changes: tuple[Tensor, Tensor] | None,
+    registered: Tensor,
+    config: ReconstructionConfig,
+    outliers: OutlierWeights,
+    previous_excluded: Tensor,
+    started: float,
+    ncc: Tensor | None = None,
+) -> RoundRecord:
+    """The round's record (also logged); ``changes`` is ``None`` for a round without SVR.
+
+    ``ncc`` (N,) replaces the NCCs of ``outliers`` (those at the round's start).
+    """
+    registered = registered.cpu()
+    if changes is None:
+        rotation, translation = torch.zeros(0), torch.zeros(0)
+    else:
+        rotation, translation = changes[0][registered], changes[1][registered]
+    moving = (rotation > config.converged_deg) | (translation > config.converged_mm)
+    excluded = outliers.excluded.cpu()
+    median_r, p90_r, median_t, p90_t = round_summary(rotation, translation)
+    record = RoundRecord(
+        index=index,
+        stage=stage,
+        registered=int(rotation.numel()),
+        moving=int(moving.sum()),
+        rotation_deg=median_r,
+        rotation_p90_deg=p90_r,
+        translation_mm=median_t,
+        translation_p90_mm=p90_t,
+        ncc=float((outliers.ncc if ncc is None else ncc).mean()),
+        excluded=int(excluded.sum()),
+        newly_excluded=int((excluded & ~previous_excluded.cpu()).sum()),
+        seconds=time.perf_counter() - started,
+    )
+    log.info(record.line())
+    return record
+
+
+def _fixed_rounds(
+    model: Acquisition,
+    state: _RoundState,
+    config: ReconstructionConfig,
+    timer: _Timer,
+    progress: bool,
+) -> tuple[list[RoundRecord], bool | None]:
+    """``config.rounds`` rounds with the per-round settings (fetal-svr 0.1.0's schedule)."""
+    records = []
+    everything = torch.ones(len(model.slices), dtype=torch.bool)
+    bar = tqdm(range(config.rounds), desc="reconstruction", disable=not progress)
+    for round_index in bar:
+        started, before = time.perf_counter(), state.excluded
+        changes = None
+        size = _group_size(config, round_index)
+        if round_index > 0:
+            changes = _register(model, state, config, timer, size)
+        outliers = _reconstruct_volume(model, state, config, timer, round_index)
+        registered = _registrable(model, config, size) if changes is not None else everything
+        stage = "first" if changes is None else _stage(size)
+        records.append(
+            _record(round_index, stage, changes, registered, config, outliers, before, started)
+        )
+        bar.set_postfix(ncc=f"{records[-1].ncc:.3f}", excluded=records[-1].excluded)
+    return records, None
+
+
+def _adaptive_rounds(
+    model: Acquisition,
+    state: _RoundState,
+    config: ReconstructionConfig,
+    timer: _Timer,
+    progress: bool,
+) -> tuple[list[RoundRecord], bool | None]:
+    """Registration rounds while the slices move, then the final round (see ``schedule``).
+
+    Round 0 reconstructs the volume at the initial poses. Each following round registers the
+    slices (in groups of temporal neighbours first, then one by one; one by one, only the slices
+    that moved in the previous round), then updates the outlier weights and the volume. The
+    rounds stop once at most ``config.converged_fraction`` of the registrable slices moved more
+    than the thresholds, or one round before the cap ``config.rounds``. The final round registers
+    every slice once more and reconstructs the volume anew at the final poses, with the last
+    regularisation and CG iterations, so that the output does not carry the blur of the rough
+    volumes of the first rounds.
+    """
+    records: list[RoundRecord] = []
+    cap = config.rounds
+    bar = tqdm(total=cap, desc="reconstruction", disable=not progress)
+    started, before = time.perf_counter(), state.excluded
+    settings = _alignment_settings(config, 0) if cap > 1 else _final_settings(config)
+    outliers = _reconstruct_volume(model, state, config, timer, 0, settings)
+    everything = torch.ones(len(model.slices), dtype=torch.bool)
+    records.append(_record(0, "first", None, everything, config, outliers, before, started))
+    bar.update()
+    if cap == 1:
+        bar.close()
+        return records, None
+    single = _registrable(model, config, 1)
+    active = single.clone()
+    quiet = torch.zeros(len(single), dtype=torch.int64)
+    tries = torch.zeros(len(single), dtype=torch.int64)
+    start = state.poses.clone()
+    converged, index = False, 1
+    while index < cap - 1:
+        started, before = time.perf_counter(), state.excluded
+        size = _group_size(config, index)
+        recaptured = torch.zeros(len(single), dtype=torch.bool)
+        if config.recapture and size == 1 and _group_size(config, index - 1) == 1:
+            low = _fits_badly(outliers.ncc.cpu(), single) & (tries < 2)
+            if bool(low.any()):
+                with timer.phase("recapture"):
+                    new_poses, recaptured = recapture(
+                        model, state.volume, state.poses, start, low.to(state.poses.device), config
+                    )
+                    recaptured = recaptured.cpu()
+                    tries += low.long()
+                    state.poses = new_poses
+                    state.points = model.points(state.poses)
+                    state.background_points = model.background_points(state.poses)
+                log.info(
+                    "recapture: %d slices fit badly, %d found a better pose from a wider search",
+                    int(low.sum()),
+                    int(recaptured.sum()),
+                )
+                active = active | low
+        changes = _register(model, state, config, timer, size, active if size == 1 else None)
+        registered = active if size == 1 else _registrable(model, config, size)
+        outliers = _reconstruct_volume(
+            model, state, config, timer, index, _alignment_settings(config, index)
+        )
+        record = _record(
+            index, _stage(size), changes, registered, config, outliers, before, started
+        )
+        records.append(record)
+        bar.update()
+        bar.set_postfix(moving=record.moving, ncc=f"{record.ncc:.3f}")
+        index += 1
+        rotation, translation = changes
+        if record.moving <= config.converged_fraction * int(single.sum()):
+            converged = True
+            break
+        if size == 1:
+            # A slice that moved less than half the thresholds twice in a row has converged.
+            still = (rotation <= config.converged_deg / 2) & (
+                translation <= config.converged_mm / 2
+            )
+            quiet = torch.where(still & registered, quiet + 1, torch.zeros_like(quiet))
+            active = single & (quiet < QUIET_ROUNDS)
+    if converged:
+        log.info(
+            "converged after round %d: %d of %d slices still moved (at most %.0f%% allowed)",
+            index - 1,
+            records[-1].moving,
+            int(single.sum()),
+            100 * config.converged_fraction,
+        )
+    else:
+        log.warning(
+            "not converged: %d slices still moved in round %d, the last before the cap of %d "
+            "rounds (--iterations); the final round registers them once more",
+            records[-1].moving,
+            index - 1,
+            cap,
+        )
+    started, before = time.perf_counter(), state.excluded
+    changes = _register(model, state, config, timer, 1, single)
+    with timer.phase("super-resolution"):
+        state.volume = initial_volume(model, state.points)
+    outliers = _reconstruct_volume(model, state, config, timer, index, _final_settings(config))
+    simulated = model.projector.forward(state.volume, state.points)
+    ncc = slice_ncc(model.projector, simulated, model.observed)
+    records.append(_record(index, "final", changes, single, config, outliers, before, started, ncc))
+    bar.update()
+    bar.close()
+    return records, converged
+
+
+def _fits_badly(ncc: Tensor, registrable: Tensor) -> Tensor:
+    """(N,) bool: registrable slices whose NCC is far below the others' (median - 3 MAD)."""
+    values = ncc[registrable].double()
+    if values.numel() < 4:
+        return torch.zeros_like(registrable)
+    median = float(values.median())
+    spread = 1.4826 * float((values - median).abs().median())
+    return registrable & (ncc.double() < median - 3 * max(spread, 0.01))
+
+
+def _registrable(model: Acquisition, config: ReconstructionConfig, group_size: int) -> Tensor:
+    """(N,) bool on the CPU: the slices a pass with ``group_size`` registers."""
+    if group_size > 1:
+        return torch.ones(len(model.slices), dtype=torch.bool)
+    return (model.brain_pixels >= config.min_slice_pixels).cpu()
+
+
+def _stage(group_size: int) -> str:
+    return "slices" if group_size == 1 else f"groups of {group_size}"
+
+
+def _alignment_settings(config: ReconstructionConfig, round_index: int) -> tuple[float, int]:
+    """(regularisation, CG iterations) of an adaptive round before the final one."""
+    regularization = config.regularization[:-1] or config.regularization
+    iterations = config.sr_iterations[:-1] or config.sr_iterations
+    return (_per_round(regularization, round_index), _per_round(iterations, round_index))
+
+
+def _final_settings(config: ReconstructionConfig) -> tuple[float, int]:
+    """(regularisation, CG iterations) of the adaptive schedule's final round."""
+    return (config.regularization[-1], config.sr_iterations[-1])
+
+
 def _rounds(
     slices: SliceSet,
     config: ReconstructionConfig,
@@ -666,55 +1173,47 @@ def _rounds(
     timer: _Timer,
     progress: bool,
 ) -> ReconstructionResult:
+    adaptive = config.schedule == "adaptive"
     with timer.phase("setup"):
         grid = output_grid(slices, config.output_resolution_mm)
-        model = acquisition_model(slices, grid)
+        model = acquisition_model(slices, grid, config.background_mm if adaptive else (0.0, 0.0))
         poses = slices.poses
         points = model.points(poses)
-        pixel_w = torch.ones_like(model.observed)
-        slice_w = torch.ones(len(slices), device=model.observed.device)
-        excluded = torch.zeros(len(slices), dtype=torch.bool, device=model.observed.device)
         volume = initial_volume(model, points)
+        state = _RoundState(
+            poses=poses,
+            points=points,
+            background_points=model.background_points(poses),
+            pixel_w=torch.ones_like(model.observed),
+            slice_w=torch.ones(len(slices), device=model.observed.device),
+            excluded=torch.zeros(len(slices), dtype=torch.bool, device=model.observed.device),
+            volume=volume,
+        )
         initial = volume.clone()
         log.info(
-            "output grid %s at %.2f mm (%s frame)",
+            "output grid %s at %.2f mm (%s frame), %s schedule",
             grid.shape,
             config.output_resolution_mm,
             slices.frame,
+            config.schedule,
         )
-    bar = tqdm(range(config.outer_iterations), desc="reconstruction", disable=not progress)
-    for round_index in bar:
-        if round_index > 0:
-            with timer.phase("slice-to-volume registration"):
-                poses = svr_pass(
-                    model,
-                    volume,
-                    poses,
-                    config,
-                    _group_size(config, round_index),
-                    slice_weights=slice_w * (~excluded),
-                )
-                points = model.points(poses)
-        with timer.phase("outlier rejection"):
-            outliers = reject_outliers(model, volume, points, config, pixel_w, slice_w)
-            pixel_w, slice_w = outliers.pixel_weights, outliers.slice_weights
-            excluded = outliers.excluded
-        with timer.phase("super-resolution"):
-            volume = super_resolve(model, volume, points, outliers, config, round_index)
-        bar.set_postfix(ncc=f"{float(outliers.ncc.mean()):.3f}", excluded=int(excluded.sum()))
+    run = _adaptive_rounds if adaptive else _fixed_rounds
+    records, converged = run(model, state, config, timer, progress)
     with timer.phase("finish"):
-        final = finalise(model, volume, points, pixel_w)
-    _report_exclusions(slices, excluded)
+        final = finalise(model, state.volume, state.points, state.pixel_w)
+    _report_exclusions(slices, state.excluded)
     return ReconstructionResult(
         volume=grid.image(final.volume.float()),
         mask=grid.image(final.mask),
         initial_volume=grid.image(initial.float()),
-        slices=slices.with_poses(poses),
+        slices=slices.with_poses(state.poses),
         slice_ncc=final.slice_ncc.detach().cpu(),
-        slice_weights=slice_w.detach().cpu(),
-        excluded=excluded.cpu(),
+        slice_weights=state.slice_w.detach().cpu(),
+        excluded=state.excluded.cpu(),
         initialisation=init,
         timings_s=timer.timings,
+        rounds=tuple(records),
+        converged=converged,
     )
 
 

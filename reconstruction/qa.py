@@ -8,7 +8,10 @@ The page shows, top to bottom:
   of the result's mask, each volume on its own grey scale (0 to its in-mask 99.5th percentile);
 * every slice's NCC with its simulation from the final volume against its number (the row of
   the transforms table), coloured by stack, excluded slices marked with a red cross;
-* the wall time of each phase and the initialisation kept for each stack.
+* the wall time of each phase and the initialisation kept for each stack;
+* when the rounds were recorded, the convergence of the rounds: per round, the median pose change
+  of the registered slices (degrees and mm, with the thresholds of the adaptive schedule), the
+  mean slice NCC and the number of slices excluded, titled with whether the slices converged.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.gridspec import SubplotSpec
 from torch import Tensor
 
 from svr.files import atomic_write_bytes, check_output_path
@@ -65,6 +69,41 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     return "\n".join(lines)
 
 
+def convergence_title(result: ReconstructionResult) -> str:
+    """One line: how many rounds ran and whether the slices stopped moving."""
+    count = len(result.rounds)
+    if result.converged is None:
+        return f"{count} rounds"
+    if result.converged:
+        return f"{count} rounds: converged (the slices stopped moving)"
+    return f"{count} rounds: NOT converged (slices still moved at the cap on rounds)"
+
+
+def _convergence_panel(figure: Figure, cell: SubplotSpec, result: ReconstructionResult) -> None:
+    rounds = result.rounds
+    index = np.array([r.index for r in rounds])
+    ax = figure.add_subplot(cell)
+    moved = [r for r in rounds if r.registered]
+    if moved:
+        x = np.array([r.index for r in moved])
+        ax.plot(x, [r.rotation_deg for r in moved], "o-", label="median rotation change (deg)")
+        ax.plot(x, [r.translation_mm for r in moved], "s-", label="median shift (mm)")
+    ax.set_xlabel("round")
+    ax.set_ylabel("median change of the registered slices")
+    ax.set_xticks(index)
+    ax.set_ylim(bottom=0.0)
+    right = ax.twinx()
+    right.plot(index, [r.ncc for r in rounds], "k.--", label="mean slice NCC")
+    for r in rounds:
+        if r.excluded:
+            right.annotate(f"{r.excluded} excl.", (r.index, r.ncc), fontsize=6, color="red")
+    right.set_ylabel("mean slice NCC")
+    handles = ax.get_legend_handles_labels()
+    extra = right.get_legend_handles_labels()
+    ax.legend(handles[0] + extra[0], handles[1] + extra[1], fontsize=7, loc="upper right")
+    ax.set_title(convergence_title(result), fontsize=9)
+
+
 def qa_figure(
     result: ReconstructionResult,
     path: str | os.PathLike[str],
@@ -105,9 +144,12 @@ def qa_figure(
     affine = result.volume.affine.detach().cpu().double()
     world = affine[:3, :3] @ torch.tensor(centre, dtype=torch.float64) + affine[:3, 3]
 
-    figure = Figure(figsize=(8.27, 2.6 * len(volumes) + 3.0), layout="constrained")
+    panels = [1.1] + ([1.1] if result.rounds else [])
+    figure = Figure(figsize=(8.27, 2.6 * len(volumes) + 3.0 * len(panels)), layout="constrained")
     FigureCanvasAgg(figure)
-    grid = figure.add_gridspec(len(volumes) + 1, 3, height_ratios=[1.0] * len(volumes) + [1.1])
+    grid = figure.add_gridspec(
+        len(volumes) + len(panels), 3, height_ratios=[1.0] * len(volumes) + panels
+    )
     for row, (name, image) in enumerate(volumes.items()):
         data = image.data.detach().cpu().float().numpy()
         inside = data[mask.numpy()] if bool(mask.any()) else data.ravel()
@@ -140,6 +182,8 @@ def qa_figure(
     ax = figure.add_subplot(grid[len(volumes), 2])
     ax.axis("off")
     ax.text(0.0, 1.0, _text(result, notes), va="top", ha="left", family="monospace", fontsize=7)
+    if result.rounds:
+        _convergence_panel(figure, grid[len(volumes) + 1, :], result)
 
     buffer = io.BytesIO()
     figure.savefig(buffer, format=p.suffix[1:], dpi=100)

@@ -32,11 +32,27 @@ class RobustWeights:
         pixel: (P,) posterior inlier probability of each modelled pixel.
         slice: (N,) posterior inlier probability of each slice.
         sigma: Standard deviation of the inlier residuals.
+        inlier_fraction: Prior probability of the pixel-level inlier class.
+        outlier_density: Density of the pixel-level outlier class (one over the residuals' range).
     """
 
     pixel: Tensor
     slice: Tensor
     sigma: float
+    inlier_fraction: float = 1.0
+    outlier_density: float = 0.0
+
+    def pixel_posterior(self, residuals: Tensor) -> Tensor:
+        """Inlier probability of further residuals under the fitted pixel-level mixture.
+
+        Args:
+            residuals: (B,) residuals of pixels that took no part in the fit.
+
+        Returns:
+            (B,) posterior inlier probabilities, in the dtype of ``residuals``.
+        """
+        g = self.inlier_fraction * _gauss(residuals.to(torch.float64), 0.0, self.sigma**2)
+        return (g / (g + (1 - self.inlier_fraction) * self.outlier_density)).to(residuals.dtype)
 
 
 def _gauss(x: Tensor, mean: float | Tensor, var: float | Tensor) -> Tensor:
@@ -94,4 +110,6 @@ def robust_weights(
         g = slice_mix * _gauss(e, mean, spread)
         # Slices better than the inlier mean are never outliers.
         slice_w[has_data] = torch.where(e <= mean, 1.0, g / (g + (1 - slice_mix) * outlier_density))
-    return RobustWeights(pixel.to(residuals.dtype), slice_w.to(residuals.dtype), math.sqrt(var))
+    return RobustWeights(
+        pixel.to(residuals.dtype), slice_w.to(residuals.dtype), math.sqrt(var), mix, density
+    )

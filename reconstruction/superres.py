@@ -11,12 +11,17 @@ current volume (lagged diffusivity, ``phi'(g)/g = 1 / sqrt(1 + (g / delta)^2)``,
 edge-preserving regulariser). Each round is a linear least-squares problem solved by conjugate
 gradients started from the current volume. The first estimate is the PSF-weighted
 scattered-data approximation ``x0 = A^T (w y) / A^T w``.
+
+Optionally (:class:`Background`) pixels a few millimetres outside the slices' masks join the data
+term as observations of background, ``y = 0``: the masks say that the brain ends before them.
+Without them nothing in the data says where the brain ends, the volume spreads beyond the masks,
+and slice-to-volume registration follows it outward round after round.
 """
 
 from __future__ import annotations
 
 import math
-from typing import cast
+from typing import NamedTuple, cast
 
 import torch
 from torch import Tensor
@@ -25,6 +30,7 @@ from svr.reconstruction.operators import SliceProjector, VolumeGrid
 from svr.reconstruction.slices import SliceSet
 
 __all__ = [
+    "Background",
     "coverage",
     "output_grid",
     "scattered_data_approximation",
@@ -120,6 +126,21 @@ def _regularizer(x: Tensor, edge: list[Tensor]) -> Tensor:
     return out
 
 
+class Background(NamedTuple):
+    """Pixels outside the slices' masks, observed as background (0) by super-resolution.
+
+    Attributes:
+        projector: The acquisition model of the background pixels (same grid, slices and PSF
+            as the brain pixels' projector).
+        points: Its :meth:`~SliceProjector.grid_points` at the slices' poses, (K, B, 3).
+        weights: (B,) weight of each background pixel (0 leaves it out).
+    """
+
+    projector: SliceProjector
+    points: Tensor
+    weights: Tensor
+
+
 def super_resolution(
     projector: SliceProjector,
     points: Tensor,
@@ -130,6 +151,7 @@ def super_resolution(
     iterations: int,
     regularization: float,
     edge_delta: float,
+    background: Background | None = None,
 ) -> Tensor:
     """Conjugate-gradient super-resolution from a starting volume.
 
@@ -144,9 +166,14 @@ def super_resolution(
         regularization: Weight of the edge-preserving term, relative to the mean data weight per
             covered voxel.
         edge_delta: Intensity step (normalised units) above which an edge is preserved.
+        background: Background pixels (observed 0) added to the data term, scaled like their
+            slices' pixels, or ``None``.
 
     Returns:
         (I, J, K) non-negative volume.
+
+    Raises:
+        ValueError: If ``background``'s projector models another PSF than ``projector``.
     """
     c = scales[projector.slice_of]
     data_weight = weights * c * c
@@ -156,10 +183,24 @@ def super_resolution(
     lam = regularization * float(cover[covered].mean()) if covered.any() else 0.0
     edge = _edge_weights(volume, edge_delta)
 
+    if background is not None:
+        if background.projector.blur_sigma_vox != projector.blur_sigma_vox:
+            raise ValueError(
+                "super_resolution(): 'background' must model the same in-plane PSF as 'projector'"
+            )
+        b_projector, b_points = background.projector, background.points
+        b_scale = scales[b_projector.slice_of]
+        b_weight = background.weights * b_scale * b_scale
+
     def normal_operator(x: Tensor) -> Tensor:
-        return projector.adjoint(data_weight * projector.forward(x, points), points) + lam * (
-            _regularizer(x, edge)
-        )
+        # A^T W A x with the in-plane blur B applied once per side for both pixel sets.
+        blurred = projector.blur(x)
+        spread = projector.spread(data_weight * projector.sample(blurred, points), points)
+        if background is not None:
+            spread = spread + b_projector.spread(
+                b_weight * b_projector.sample(blurred, b_points), b_points
+            )
+        return projector.blur(spread) + lam * _regularizer(x, edge)
 
     x = volume.clone()
     r = rhs_data - normal_operator(x)

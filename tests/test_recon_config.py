@@ -7,7 +7,7 @@ import pickle
 import pytest
 
 from svr.errors import ConfigFieldError
-from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig
+from svr.reconstruction.config import REGISTRATIONS, SCHEDULES, ReconstructionConfig
 
 BAD = [
     ("output_resolution_mm", 0.0, "a finite number > 0"),
@@ -15,8 +15,16 @@ BAD = [
     ("registration", "learned", f"one of {', '.join(REGISTRATIONS)}"),
     ("template", -1, "None or a stack index >= 0"),
     ("template", 1.5, "None or a stack index >= 0"),
-    ("outer_iterations", 0, "an integer >= 1"),
-    ("outer_iterations", True, "an integer >= 1"),
+    ("outer_iterations", 0, "None or an integer >= 1"),
+    ("outer_iterations", True, "None or an integer >= 1"),
+    ("schedule", "fast", f"one of {', '.join(SCHEDULES)}"),
+    ("converged_deg", -0.1, "a finite number >= 0"),
+    ("converged_mm", float("nan"), "a finite number >= 0"),
+    ("converged_fraction", 1.0, "in [0, 1)"),
+    ("background_mm", (3.0, 2.0), "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
+    ("background_mm", (2.0,), "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
+    ("background_mm", [2.0, 5.0], "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
+    ("recapture", 1, "a bool"),
     ("svr_levels", 0, "an integer >= 1"),
     ("svr_iterations", 0, "an integer >= 1"),
     ("packets", 0, "an integer >= 1"),
@@ -61,3 +69,12 @@ def test_defaults_and_edges_are_accepted():
         min_slice_pixels=0,
         registration="cnn",
     )
+
+
+def test_rounds_default_per_schedule():
+    assert ReconstructionConfig(schedule="fixed").rounds == 5
+    assert ReconstructionConfig().rounds == 16
+    assert ReconstructionConfig(schedule="fixed", outer_iterations=3).rounds == 3
+    assert ReconstructionConfig(outer_iterations=1).rounds == 1
+    ReconstructionConfig(converged_deg=0.0, converged_mm=0.0, converged_fraction=0.0)
+    ReconstructionConfig(background_mm=(0.0, 0.0), recapture=False)

@@ -959,6 +959,7 @@ def test_the_steps_in_sequence_reproduce_reconstruct():
     config = ReconstructionConfig(
         output_resolution_mm=2.0,
         registration="none",
+        schedule="fixed",
         outer_iterations=4,
         sr_iterations=(2, 3),
         regularization=(0.2, 0.1),

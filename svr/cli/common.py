@@ -139,6 +139,14 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    """Argparse type: a finite float >= 0."""
+    value = float(text)
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
 def check_thickness_count(thicknesses: list[float] | None, count: int) -> None:
     """Refuse a ``--thicknesses`` list that is neither one value nor one per stack.
 

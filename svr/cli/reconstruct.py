@@ -23,6 +23,7 @@ from svr.cli.common import (
     check_fusion_count,
     check_outputs,
     check_thickness_count,
+    non_negative_float,
     positive_float,
     positive_int,
     resolve_device,
@@ -93,7 +94,13 @@ def add_options(
         volume_required: Whether ``--output-volume`` is required.
         iterations: Default of ``--iterations``; ``None`` for the library's default.
     """
-    from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig
+    from svr.reconstruction.config import (
+        ADAPTIVE_MAX_ROUNDS,
+        FIXED_ROUNDS,
+        REGISTRATIONS,
+        SCHEDULES,
+        ReconstructionConfig,
+    )
 
     d = ReconstructionConfig()
     inputs = parser.add_argument_group("inputs")
@@ -191,12 +198,37 @@ def add_options(
         "the most brain voxels)",
     )
     settings.add_argument(
+        "--schedule",
+        choices=SCHEDULES,
+        default=d.schedule,
+        help="adaptive: slice-to-volume registration rounds continue while the slices still move "
+        "(--converged-deg, --converged-mm) up to --iterations, then the volume is reconstructed "
+        "anew at the final poses; fixed: exactly --iterations rounds, as fetal-svr 0.1.0 ran them "
+        "(reproduces its outputs)",
+    )
+    settings.add_argument(
         "--iterations",
         type=positive_int,
-        default=d.outer_iterations if iterations is None else iterations,
+        default=iterations,
         metavar="N",
-        help="outer rounds of (slice-to-volume registration, super-resolution); no slice-to-volume "
-        "registration in the first",
+        help="rounds of (slice-to-volume registration, super-resolution), no slice-to-volume "
+        f"registration in the first: the most rounds of the adaptive schedule (default "
+        f"{ADAPTIVE_MAX_ROUNDS}), the number of rounds of the fixed one (default {FIXED_ROUNDS})",
+    )
+    settings.add_argument(
+        "--converged-deg",
+        type=non_negative_float,
+        default=d.converged_deg,
+        metavar="DEG",
+        help="adaptive schedule: a slice whose rotation changes by more than this in a round is "
+        "still moving; the rounds stop once at most 10%% of the slices are",
+    )
+    settings.add_argument(
+        "--converged-mm",
+        type=non_negative_float,
+        default=d.converged_mm,
+        metavar="MM",
+        help="adaptive schedule: likewise for the displacement of a slice's centre",
     )
     settings.add_argument(
         "--sr-iterations",
@@ -271,7 +303,10 @@ _OPTIONS = {
     "output_resolution_mm": "--output-resolution",
     "registration": "--registration",
     "template": "--template",
+    "schedule": "--schedule",
     "outer_iterations": "--iterations",
+    "converged_deg": "--converged-deg",
+    "converged_mm": "--converged-mm",
     "sr_iterations": "--sr-iterations",
     "svr_iterations": "--svr-iterations",
     "ncc_threshold": "--ncc-threshold",
@@ -310,7 +345,10 @@ def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfi
             output_resolution_mm=args.output_resolution,
             registration=args.registration,
             template=args.template,
+            schedule=args.schedule,
             outer_iterations=args.iterations,
+            converged_deg=args.converged_deg,
+            converged_mm=args.converged_mm,
             sr_iterations=tuple(args.sr_iterations),
             svr_iterations=args.svr_iterations,
             robust=not args.no_robust,
@@ -407,6 +445,17 @@ def _mask_source(args: argparse.Namespace) -> str:
     return "automatic (otsu)"
 
 
+def _rounds_line(config: ReconstructionConfig, result: ReconstructionResult) -> str:
+    """How many rounds ran and whether the slices converged, for the log and the QA figure."""
+    count = len(result.rounds)
+    if result.converged is None:
+        return f"{count} ({config.schedule} schedule)"
+    state = (
+        "converged" if result.converged else f"not converged within --iterations {config.rounds}"
+    )
+    return f"{count} ({config.schedule} schedule, {state})"
+
+
 def _summary(
     args: argparse.Namespace,
     stack_config: StackConfig,
@@ -436,6 +485,8 @@ def _summary(
         for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
     ]
     lines.append(f"frame: {result.slices.frame}")
+    lines.append(f"rounds: {_rounds_line(config, result)}")
+    lines += [f"  {record.line()}" for record in result.rounds]
     excluded = _excluded_by_stack(result)
     lines.append(f"excluded slices: {int(result.excluded.sum())} of {len(result.slices)}")
     lines += [f"  {name}: k = {', '.join(map(str, ks))}" for name, ks in excluded.items()]
