@@ -110,6 +110,7 @@ def simulate_cases(folder: Path, specs: dict[str, tuple[str, str, float, int, in
         The case folders, in the order of ``specs``.
     """
     out = []
+    folder.mkdir(parents=True, exist_ok=True)
     for name, (age, orientations, scale, stacks, seed) in specs.items():
         case = folder / name
         if not (case / "case.json").exists():

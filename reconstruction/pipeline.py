@@ -624,7 +624,7 @@ def recapture(
     """
     slices = acquisition.slices
     device = poses.device
-    poses = poses.to(torch.float64)
+    poses = poses.to(torch.float64).clone()
     changed = torch.zeros(len(slices), dtype=torch.bool, device=device)
     index = torch.nonzero(candidates.to(device)).flatten()
     if index.numel() == 0:
@@ -1121,13 +1121,14 @@ def _adaptive_rounds(
             cap,
         )
     started, before = time.perf_counter(), state.excluded
+    last = single & ~state.excluded.cpu()
     changes = _register(model, state, config, timer, 1, single)
     with timer.phase("super-resolution"):
         state.volume = initial_volume(model, state.points)
     outliers = _reconstruct_volume(model, state, config, timer, index, _final_settings(config))
     simulated = model.projector.forward(state.volume, state.points)
     ncc = slice_ncc(model.projector, simulated, model.observed)
-    records.append(_record(index, "final", changes, single, config, outliers, before, started, ncc))
+    records.append(_record(index, "final", changes, last, config, outliers, before, started, ncc))
     bar.update()
     bar.close()
     return records, converged

@@ -1,0 +1,380 @@
+"""The adaptive schedule: pose changes, the stopping rule, per-slice freezing, the background band,
+the wider search for badly fitting slices, and the per-round record in the log and outputs.
+
+Pose changes are checked against scipy's ``Rotation``; the stopping rule on tiny simulated cases
+with and without motion; the background term by its effect on the volume outside the brain.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
+from svr.reconstruction.operators import VolumeGrid
+from svr.reconstruction.pipeline import (
+    acquisition_model,
+    background_pixels,
+    initial_volume,
+    recapture,
+    reconstruct,
+    reject_outliers,
+    super_resolve,
+    svr_pass,
+)
+from svr.reconstruction.registration import slice_ncc
+from svr.reconstruction.robust import robust_weights
+from svr.reconstruction.slices import extract_slices
+from svr.reconstruction.stacks import prepare_stacks
+from svr.reconstruction.superres import output_grid
+from svr.sampling.phantom import PhantomConfig, make_phantom
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import canonicalize
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """One thread for these small problems (the cores are shared; see test_recon_core)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def rigid(rotvecs: np.ndarray, shifts: np.ndarray) -> torch.Tensor:
+    poses = np.tile(np.eye(4), (len(rotvecs), 1, 1))
+    poses[:, :3, :3] = Rotation.from_rotvec(rotvecs).as_matrix()
+    poses[:, :3, 3] = shifts
+    return torch.from_numpy(poses)
+
+
+# --- pose changes ------------------------------------------------------------------------------
+
+
+def test_pose_change_matches_scipy(rng):
+    n = 64
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    # Angles from 0 to just below pi, both ends included.
+    angles = np.concatenate([[0.0, 1e-9, math.pi - 1e-6], rng.uniform(0, math.pi, n - 3)])
+    before = rigid(Rotation.random(n, random_state=1).as_rotvec(), rng.normal(size=(n, 3)) * 20)
+    turn = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
+    shift = rng.normal(size=(n, 3)) * 3
+    after = before.clone()
+    after[:, :3, :3] = before[:, :3, :3] @ torch.from_numpy(turn)
+    after[:, :3, 3] = before[:, :3, 3] + torch.from_numpy(shift)
+    rotation, translation = pose_change(before, after)
+    R_before = Rotation.from_matrix(before[:, :3, :3].numpy())
+    R_after = Rotation.from_matrix(after[:, :3, :3].numpy())
+    expected = np.degrees((R_before.inv() * R_after).magnitude())
+    assert rotation.dtype == torch.float64 and rotation.shape == (n,)
+    np.testing.assert_allclose(rotation.numpy(), expected, atol=1e-4)
+    np.testing.assert_allclose(rotation.numpy(), np.degrees(angles), atol=1e-4)
+    np.testing.assert_allclose(translation.numpy(), np.linalg.norm(shift, axis=1), atol=1e-9)
+    # Symmetric, and zero for no change.
+    back_r, back_t = pose_change(after, before)
+    np.testing.assert_allclose(back_r.numpy(), rotation.numpy(), atol=1e-4)
+    np.testing.assert_allclose(back_t.numpy(), translation.numpy(), atol=1e-9)
+    still_r, still_t = pose_change(before, before)
+    assert float(still_r.abs().max()) < 1e-6 and float(still_t.abs().max()) == 0.0
+
+
+def test_pose_change_refuses_mismatched_shapes():
+    with pytest.raises(ValueError, match="'before' and 'after' must both be"):
+        pose_change(torch.eye(4)[None].expand(3, 4, 4), torch.eye(4)[None].expand(2, 4, 4))
+
+
+def test_round_summary_is_median_and_90th_percentile(rng):
+    r, t = torch.from_numpy(rng.uniform(0, 5, 41)), torch.from_numpy(rng.uniform(0, 2, 41))
+    summary = round_summary(r, t)
+    expected = (
+        np.median(r.numpy()),
+        np.percentile(r.numpy(), 90),
+        np.median(t.numpy()),
+        np.percentile(t.numpy(), 90),
+    )
+    np.testing.assert_allclose(summary, expected)
+    assert round_summary(torch.zeros(0), torch.zeros(0)) == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_round_record_line_says_what_moved():
+    record = RoundRecord(3, "slices", 40, 5, 0.42, 1.1, 0.2, 0.5, 0.9312, 2, 1, 1.25)
+    line = record.line()
+    assert line.startswith("round 3 (slices): 40 slices registered")
+    assert "median 0.42 deg / 0.20 mm" in line and "5 still moving" in line
+    assert "mean NCC 0.931, 2 excluded (+1)" in line
+    first = RoundRecord(0, "first", 0, 0, 0.0, 0.0, 0.0, 0.0, 0.8, 0, 0, 0.5).line()
+    assert "registered" not in first and first.startswith("round 0 (first); mean NCC 0.800")
+
+
+# --- the stopping rule on tiny simulated cases -------------------------------------------------
+
+
+def tiny_case(rotation_deg: float, translation_mm: float, seed: int = 3) -> list:
+    volume, mask = make_phantom(
+        PhantomConfig(shape=(32, 38, 35), spacing_mm=1.5, brain_length_mm=40.0, folding=0.3)
+    )
+    simulation = SimulationConfig(
+        num_stacks=3,
+        thickness_mm=3.0,
+        in_plane_mm=1.5,
+        margin_mm=4.0,
+        random_walk_rotation_deg=rotation_deg,
+        random_walk_translation_mm=translation_mm,
+        noise=0.005,
+        random_placement=False,
+        seed=seed,
+    )
+    case = simulate_case(canonicalize(volume, mask), simulation)
+    return prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
+
+
+FAST = {
+    "output_resolution_mm": 1.5,
+    "min_slice_pixels": 50,
+    "registration": "none",
+    "sr_iterations": (2, 3),
+    "regularization": (0.2, 0.1),
+    "svr_levels": 2,
+    "svr_iterations": 2,
+    "group_sizes": (3,),
+}
+# Enough super-resolution for registration to hold still at the true poses of the tiny case,
+# and thresholds for its 1.5 mm pixels (slices jitter by ~1 deg / 0.2 mm there).
+STEADY = {
+    **FAST,
+    "sr_iterations": (10, 10),
+    "regularization": (0.05, 0.05),
+    "svr_iterations": 4,
+    "converged_deg": 2.0,
+    "converged_mm": 0.5,
+}
+
+
+def test_a_case_without_motion_stops_after_the_first_registration_round(caplog):
+    stacks = tiny_case(0.0, 0.0)
+    config = ReconstructionConfig(**STEADY, outer_iterations=8)
+    with caplog.at_level(logging.INFO, logger="svr.reconstruction.pipeline"):
+        result = reconstruct(stacks, config, progress=False)
+    stages = [record.stage for record in result.rounds]
+    assert stages == ["first", "groups of 3", "final"]
+    assert result.converged is True
+    first_registration = result.rounds[1]
+    assert first_registration.moving <= 0.1 * first_registration.registered
+    # Every round is in the log, one line each, and the verdict too.
+    lines = [r.getMessage() for r in caplog.records]
+    for record in result.rounds:
+        assert record.line() in lines
+    assert any(m.startswith("converged after round 1") for m in lines)
+
+
+def test_a_moving_case_continues_past_the_first_registration_round():
+    stacks = tiny_case(12.0, 6.0)
+    result = reconstruct(stacks, ReconstructionConfig(**STEADY, outer_iterations=5), progress=False)
+    first_registration = result.rounds[1]
+    assert first_registration.moving > 0.1 * first_registration.registered
+    assert [r.stage for r in result.rounds][:3] == ["first", "groups of 3", "slices"]
+
+
+def still(monkeypatch, step_deg: float) -> None:
+    """Registration replaced by a turn of every slice by ``step_deg`` (0: nothing moves)."""
+    from svr.reconstruction import pipeline
+
+    def fake(acquisition, volume, poses, config, group_size=1, **_):
+        turn = torch.from_numpy(Rotation.from_rotvec([0, 0, math.radians(step_deg)]).as_matrix())
+        out = poses.to(torch.float64).clone()
+        out[:, :3, :3] = out[:, :3, :3] @ turn
+        return out
+
+    monkeypatch.setattr(pipeline, "svr_pass", fake)
+
+
+def test_the_rule_stops_when_nothing_moves_and_not_before_the_cap_otherwise(monkeypatch, caplog):
+    stacks = tiny_case(0.0, 0.0)
+    config = ReconstructionConfig(**FAST, outer_iterations=6)
+    still(monkeypatch, 0.0)
+    result = reconstruct(stacks, config, progress=False)
+    assert [r.stage for r in result.rounds] == ["first", "groups of 3", "final"]
+    assert result.converged is True and result.rounds[1].moving == 0
+    still(monkeypatch, 1.0)
+    with caplog.at_level(logging.WARNING, logger="svr.reconstruction.pipeline"):
+        result = reconstruct(stacks, config, progress=False)
+    stages = [r.stage for r in result.rounds]
+    assert stages == ["first", "groups of 3", "slices", "slices", "slices", "final"]
+    assert result.converged is False
+    assert all(r.moving == r.registered > 0 for r in result.rounds[1:])
+    assert all(abs(r.rotation_deg - 1.0) < 1e-6 for r in result.rounds[1:])
+    assert any("not converged" in r.getMessage() for r in caplog.records)
+    # Just below the threshold counts as still.
+    still(monkeypatch, 0.99 * config.converged_deg)
+    result = reconstruct(stacks, config, progress=False)
+    assert result.converged is True and len(result.rounds) == 3
+
+
+def test_one_round_is_the_final_volume_at_the_initial_poses():
+    stacks = tiny_case(0.0, 0.0)
+    result = reconstruct(stacks, ReconstructionConfig(**FAST, outer_iterations=1), progress=False)
+    assert [r.stage for r in result.rounds] == ["first"] and result.converged is None
+    assert torch.equal(result.slices.poses, extract_slices(stacks).poses)
+
+
+def test_fixed_schedule_runs_the_rounds_asked_for_and_records_them():
+    stacks = tiny_case(2.0, 1.0)
+    config = ReconstructionConfig(**FAST, schedule="fixed", outer_iterations=3)
+    result = reconstruct(stacks, config, progress=False)
+    assert [r.stage for r in result.rounds] == ["first", "groups of 3", "slices"]
+    assert result.converged is None
+
+
+# --- per-slice freezing ------------------------------------------------------------------------
+
+
+def test_svr_pass_registers_only_the_active_slices():
+    stacks = tiny_case(3.0, 1.5)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    model = acquisition_model(slices, grid)
+    volume = initial_volume(model, model.points(slices.poses))
+    config = ReconstructionConfig(**{**FAST, "min_slice_pixels": 0})
+    active = torch.zeros(len(slices), dtype=torch.bool)
+    active[::3] = True
+    moved = svr_pass(model, volume, slices.poses, config, 1, active=active, anchor=False)
+    assert torch.equal(moved[~active], slices.poses[~active].to(moved))
+    rotation, translation = pose_change(slices.poses[active], moved[active])
+    assert float((rotation + translation).min()) > 0
+    # The same slices registered with everything active move the same way.
+    everything = svr_pass(model, volume, slices.poses, config, 1, anchor=False)
+    torch.testing.assert_close(moved[active], everything[active], atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="'active' must have shape"):
+        svr_pass(model, volume, slices.poses, config, 1, active=active[:-1])
+
+
+# --- the background band -----------------------------------------------------------------------
+
+
+def test_background_pixels_are_a_ring_outside_the_mask():
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    pixel = float(slices.spacing_mm.min())
+    band = background_pixels(slices, 2 * pixel, 4 * pixel)
+    assert not bool((band & slices.masks).any())
+    # Chessboard distance to the mask, per slice, by brute force on one slice.
+    i = int(slices.masks.flatten(1).sum(1).argmax())
+    mask = slices.masks[i].numpy()
+    inside = np.argwhere(mask)
+    a, b = np.indices(mask.shape)
+    distance = np.min(
+        np.maximum(
+            np.abs(a[..., None] - inside[:, 0]),
+            np.abs(b[..., None] - inside[:, 1]),
+        ),
+        axis=-1,
+    )
+    np.testing.assert_array_equal(band[i].numpy(), (distance > 2) & (distance <= 4))
+    assert not bool(background_pixels(slices, 0.0, 0.0).any())
+    with pytest.raises(ValueError, match="need 0 <= 'inner_mm' <= 'outer_mm'"):
+        background_pixels(slices, 3.0, 2.0)
+
+
+def test_background_keeps_the_volume_dark_beyond_the_masks():
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    config = ReconstructionConfig(**FAST)
+    volumes = {}
+    for name, band in (("without", (0.0, 0.0)), ("with", (2.0, 6.0))):
+        model = acquisition_model(slices, grid, band)
+        assert (model.background is None) == (name == "without")
+        points = model.points(slices.poses)
+        b_points = model.background_points(slices.poses)
+        volume = initial_volume(model, points)
+        for round_index in range(2):
+            outliers = reject_outliers(model, volume, points, config, background_points=b_points)
+            volume = super_resolve(model, volume, points, outliers, config, round_index, b_points)
+        volumes[name] = volume
+    # Voxels that no slice's mask reaches but the band does: near the brain, outside it.
+    brain = acquisition_model(slices, grid)
+    reach = brain.projector.adjoint(torch.ones_like(brain.observed), brain.points(slices.poses))
+    outside = reach < 1e-3 * float(reach.max())
+    near = acquisition_model(slices, grid, (2.0, 6.0))
+    band_reach = near.background.adjoint(
+        torch.ones(near.background.num_pixels), near.background_points(slices.poses)
+    )
+    ring = (band_reach > 1e-3 * float(band_reach.max())) & ~outside
+    # With the band, the brain's edge region holds less spill-over.
+    assert float(volumes["with"][ring].mean()) < 0.95 * float(volumes["without"][ring].mean())
+
+
+def test_background_weights_are_posteriors_of_the_residual_model(rng):
+    residuals = torch.from_numpy(np.concatenate([rng.normal(0, 0.05, 2000), [2.0, -1.5]]))
+    fit = robust_weights(residuals, torch.zeros(len(residuals), dtype=torch.long), 1)
+    # On the fitted residuals the posterior is the pixel weight itself.
+    torch.testing.assert_close(fit.pixel_posterior(residuals), fit.pixel, rtol=1e-9, atol=0)
+    probe = fit.pixel_posterior(torch.tensor([0.0, 0.05, 1.0], dtype=torch.float64))
+    assert float(probe[0]) > 0.9 and float(probe[0]) >= float(probe[1]) and float(probe[2]) < 0.01
+
+
+def test_a_zero_weight_background_changes_nothing():
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    config = ReconstructionConfig(**FAST)
+    plain = acquisition_model(slices, grid)
+    banded = acquisition_model(slices, grid, (2.0, 6.0))
+    points = plain.points(slices.poses)
+    volume = initial_volume(plain, points)
+    outliers = reject_outliers(plain, volume, points, config)
+    b_points = banded.background_points(slices.poses)
+    zero = outliers._replace(background_weights=torch.zeros(banded.background.num_pixels))
+    a = super_resolve(plain, volume, points, outliers, config, 0)
+    b = super_resolve(banded, volume, points, zero, config, 0, b_points)
+    torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+
+
+# --- the wider search --------------------------------------------------------------------------
+
+
+def test_recapture_brings_back_a_slice_turned_far_off():
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    model = acquisition_model(slices, grid)
+    truth = slices.poses.clone()
+    volume = initial_volume(model, model.points(truth))
+    config = ReconstructionConfig(**FAST)
+    big = int(slices.masks.flatten(1).sum(1).argmax())
+    off = truth.clone()
+    turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(9.0), 0.0]).as_matrix())
+    off[big, :3, :3] = truth[big, :3, :3] @ turn
+    candidates = torch.zeros(len(slices), dtype=torch.bool)
+    candidates[big] = True
+    found, changed = recapture(model, volume, off, truth, candidates, config)
+    assert changed.tolist() == candidates.tolist()
+    assert torch.equal(found[~candidates], off[~candidates])
+    rotation, _ = pose_change(truth[big : big + 1], found[big : big + 1])
+    assert float(rotation) < 3.0
+    observed = model.projector.gather(slices.images)
+    ncc = [
+        slice_ncc(model.projector, model.projector.forward(volume, model.points(p)), observed)
+        for p in (off, found)
+    ]
+    assert float(ncc[1][big]) > float(ncc[0][big])
+    # Nothing to search for: nothing changes.
+    same, none = recapture(model, volume, off, truth, torch.zeros_like(candidates), config)
+    assert torch.equal(same, off.to(same)) and not bool(none.any())
+
+
+def test_volume_grid_is_unchanged_by_the_band():
+    # The band is data for super-resolution only: the output grid covers the masked pixels.
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 1.5)
+    assert isinstance(grid, VolumeGrid)
+    a = reconstruct(stacks, ReconstructionConfig(**FAST, outer_iterations=1), progress=False)
+    assert a.volume.shape == grid.shape
