@@ -71,8 +71,9 @@ _T = TypeVar("_T")
 
 STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
 SVR_PSF_SAMPLES = 3
-# recapture(): the turn of the rotated starts (degrees) and the NCC a start must gain.
-RECAPTURE_ANGLE_DEG = 10.0
+# Background pixels are taken on a lattice of this step (pixels) in each slice.
+BACKGROUND_STRIDE = 2
+# recapture(): the NCC a wider search must gain over the current pose.
 RECAPTURE_MARGIN = 0.01
 # The adaptive schedule stops registering a slice once it has moved less than half the
 # convergence thresholds in this many one-by-one rounds in a row.
@@ -437,7 +438,9 @@ class Acquisition(NamedTuple):
         return None if self.background is None else self.background.grid_points(poses)
 
 
-def background_pixels(slices: SliceSet, inner_mm: float, outer_mm: float) -> Tensor:
+def background_pixels(
+    slices: SliceSet, inner_mm: float, outer_mm: float, stride: int = 1
+) -> Tensor:
     """The pixels between ``inner_mm`` and ``outer_mm`` from each slice's mask, in its plane.
 
     A brain mask cuts the slice where the (blurred) brain fades out; the pixels just outside it
@@ -448,10 +451,14 @@ def background_pixels(slices: SliceSet, inner_mm: float, outer_mm: float) -> Ten
         slices: The slices.
         inner_mm: Pixels nearer to the mask than this are left out (mm, >= 0).
         outer_mm: Pixels up to this distance are kept (mm, >= ``inner_mm``).
+        stride: Keep only the pixels whose array indices are both multiples of this (>= 1): the
+            background is smooth, so a sparser band says as much for less work.
 
     Returns:
         (N, H, W) bool, none of them inside a mask; all false for ``outer_mm = 0``.
     """
+    if stride < 1:
+        raise ValueError(f"background_pixels(): 'stride' must be >= 1, got {stride}")
     if not 0 <= inner_mm <= outer_mm:
         raise ValueError(
             "background_pixels(): need 0 <= 'inner_mm' <= 'outer_mm', got "
@@ -470,7 +477,12 @@ def background_pixels(slices: SliceSet, inner_mm: float, outer_mm: float) -> Ten
             > 0.5
         )
 
-    return grown(outer_mm) & ~grown(inner_mm)
+    band = grown(outer_mm) & ~grown(inner_mm)
+    if stride > 1:
+        lattice = torch.zeros_like(band[0])
+        lattice[::stride, ::stride] = True
+        band = band & lattice
+    return band
 
 
 def acquisition_model(
@@ -489,7 +501,7 @@ def acquisition_model(
         The projectors, the observed pixel values and the slices' brain pixel counts.
     """
     projector = SliceProjector(grid, slices)
-    band = background_pixels(slices, *background_mm)
+    band = background_pixels(slices, *background_mm, stride=BACKGROUND_STRIDE)
     return Acquisition(
         slices=slices,
         grid=grid,
@@ -598,16 +610,20 @@ def recapture(
     start_poses: Tensor,
     candidates: Tensor,
     config: ReconstructionConfig,
-    angle_deg: float = RECAPTURE_ANGLE_DEG,
+    turn_deg: float | None = None,
+    extra_levels: int = 0,
 ) -> tuple[Tensor, Tensor]:
-    """A wider search for slices that still fit badly: several starts, one more coarse level.
+    """A wider search for slices that still fit badly: their packet neighbours' motion as starts.
 
-    Each slice in ``candidates`` is registered alone from its current pose, from the poses its
+    Each slice in ``candidates`` is registered alone from its current pose and from the poses its
     temporal neighbours' motion gives it (the corrections that moved the previous and next slice
-    of its packet since ``start_poses``, applied to it), and from its current pose turned by
-    ``+-angle_deg`` about each of its own axes, with ``config.svr_levels + 1`` levels (the extra
-    one at twice the coarsest blur). It takes the result that matches its simulation from
-    ``volume`` best (NCC over its brain pixels), if that beats its current pose.
+    of its packet since ``start_poses``, applied to it); with ``turn_deg``, also from its current
+    pose turned by ``+-turn_deg`` about each of its own axes; with ``extra_levels``, with that
+    many more coarse levels (each at twice the previous blur). It takes the result that matches
+    its simulation from ``volume`` best (NCC over its brain pixels), if that beats its current
+    pose by ``RECAPTURE_MARGIN``. On sb24-large the neighbours' starts shortened the tail of
+    pose errors most for the least time; turns and an extra level added time and nothing
+    measurable (``benchmarks/results/reconstruction-convergence.md``).
 
     Args:
         acquisition: The acquisition model.
@@ -616,7 +632,8 @@ def recapture(
         start_poses: (N, 4, 4) the poses the rounds started from (for the neighbours' motion).
         candidates: (N,) bool, the slices to search for.
         config: Settings (``packets``, ``svr_levels``, ``svr_iterations``).
-        angle_deg: The turn of the rotated starts (degrees).
+        turn_deg: The turn of the rotated starts (degrees), or ``None`` for none.
+        extra_levels: Coarse levels added to ``config.svr_levels`` (>= 0).
 
     Returns:
         (N, 4, 4) float64 poses (changed only where a search found a better fit) and (N,) bool,
@@ -633,9 +650,10 @@ def recapture(
     neighbour = _packet_neighbours(slices, config.packets)
     motion = poses @ torch.linalg.inv(start_poses.to(poses))
     turns = [
-        so3_exp(sign * math.radians(angle_deg) * axis)
+        so3_exp(sign * math.radians(turn_deg) * axis)
         for axis in torch.eye(3, dtype=torch.float64, device=device)
         for sign in (1, -1)
+        if turn_deg is not None
     ]
     for i in index.tolist():
         own = [poses[i]]
@@ -650,7 +668,9 @@ def recapture(
     owner = torch.tensor(owners, device=device)
     subset = slices.subset(owner)
     projector = SliceProjector(acquisition.grid, subset, psf_samples=SVR_PSF_SAMPLES)
-    settings = RegistrationConfig(levels=config.svr_levels + 1, iterations=config.svr_iterations)
+    settings = RegistrationConfig(
+        levels=config.svr_levels + extra_levels, iterations=config.svr_iterations
+    )
     found = register_rigid(
         projector,
         volume,
@@ -1037,9 +1057,9 @@ def _adaptive_rounds(
     that moved in the previous round), then updates the outlier weights and the volume. The
     rounds stop once at most ``config.converged_fraction`` of the registrable slices moved more
     than the thresholds, or one round before the cap ``config.rounds``. The final round registers
-    every slice once more and reconstructs the volume anew at the final poses, with the last
-    regularisation and CG iterations, so that the output does not carry the blur of the rough
-    volumes of the first rounds.
+    every slice once more if they had not converged, and reconstructs the volume anew at the final
+    poses with the last regularisation and CG iterations, so that the output does not carry the
+    blur of the rough volumes of the first rounds.
     """
     records: list[RoundRecord] = []
     cap = config.rounds
@@ -1122,7 +1142,8 @@ def _adaptive_rounds(
         )
     started, before = time.perf_counter(), state.excluded
     last = single & ~state.excluded.cpu()
-    changes = _register(model, state, config, timer, 1, single)
+    # Converged slices would not move: the final round only reconstructs the volume anew.
+    changes = None if converged else _register(model, state, config, timer, 1, single)
     with timer.phase("super-resolution"):
         state.volume = initial_volume(model, state.points)
     outliers = _reconstruct_volume(model, state, config, timer, index, _final_settings(config))

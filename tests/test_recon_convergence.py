@@ -278,11 +278,20 @@ def test_background_pixels_are_a_ring_outside_the_mask():
     )
     np.testing.assert_array_equal(band[i].numpy(), (distance > 2) & (distance <= 4))
     assert not bool(background_pixels(slices, 0.0, 0.0).any())
+    sparse = background_pixels(slices, 2 * pixel, 4 * pixel, stride=2)
+    lattice = torch.zeros_like(band[0])
+    lattice[::2, ::2] = True
+    assert torch.equal(sparse, band & lattice)
+    with pytest.raises(ValueError, match="'stride' must be >= 1"):
+        background_pixels(slices, 0.0, 1.0, stride=0)
     with pytest.raises(ValueError, match="need 0 <= 'inner_mm' <= 'outer_mm'"):
         background_pixels(slices, 3.0, 2.0)
 
 
-def test_background_keeps_the_volume_dark_beyond_the_masks():
+def test_background_keeps_the_volume_dark_beyond_the_masks(monkeypatch):
+    from svr.reconstruction import pipeline
+
+    monkeypatch.setattr(pipeline, "BACKGROUND_STRIDE", 1)  # every band pixel, at 1.5 mm
     stacks = tiny_case(0.0, 0.0)
     slices = extract_slices(stacks)
     grid = output_grid(slices, 2.0)
@@ -354,6 +363,7 @@ def test_recapture_brings_back_a_slice_turned_far_off():
     off[big, :3, :3] = truth[big, :3, :3] @ turn
     candidates = torch.zeros(len(slices), dtype=torch.bool)
     candidates[big] = True
+    # The neighbours did not move since the start: their motion puts the slice back.
     found, changed = recapture(model, volume, off, truth, candidates, config)
     assert changed.tolist() == candidates.tolist()
     assert torch.equal(found[~candidates], off[~candidates])
@@ -365,6 +375,11 @@ def test_recapture_brings_back_a_slice_turned_far_off():
         for p in (off, found)
     ]
     assert float(ncc[1][big]) > float(ncc[0][big])
+    # Turned starts find it without the neighbours' help too.
+    alone = off.clone()
+    turned, again = recapture(model, volume, alone, alone, candidates, config, turn_deg=10.0)
+    assert again.tolist() == candidates.tolist()
+    assert float(pose_change(truth[big : big + 1], turned[big : big + 1])[0]) < 4.0
     # Nothing to search for: nothing changes.
     same, none = recapture(model, volume, off, truth, torch.zeros_like(candidates), config)
     assert torch.equal(same, off.to(same)) and not bool(none.any())
