@@ -1034,7 +1034,9 @@ def _fixed_rounds(
         if round_index > 0:
             changes = _register(model, state, config, timer, size)
         outliers = _reconstruct_volume(model, state, config, timer, round_index)
-        registered = _registrable(model, config, size) if changes is not None else everything
+        registered = (
+            _registrable(model, config, size) & ~before.cpu() if changes is not None else everything
+        )
         stage = "first" if changes is None else _stage(size)
         records.append(
             _record(round_index, stage, changes, registered, config, outliers, before, started)
@@ -1053,8 +1055,10 @@ def _adaptive_rounds(
     """Registration rounds while the slices move, then the final round (see ``schedule``).
 
     Round 0 reconstructs the volume at the initial poses. Each following round registers the
-    slices (in groups of temporal neighbours first, then one by one; one by one, only the slices
-    that moved in the previous round), then updates the outlier weights and the volume. The
+    slices (in groups of temporal neighbours first, then one by one, leaving out the slices that
+    moved less than half the thresholds in ``QUIET_ROUNDS`` rounds in a row, and searching wider
+    for those that fit badly: :func:`recapture`), then updates the outlier weights and the
+    volume. The
     rounds stop once at most ``config.converged_fraction`` of the registrable slices moved more
     than the thresholds, or one round before the cap ``config.rounds``. The final round registers
     every slice once more if they had not converged, and reconstructs the volume anew at the final
