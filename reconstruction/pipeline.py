@@ -1147,13 +1147,15 @@ def _adaptive_rounds(
     started, before = time.perf_counter(), state.excluded
     last = single & ~state.excluded.cpu()
     # Converged slices would not move: the final round only reconstructs the volume anew.
-    changes = None if converged else _register(model, state, config, timer, 1, single)
+    final: tuple[Tensor, Tensor] | None = None
+    if not converged:
+        final = _register(model, state, config, timer, 1, single)
     with timer.phase("super-resolution"):
         state.volume = initial_volume(model, state.points)
     outliers = _reconstruct_volume(model, state, config, timer, index, _final_settings(config))
     simulated = model.projector.forward(state.volume, state.points)
     ncc = slice_ncc(model.projector, simulated, model.observed)
-    records.append(_record(index, "final", changes, last, config, outliers, before, started, ncc))
+    records.append(_record(index, "final", final, last, config, outliers, before, started, ncc))
     bar.update()
     bar.close()
     return records, converged
