@@ -128,6 +128,10 @@ def main() -> int:
     truth = slice_truth(case, slices)
     stacks = len(slices.stack_names)
     lines = [
+        "# Slice drift from the true poses (`benchmarks/bench_drift.py`)",
+        "",
+        "Command: `python benchmarks/" + " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) + "`",
+        "",
         f"Case {args.case}, {len(slices)} slices started at their true poses, {args.rounds} "
         "rounds of one-by-one SVR + super-resolution (the fixed schedule's round settings).",
         "",

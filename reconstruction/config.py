@@ -36,7 +36,7 @@ class ReconstructionConfig:
             the stack with the most brain voxels.
         schedule: How many rounds run. ``"adaptive"``: slice-to-volume registration rounds
             continue while the slices still move (:mod:`svr.reconstruction.convergence`), slices
-            that have stopped moving are no longer registered, slices that still fit badly get
+            that have stopped moving sit out a round at a time, slices that still fit badly get
             a wider search, pixels just outside the masks are observed as background, and the
             volume is reconstructed anew at the final poses. ``"fixed"``: exactly
             ``outer_iterations`` rounds with the per-round settings, as fetal-svr 0.1.0 ran them
@@ -211,7 +211,8 @@ class ReconstructionResult:
             slices, NCC); empty for other registrations.
         rounds: What each round did (:class:`~svr.reconstruction.convergence.RoundRecord`).
         converged: ``"adaptive"``: whether the slices stopped moving before the cap on rounds
-            (``None`` for the fixed schedule, or when no registration round ran).
+            (``None`` for the fixed schedule, or when no registration round ran before the final
+            one: ``outer_iterations`` 1 or 2).
     """
 
     volume: Image

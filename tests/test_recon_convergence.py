@@ -7,6 +7,7 @@ with and without motion; the background term by its effect on the volume outside
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 
@@ -217,6 +218,18 @@ def test_the_rule_stops_when_nothing_moves_and_not_before_the_cap_otherwise(monk
     assert result.converged is True and len(result.rounds) == 3
 
 
+def test_two_rounds_have_no_verdict(caplog):
+    stacks = tiny_case(2.0, 1.0)
+    config = ReconstructionConfig(**FAST, outer_iterations=2)
+    with caplog.at_level(logging.INFO, logger="svr.reconstruction.pipeline"):
+        result = reconstruct(stacks, config, progress=False)
+    assert [r.stage for r in result.rounds] == ["first", "final"]
+    assert result.converged is None and result.rounds[1].registered > 0
+    messages = [r.getMessage() for r in caplog.records]
+    assert not any("converged" in m for m in messages)
+    assert any("no registration round before the final one" in m for m in messages)
+
+
 def test_one_round_is_the_final_volume_at_the_initial_poses():
     stacks = tiny_case(0.0, 0.0)
     result = reconstruct(stacks, ReconstructionConfig(**FAST, outer_iterations=1), progress=False)
@@ -224,15 +237,72 @@ def test_one_round_is_the_final_volume_at_the_initial_poses():
     assert torch.equal(result.slices.poses, extract_slices(stacks).poses)
 
 
-def test_fixed_schedule_runs_the_rounds_asked_for_and_records_them():
+# SHA-256 of fetal-svr 0.1.0's output (commit 5a69538, before the adaptive schedule existed) on
+# tiny_case(2.0, 1.0) with FAST and 3 rounds, one torch thread: the volume's float32 array, its
+# affine (float64) and the slices' final poses (float64), each as C-ordered bytes.
+VERSION_0_1_0 = {
+    "volume": "44dd4a2f4c9e5db8681e92f0fd3e47ffdf77d92f897395678457b7937f2d4726",
+    "affine": "77cdf5e14f2c37c718c32b43f381ec933bdae0c2c61b715c085fa49a5ca2a0f9",
+    "poses": "649d54cde10358d728bf4bf95a12fdec8e8c58af6cff37cfc74f3b984061adc3",
+}
+
+
+def sha256(tensor: torch.Tensor) -> str:
+    return hashlib.sha256(np.ascontiguousarray(tensor.detach().cpu().numpy()).tobytes()).hexdigest()
+
+
+def test_fixed_schedule_reproduces_version_0_1_0_bit_for_bit():
     stacks = tiny_case(2.0, 1.0)
     config = ReconstructionConfig(**FAST, schedule="fixed", outer_iterations=3)
     result = reconstruct(stacks, config, progress=False)
     assert [r.stage for r in result.rounds] == ["first", "groups of 3", "slices"]
     assert result.converged is None
+    assert result.volume.data.dtype == torch.float32
+    digests = {
+        "volume": sha256(result.volume.data),
+        "affine": sha256(result.volume.affine),
+        "poses": sha256(result.slices.poses),
+    }
+    assert digests == VERSION_0_1_0
 
 
 # --- per-slice freezing ------------------------------------------------------------------------
+
+
+def test_slices_quiet_for_two_rounds_sit_out_the_next(monkeypatch):
+    """Half the slices turn by 1 deg per round (still moving), half stay: after two quiet
+    one-by-one rounds the still half sits out one round, then is registered again."""
+    from svr.reconstruction import pipeline
+
+    stacks = tiny_case(0.0, 0.0)
+    turn = torch.from_numpy(Rotation.from_rotvec([0, 0, math.radians(1.0)]).as_matrix())
+    seen = []
+
+    def fake(acquisition, volume, poses, config, group_size=1, active=None, **_):
+        n = len(poses)
+        moving = torch.arange(n) % 2 == 0
+        if active is not None:
+            moving = moving & active.cpu()
+        seen.append(None if active is None else active.cpu().clone())
+        out = poses.to(torch.float64).clone()
+        out[moving, :3, :3] = out[moving, :3, :3] @ turn
+        return out
+
+    monkeypatch.setattr(pipeline, "svr_pass", fake)
+    # (Without the wider search, which would bring back slices that fit badly.)
+    config = ReconstructionConfig(**FAST, outer_iterations=7, recapture=False)
+    result = reconstruct(stacks, config, progress=False)
+    stages = [r.stage for r in result.rounds]
+    assert stages == ["first", "groups of 3", "slices", "slices", "slices", "slices", "final"]
+    # seen: the groups round (no active set), then the one-by-one rounds 2-5.
+    first = seen[1]
+    assert seen[0] is None and first is not None
+    turning = first & (torch.arange(len(first)) % 2 == 0)
+    registered = [r.registered for r in result.rounds[2:6]]
+    assert registered == [int(first.sum())] * 2 + [int(turning.sum()), int(first.sum())]
+    # The slices left out are exactly the still ones, for one round.
+    assert seen[3] is not None and torch.equal(seen[3], turning)
+    assert seen[4] is not None and torch.equal(seen[4], first)
 
 
 def test_svr_pass_registers_only_the_active_slices():
@@ -327,6 +397,29 @@ def test_background_weights_are_posteriors_of_the_residual_model(rng):
     torch.testing.assert_close(fit.pixel_posterior(residuals), fit.pixel, rtol=1e-9, atol=0)
     probe = fit.pixel_posterior(torch.tensor([0.0, 0.05, 1.0], dtype=torch.float64))
     assert float(probe[0]) > 0.9 and float(probe[0]) >= float(probe[1]) and float(probe[2]) < 0.01
+
+
+def test_background_where_the_volume_is_bright_gets_low_weight():
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    config = ReconstructionConfig(**FAST)
+    model = acquisition_model(slices, grid, (2.0, 6.0))
+    points, b_points = model.points(slices.poses), model.background_points(slices.poses)
+    dark = initial_volume(model, points)
+    bright = torch.where(dark > 0, dark, dark.max())
+    weights = {}
+    for name, volume in (("dark", dark), ("bright", bright)):
+        outliers = reject_outliers(model, volume, points, config, background_points=b_points)
+        kept = (outliers.slice_weights * ~outliers.excluded)[model.background.slice_of]
+        assert bool((outliers.background_weights <= kept + 1e-6).all())
+        weights[name] = outliers.background_weights
+    # Background observed as 0 agrees where the volume is dark and contradicts it where bright.
+    simulated = model.background.forward(dark, b_points)
+    outside = simulated < 1e-3 * float(dark.max())
+    assert int(outside.sum()) > 100
+    assert float(weights["dark"][outside].median()) > 0.9
+    assert float(weights["bright"][outside].median()) < 0.05
 
 
 def test_a_zero_weight_background_changes_nothing():

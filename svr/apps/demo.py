@@ -262,6 +262,9 @@ class MethodResult:
         slice_rotation_error_deg: Median rotation error of the final slice poses (degrees).
         slice_translation_error_mm: Median distance of the final slice centres from the true ones.
         seconds: Wall time of the reconstruction.
+        rounds: Rounds the reconstruction ran (the first volume and the final one included).
+        converged: Whether its slices stopped moving before the cap on rounds (``None`` for
+            the fixed schedule).
     """
 
     registration: str
@@ -274,6 +277,8 @@ class MethodResult:
     slice_rotation_error_deg: float
     slice_translation_error_mm: float
     seconds: float
+    rounds: int = 0
+    converged: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -473,6 +478,8 @@ def _score(
         slice_rotation_error_deg=float(errors["rotation_deg"].median()),
         slice_translation_error_mm=float(errors["translation_mm"].median()),
         seconds=seconds,
+        rounds=len(result.rounds),
+        converged=result.converged,
     )
     return method, rows
 

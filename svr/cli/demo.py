@@ -178,7 +178,9 @@ def format_scores(result: DemoResult) -> str:
             f"{m.registration}: frame offset {m.frame_offset_deg:.1f} deg, "
             f"{m.frame_offset_mm:.1f} mm; median slice pose error after alignment "
             f"{m.slice_rotation_error_deg:.2f} deg, {m.slice_translation_error_mm:.2f} mm; "
-            f"initialisation {', '.join(m.initialisation)}; {m.seconds:.0f} s"
+            f"initialisation {', '.join(m.initialisation)}; {m.rounds} rounds"
+            + {True: " (converged)", False: " (not converged)", None: ""}[m.converged]
+            + f"; {m.seconds:.0f} s"
         )
     timings = ", ".join(f"{name} {s:.0f} s" for name, s in result.timings_s.items())
     lines.append(f"time: {timings}; total {sum(result.timings_s.values()):.0f} s")
