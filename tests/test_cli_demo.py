@@ -93,8 +93,9 @@ def test_quick_demo_metrics_json(quick_run):
             assert -1 <= score["cc"] <= 1 and -1 <= score["ssim"] <= 1
             assert math.isfinite(score["psnr_db"])
         assert r["slice_rotation_error_deg"] < 10 and r["slice_translation_error_mm"] < 5
-        # The demo runs the default (adaptive) schedule and says how it ended.
-        assert r["rounds"] >= 2 and r["converged"] in (True, False)
+        # The demo runs the default (adaptive) schedule and says how it ended: the quick one
+        # has only the first and the final round, so no verdict.
+        assert r["rounds"] == 2 and r["converged"] is None
     # Slice-to-volume registration and super-resolution improve on the initial volume.
     stack = results["stack"]
     assert stack["reconstructed"]["cc"] > stack["initial"]["cc"]
