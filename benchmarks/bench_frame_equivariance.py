@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -33,7 +32,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import torch
-from bench_common import SHARED, load_case_stacks
+from bench_common import SHARED, load_case_stacks, run_scorer
 from scipy.spatial.transform import Rotation
 
 from svr.image import Image
@@ -41,17 +40,6 @@ from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.outputs import write_volume
 from svr.reconstruction.pipeline import reconstruct, stack_registration
 from svr.reconstruction.slices import extract_slices
-
-
-def score(scorer: Path, volume: Path, case: Path) -> dict[str, float]:
-    """The shared yardstick's scores of ``volume`` against ``case``."""
-    out = subprocess.run(
-        [sys.executable, str(scorer), str(volume), str(case)],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def rigid(rotation: np.ndarray, shift: tuple[float, float, float]) -> np.ndarray:
@@ -110,7 +98,7 @@ def main() -> int:
                 volume = Image(volume.data, torch.linalg.inv(G).to(volume.affine) @ volume.affine)
             path = Path(tmp) / f"{frame}.nii.gz"
             write_volume(volume, path)
-            s = scores[name] = score(args.scorer, path, case)
+            s = scores[name] = run_scorer(args.scorer, path, case)
             line = (
                 f"| {name} | {s['psnr']:.3f} | {s['ssim']:.4f} | {s['ncc']:.4f} | "
                 f"{float(result.slice_ncc.mean()):.4f} |"
@@ -148,7 +136,7 @@ def main() -> int:
                 data = np.asarray(image.dataobj)
                 transform = rigid(rotation, (20.0, -35.0, 12.0))
                 nib.save(nib.Nifti1Image(data, transform @ image.affine), path)
-                s = score(args.scorer, path, case)
+                s = run_scorer(args.scorer, path, case)
                 psnrs.append(s["psnr"])
                 angle = math.degrees(Rotation.from_matrix(rotation).magnitude())
                 line = (

@@ -40,7 +40,7 @@ import sys
 import time
 from pathlib import Path
 
-from bench_common import scanner_frame_copy, simulate_cases
+from bench_common import run_scorer, scanner_frame_copy, simulate_cases
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -188,12 +188,7 @@ def main() -> int:
             if code != 0:
                 print(f"{case} {method}: svr reconstruct failed ({code})", file=sys.stderr)
                 return 1
-            score = json.loads(
-                subprocess.run(
-                    [sys.executable, str(args.scorer), f"{stem}.nii.gz", str(folder)],
-                    capture_output=True, text=True, check=True,
-                ).stdout.strip().splitlines()[-1]
-            )  # fmt: skip
+            score = run_scorer(args.scorer, Path(f"{stem}.nii.gz"), folder)
             # A canonical-frame volume is also scored relabelled into the scanner frame: the
             # yardstick's score depends on the orientation a volume comes in (bench_common).
             scanner_score = None
@@ -201,12 +196,7 @@ def main() -> int:
                 copy = scanner_frame_copy(
                     Path(f"{stem}.nii.gz"), Path(f"{stem}.csv"), Path(f"{stem}-scanner.nii.gz")
                 )
-                scanner_score = json.loads(
-                    subprocess.run(
-                        [sys.executable, str(args.scorer), str(copy), str(folder)],
-                        capture_output=True, text=True, check=True,
-                    ).stdout.strip().splitlines()[-1]
-                )  # fmt: skip
+                scanner_score = run_scorer(args.scorer, copy, folder)
             phases = phase_times(Path(f"{stem}.log"))
             rounds = rounds_run(Path(f"{stem}.log"))
             rows.append(
