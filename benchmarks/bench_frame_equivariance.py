@@ -38,7 +38,8 @@ from scipy.spatial.transform import Rotation
 from svr.image import Image
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.outputs import write_volume
-from svr.reconstruction.pipeline import reconstruct, stack_registration
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import extract_slices
 
 

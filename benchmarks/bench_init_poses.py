@@ -9,7 +9,7 @@ this measures, in one run, the per-slice pose errors of
 * the final poses of ``reconstruct`` with ``--registration stack`` and ``cnn``;
 * ``--registration cnn`` with oracle models: every prediction is the true canonical pose moved
   by a rigid error of a set size (a random axis and direction), passed through the same learned
-  initialisation (:func:`svr.reconstruction.pipeline.learned_initialisation`) and reconstruction.
+  initialisation (:func:`svr.reconstruction.cnn_init.learned_initialisation`) and reconstruction.
   They show how accurate a model must be for the learned initialisation to beat the classical
   one.
 
@@ -45,9 +45,10 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, save_nifti
 from svr.metrics import rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, learned_initialisation
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
-from svr.reconstruction.pipeline import learned_initialisation, reconstruct, stack_registration
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.sampling.volume import load_canonical_volume
 

@@ -1,4 +1,8 @@
-"""Learned pose initialisation: CNN slice poses made rigid per stack by robust averaging.
+"""Learned pose initialisation: CNN slice poses, made rigid per stack, against stack registration.
+
+This module holds all of it: the predictions made rigid per stack by robust averaging
+(:func:`cnn_slice_poses`) and the per-stack choice between them and stack registration
+(:func:`learned_initialisation`).
 
 A slice-pose network (:mod:`svr.models.predict`) predicts the canonical pose ``P_i`` of every slice
 independently, so single predictions can be far off. Within a stack the slices are (up to fetal
@@ -26,9 +30,11 @@ between the two origins; hence ``A_i = T_k o C_k^-1``.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -38,14 +44,20 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
 
 __all__ = [
     "CnnInitialisation",
+    "LearnedStart",
     "cnn_slice_poses",
     "disambiguate_stack",
     "learned_consensus",
+    "learned_initialisation",
 ]
+
+log = logging.getLogger(__name__)
 
 _PLANE_ATOL = 1e-4  # rad and mm: how far a slice may lie off its stack's k-plane
 
@@ -415,3 +427,132 @@ def learned_consensus(
         stack_support=support.to(device),
         supporting=inlier.to(device),
     )
+
+
+class LearnedStart(NamedTuple):
+    """What :func:`learned_initialisation` chose.
+
+    Attributes:
+        slices: The slices at their initial canonical poses.
+        choice: Per stack, ``"cnn"`` or ``"stack"``.
+        notes: Per stack, why (support, flipped slices, NCC), for the log and the QA figure.
+    """
+
+    slices: SliceSet
+    choice: tuple[str, ...]
+    notes: tuple[str, ...]
+
+
+def _canonical_frame(
+    learned: CnnInitialisation, registered: Tensor, slices: SliceSet, trusted: Tensor
+) -> Tensor | None:
+    """``G``: registered (template) frame -> canonical, from the trusted stacks' supporting slices.
+
+    The robust mean of ``P_i o X_i^-1`` over the slices that support their stack's transform in
+    the stacks with enough support, ``X_i`` their registered poses; ``None`` if there are none.
+    """
+    use = learned.supporting & trusted[slices.stack_ids]
+    if not bool(use.any()):
+        return None
+    chosen = learned.predicted_poses[use].to(torch.float64).cpu()
+    inverse = se3_inverse(registered[use].to(torch.float64).cpu())
+    return robust_mean_pose(se3_compose(chosen, inverse)).to(registered)
+
+
+def _mean_ncc(per_stack: Tensor, slices: SliceSet) -> float:
+    """Slice-weighted mean of (S,) per-stack NCCs."""
+    counts = torch.bincount(slices.stack_ids.cpu(), minlength=len(per_stack)).to(per_stack)
+    return float((per_stack.cpu() * counts.cpu()).sum() / counts.sum().clamp_min(1))
+
+
+def learned_initialisation(
+    slices: SliceSet, learned: CnnInitialisation, config: ReconstructionConfig
+) -> LearnedStart:
+    """Learned slice poses or stack registration, per stack, chosen so as never to do harm.
+
+    1. **Support.** A stack whose slices mostly disagree with their consensus (support below
+       ``config.cnn_min_support``; :func:`svr.reconstruction.cnn_init.disambiguate_stack`) means the
+       model is unsure of it: it keeps stack registration, and the log and QA say so.
+    2. **Canonical frame.** Stack registration is moved into canonical space by ``G``, the robust
+       mean over the trusted stacks' supporting slices of (chosen prediction) o (registered
+       pose)^-1, so that the output is in atlas orientation whichever start each stack keeps. With
+       no trusted stack the predictions' global transform is used, and the log warns that the
+       orientation is unreliable.
+    3. **NCC per stack.** A trusted stack keeps its learned poses (each slice its own prediction,
+       or the consensus pose where that is an outlier: :meth:`CnnInitialisation.refined_poses`)
+       when they match their simulation from their own scattered-data volume at least as well
+       (mean NCC) as the registered poses do, as NeSVoR chooses between SVoRT and registration.
+    4. **Joint check.** The mixed start is kept only if its slice-weighted mean NCC is not below
+       that of stack registration alone; otherwise every stack starts from registration.
+
+    Args:
+        slices: All slices, at their scanner poses.
+        learned: The slices' (disambiguated) predicted canonical poses and their consensus
+            (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`).
+        config: Settings.
+
+    Returns:
+        The slices at their initial canonical poses, the choice per stack and notes per stack.
+    """
+    outliers = learned.outliers(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm)
+    log.info(
+        "cnn: %d of %d slice predictions disagree with their stack's consensus (> %g deg or "
+        "%g mm) and take the consensus pose",
+        int(outliers.sum()),
+        len(slices),
+        config.cnn_max_deviation_deg,
+        config.cnn_max_deviation_mm,
+    )
+    support = learned.stack_support.cpu()
+    flipped = learned.flipped(slices.stack_ids).cpu()
+    trusted = (support >= config.cnn_min_support).to(slices.device)
+    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    frame = _canonical_frame(learned, registered, slices, trusted)
+    if frame is None:
+        log.warning(
+            "cnn: no stack has enough support (>= %.0f%% of its slices); the learned "
+            "initialisation is unsure and the output's atlas orientation is unreliable",
+            100 * config.cnn_min_support,
+        )
+        frame = learned.global_transform.to(registered)
+    candidates = {
+        "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
+        "stack": frame @ registered,
+    }
+    # The learned candidate is only scored when some stack may keep it.
+    scores = {
+        name: stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
+        for name, poses in candidates.items()
+        if name == "stack" or bool(trusted.any())
+    }
+    choice, notes = [], []
+    poses = candidates["stack"].clone()
+    for sid, name in enumerate(slices.stack_names):
+        head = f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
+        if not bool(trusted[sid]):
+            best, why = "stack", f"cnn unsure ({head})"
+        else:
+            ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
+            best = "cnn" if ncc_cnn >= ncc_stack else "stack"
+            why = f"{head}, NCC cnn {ncc_cnn:.3f} vs stack {ncc_stack:.3f}"
+        members = slices.stack_ids == sid
+        poses[members] = candidates[best][members]
+        choice.append(best)
+        notes.append(why)
+        log.info("%s: initialisation %s (%s)", name, best, why)
+    if "cnn" in choice:
+        mixed = _mean_ncc(
+            stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm), slices
+        )
+        alone = _mean_ncc(scores["stack"], slices)
+        if mixed < alone:
+            log.info(
+                "cnn: the mixed start (mean NCC %.3f) fits worse than stack registration alone "
+                "(%.3f); every stack starts from registration",
+                mixed,
+                alone,
+            )
+            poses = candidates["stack"]
+            notes = [f"{n}; joint check failed ({mixed:.3f} < {alone:.3f})" for n in notes]
+            choice = ["stack"] * len(choice)
+    return LearnedStart(slices.with_poses(poses, "canonical"), tuple(choice), tuple(notes))

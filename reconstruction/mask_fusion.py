@@ -52,7 +52,7 @@ from svr.geometry import se3_compose, se3_inverse
 from svr.image import Image, stack_slice_poses
 from svr.models.brain_mask import clean_up_mask
 from svr.reconstruction.operators import SliceProjector
-from svr.reconstruction.pipeline import stack_registration
+from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from svr.reconstruction.stacks import prepare_stacks
 from svr.reconstruction.superres import output_grid, scattered_data_approximation
@@ -417,7 +417,7 @@ def fuse_masks(
         stacks: The (I, J, K) stacks as read (affines in the scanner frame), at least 3.
         masks: Per stack, its (I, J, K) bool brain mask on the stack's grid.
         slices: The stacks' slices registered into one frame (e.g. by
-            :func:`~svr.reconstruction.pipeline.stack_registration` or a reconstruction);
+            :func:`~svr.reconstruction.registration.stack_registration` or a reconstruction);
             ``slices.stack_ids`` index ``stacks``.
         thicknesses: Per stack, the slice thickness (through-plane PSF FWHM), mm.
         config: Settings; default :class:`MaskFusionConfig`'s.

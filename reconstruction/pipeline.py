@@ -7,7 +7,9 @@ Phases (each timed and logged):
        canonical pose, replaces predictions that disagree with their stack's robust consensus
        by the consensus pose, and keeps per stack whichever of these poses and the stack
        registration (mapped to canonical space) makes the simulated slices match the observed
-       ones better by NCC, as NeSVoR does (:func:`learned_initialisation`);
+       ones better by NCC, as NeSVoR does
+       (:func:`svr.reconstruction.cnn_init.learned_initialisation`; stack registration is
+       :func:`svr.reconstruction.registration.stack_registration`);
     3. rounds: slice-to-volume registration of every slice (skipped in the first round),
        per-slice intensity scales, EM outlier weights, exclusion of slices whose NCC with their
        simulation is below the threshold, then conjugate-gradient super-resolution.
@@ -31,14 +33,20 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from svr.geometry import se3_compose, se3_inverse, so3_exp
+from svr.geometry import so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.models.network import SlicePoseNet
-from svr.reconstruction.cnn_init import CnnInitialisation, cnn_slice_poses
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_initialisation
 from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
-from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
+from svr.reconstruction.registration import (
+    SVR_PSF_SAMPLES,
+    RegistrationConfig,
+    register_rigid,
+    slice_ncc,
+    stack_registration,
+)
 from svr.reconstruction.robust import robust_weights
 from svr.reconstruction.slices import SliceSet, Stack, extract_slices
 from svr.reconstruction.superres import (
@@ -69,8 +77,6 @@ log = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 
-STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
-SVR_PSF_SAMPLES = 3
 # Background pixels are taken on a lattice of this step (pixels) in each slice.
 BACKGROUND_STRIDE = 2
 # recapture(): the NCC a wider search must gain over the current pose.
@@ -91,197 +97,6 @@ class _Timer:
         elapsed = time.perf_counter() - start
         self.timings[name] = self.timings.get(name, 0.0) + elapsed
         log.info("%s: %.1f s", name, elapsed)
-
-
-def _sda(slices: SliceSet, grid: VolumeGrid, psf_samples: int = SVR_PSF_SAMPLES) -> Tensor:
-    projector = SliceProjector(grid, slices, psf_samples=psf_samples)
-    observed = projector.gather(slices.images)
-    points = projector.grid_points(slices.poses)
-    return scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
-
-
-def stack_registration(
-    slices: SliceSet, resolution_mm: float, template: int | None = None
-) -> tuple[Tensor, int]:
-    """Rigid registration of every stack to a volume estimated from the template stack.
-
-    Args:
-        slices: All slices at their starting poses.
-        resolution_mm: Voxel size of the template volume.
-        template: Template stack index, or ``None`` for the stack with the most masked pixels.
-
-    Returns:
-        (N, 4, 4) registered poses (in the template stack's frame, i.e. unchanged for the
-        template's slices) and the template index.
-    """
-    num_stacks = len(slices.stack_names)
-    if template is None:
-        counts = torch.zeros(num_stacks, device=slices.device).index_add(
-            0, slices.stack_ids, slices.masks.flatten(1).sum(1).float()
-        )
-        template = int(counts.argmax())
-    if not 0 <= template < num_stacks:
-        raise ValueError(
-            f"stack_registration(): 'template' must be in [0, {num_stacks}), got {template}"
-        )
-    grid = output_grid(slices, 2 * resolution_mm)
-    reference = _sda(slices.subset(slices.stack_ids == template), grid)
-    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-    fixed = torch.zeros(num_stacks, dtype=torch.bool)
-    fixed[template] = True
-    poses = register_rigid(
-        projector,
-        reference,
-        slices.images,
-        slices.poses,
-        slices.stack_ids,
-        STACK_REGISTRATION,
-        fixed=fixed,
-    )
-    return poses, template
-
-
-def _stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
-    """(S,) mean NCC of each stack's slices with their simulation from the slices' SDA volume."""
-    grid = output_grid(slices, 2 * resolution_mm)
-    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-    observed = projector.gather(slices.images)
-    points = projector.grid_points(slices.poses)
-    volume = scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
-    ncc = slice_ncc(projector, projector.forward(volume, points), observed)
-    num_stacks = len(slices.stack_names)
-    total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
-    count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
-    return total.index_add(0, slices.stack_ids, ncc) / count
-
-
-class LearnedStart(NamedTuple):
-    """What :func:`learned_initialisation` chose.
-
-    Attributes:
-        slices: The slices at their initial canonical poses.
-        choice: Per stack, ``"cnn"`` or ``"stack"``.
-        notes: Per stack, why (support, flipped slices, NCC), for the log and the QA figure.
-    """
-
-    slices: SliceSet
-    choice: tuple[str, ...]
-    notes: tuple[str, ...]
-
-
-def _canonical_frame(
-    learned: CnnInitialisation, registered: Tensor, slices: SliceSet, trusted: Tensor
-) -> Tensor | None:
-    """``G``: registered (template) frame -> canonical, from the trusted stacks' supporting slices.
-
-    The robust mean of ``P_i o X_i^-1`` over the slices that support their stack's transform in
-    the stacks with enough support, ``X_i`` their registered poses; ``None`` if there are none.
-    """
-    use = learned.supporting & trusted[slices.stack_ids]
-    if not bool(use.any()):
-        return None
-    chosen = learned.predicted_poses[use].to(torch.float64).cpu()
-    inverse = se3_inverse(registered[use].to(torch.float64).cpu())
-    return robust_mean_pose(se3_compose(chosen, inverse)).to(registered)
-
-
-def _mean_ncc(per_stack: Tensor, slices: SliceSet) -> float:
-    """Slice-weighted mean of (S,) per-stack NCCs."""
-    counts = torch.bincount(slices.stack_ids.cpu(), minlength=len(per_stack)).to(per_stack)
-    return float((per_stack.cpu() * counts.cpu()).sum() / counts.sum().clamp_min(1))
-
-
-def learned_initialisation(
-    slices: SliceSet, learned: CnnInitialisation, config: ReconstructionConfig
-) -> LearnedStart:
-    """Learned slice poses or stack registration, per stack, chosen so as never to do harm.
-
-    1. **Support.** A stack whose slices mostly disagree with their consensus (support below
-       ``config.cnn_min_support``; :func:`svr.reconstruction.cnn_init.disambiguate_stack`) means the
-       model is unsure of it: it keeps stack registration, and the log and QA say so.
-    2. **Canonical frame.** Stack registration is moved into canonical space by ``G``, the robust
-       mean over the trusted stacks' supporting slices of (chosen prediction) o (registered
-       pose)^-1, so that the output is in atlas orientation whichever start each stack keeps. With
-       no trusted stack the predictions' global transform is used, and the log warns that the
-       orientation is unreliable.
-    3. **NCC per stack.** A trusted stack keeps its learned poses (each slice its own prediction,
-       or the consensus pose where that is an outlier: :meth:`CnnInitialisation.refined_poses`)
-       when they match their simulation from their own scattered-data volume at least as well
-       (mean NCC) as the registered poses do, as NeSVoR chooses between SVoRT and registration.
-    4. **Joint check.** The mixed start is kept only if its slice-weighted mean NCC is not below
-       that of stack registration alone; otherwise every stack starts from registration.
-
-    Args:
-        slices: All slices, at their scanner poses.
-        learned: The slices' (disambiguated) predicted canonical poses and their consensus
-            (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`).
-        config: Settings.
-
-    Returns:
-        The slices at their initial canonical poses, the choice per stack and notes per stack.
-    """
-    outliers = learned.outliers(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm)
-    log.info(
-        "cnn: %d of %d slice predictions disagree with their stack's consensus (> %g deg or "
-        "%g mm) and take the consensus pose",
-        int(outliers.sum()),
-        len(slices),
-        config.cnn_max_deviation_deg,
-        config.cnn_max_deviation_mm,
-    )
-    support = learned.stack_support.cpu()
-    flipped = learned.flipped(slices.stack_ids).cpu()
-    trusted = (support >= config.cnn_min_support).to(slices.device)
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
-    frame = _canonical_frame(learned, registered, slices, trusted)
-    if frame is None:
-        log.warning(
-            "cnn: no stack has enough support (>= %.0f%% of its slices); the learned "
-            "initialisation is unsure and the output's atlas orientation is unreliable",
-            100 * config.cnn_min_support,
-        )
-        frame = learned.global_transform.to(registered)
-    candidates = {
-        "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
-        "stack": frame @ registered,
-    }
-    # The learned candidate is only scored when some stack may keep it.
-    scores = {
-        name: _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
-        for name, poses in candidates.items()
-        if name == "stack" or bool(trusted.any())
-    }
-    choice, notes = [], []
-    poses = candidates["stack"].clone()
-    for sid, name in enumerate(slices.stack_names):
-        head = f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
-        if not bool(trusted[sid]):
-            best, why = "stack", f"cnn unsure ({head})"
-        else:
-            ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
-            best = "cnn" if ncc_cnn >= ncc_stack else "stack"
-            why = f"{head}, NCC cnn {ncc_cnn:.3f} vs stack {ncc_stack:.3f}"
-        members = slices.stack_ids == sid
-        poses[members] = candidates[best][members]
-        choice.append(best)
-        notes.append(why)
-        log.info("%s: initialisation %s (%s)", name, best, why)
-    if "cnn" in choice:
-        mixed = _mean_ncc(
-            _stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm), slices
-        )
-        alone = _mean_ncc(scores["stack"], slices)
-        if mixed < alone:
-            log.info(
-                "cnn: the mixed start (mean NCC %.3f) fits worse than stack registration alone "
-                "(%.3f); every stack starts from registration",
-                mixed,
-                alone,
-            )
-            poses = candidates["stack"]
-            notes = [f"{n}; joint check failed ({mixed:.3f} < {alone:.3f})" for n in notes]
-            choice = ["stack"] * len(choice)
-    return LearnedStart(slices.with_poses(poses, "canonical"), tuple(choice), tuple(notes))
 
 
 def slice_groups(slices: SliceSet, packets: int, size: int) -> Tensor:

@@ -27,9 +27,22 @@ from torch import Tensor
 
 from svr.geometry import so3_exp
 from svr.image import sample_channels
-from svr.reconstruction.operators import SliceProjector, gaussian_blur
+from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur
+from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.superres import output_grid, scattered_data_approximation
 
-__all__ = ["RegistrationConfig", "register_rigid", "slice_ncc"]
+__all__ = [
+    "STACK_REGISTRATION",
+    "SVR_PSF_SAMPLES",
+    "RegistrationConfig",
+    "register_rigid",
+    "slice_ncc",
+    "stack_ncc",
+    "stack_registration",
+]
+
+# PSF nodes along the normal for registration (the volume model uses more).
+SVR_PSF_SAMPLES = 3
 
 
 @dataclass(frozen=True)
@@ -237,3 +250,69 @@ def _slice_stats(projector: SliceProjector, sid: Tensor, sim: Tensor, target: Te
     """(N, 5) per-slice sums of 1, s, y, s^2 and s y."""
     values = torch.stack([torch.ones_like(sim), sim, target, sim * sim, sim * target], dim=1)
     return values.new_zeros(projector.num_slices, 5).index_add(0, sid, values)
+
+
+# Stack-to-template registration: coarser and longer than a slice's.
+STACK_REGISTRATION = RegistrationConfig(levels=3, iterations=10)
+
+
+def _sda(slices: SliceSet, grid: VolumeGrid, psf_samples: int = SVR_PSF_SAMPLES) -> Tensor:
+    projector = SliceProjector(grid, slices, psf_samples=psf_samples)
+    observed = projector.gather(slices.images)
+    points = projector.grid_points(slices.poses)
+    return scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
+
+
+def stack_registration(
+    slices: SliceSet, resolution_mm: float, template: int | None = None
+) -> tuple[Tensor, int]:
+    """Rigid registration of every stack to a volume estimated from the template stack.
+
+    Args:
+        slices: All slices at their starting poses.
+        resolution_mm: Voxel size of the template volume.
+        template: Template stack index, or ``None`` for the stack with the most masked pixels.
+
+    Returns:
+        (N, 4, 4) registered poses (in the template stack's frame, i.e. unchanged for the
+        template's slices) and the template index.
+    """
+    num_stacks = len(slices.stack_names)
+    if template is None:
+        counts = torch.zeros(num_stacks, device=slices.device).index_add(
+            0, slices.stack_ids, slices.masks.flatten(1).sum(1).float()
+        )
+        template = int(counts.argmax())
+    if not 0 <= template < num_stacks:
+        raise ValueError(
+            f"stack_registration(): 'template' must be in [0, {num_stacks}), got {template}"
+        )
+    grid = output_grid(slices, 2 * resolution_mm)
+    reference = _sda(slices.subset(slices.stack_ids == template), grid)
+    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+    fixed = torch.zeros(num_stacks, dtype=torch.bool)
+    fixed[template] = True
+    poses = register_rigid(
+        projector,
+        reference,
+        slices.images,
+        slices.poses,
+        slices.stack_ids,
+        STACK_REGISTRATION,
+        fixed=fixed,
+    )
+    return poses, template
+
+
+def stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
+    """(S,) mean NCC of each stack's slices with their simulation from the slices' SDA volume."""
+    grid = output_grid(slices, 2 * resolution_mm)
+    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+    observed = projector.gather(slices.images)
+    points = projector.grid_points(slices.poses)
+    volume = scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
+    ncc = slice_ncc(projector, projector.forward(volume, points), observed)
+    num_stacks = len(slices.stack_names)
+    total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
+    count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
+    return total.index_add(0, slices.stack_ids, ncc) / count

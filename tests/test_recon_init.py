@@ -24,9 +24,9 @@ from svr.image import Image, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, build_model
 from svr.models.predict import PlanePredictions
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
+from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, learned_initialisation
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.pipeline import learned_initialisation, stack_registration
+from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
 
