@@ -40,13 +40,13 @@ import sys
 import time
 from pathlib import Path
 
-from bench_common import run_scorer, scanner_frame_copy, simulate_cases
+from bench_common import SHARED, run_scorer, scanner_frame_copy, simulate_cases
+
+from svr.reconstruction.config import SCHEDULES
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 PEER_NAMES = ("SVRTK", "NeSVoR")
 MASK_KINDS = ("manual", "network", "fused", "otsu")
-SCHEDULES = ("adaptive", "fixed")
 # name: (atlas age folder, orientations, motion scale of the real trajectories, stacks, seed);
 # ages other than the bench cases' (24, 28).
 SIMULATED = {
@@ -189,10 +189,10 @@ def main() -> int:
                 print(f"{case} {method}: svr reconstruct failed ({code})", file=sys.stderr)
                 return 1
             score = run_scorer(args.scorer, Path(f"{stem}.nii.gz"), folder)
-            # A canonical-frame volume is also scored relabelled into the scanner frame: the
-            # yardstick's score depends on the orientation a volume comes in (bench_common).
+            # A cnn volume (canonical frame) is also scored relabelled into the scanner frame:
+            # the yardstick's score depends on the orientation a volume comes in (bench_common).
             scanner_score = None
-            if "frame: canonical" in Path(f"{stem}.log").read_text(encoding="utf-8"):
+            if registration == "cnn":
                 copy = scanner_frame_copy(
                     Path(f"{stem}.nii.gz"), Path(f"{stem}.csv"), Path(f"{stem}-scanner.nii.gz")
                 )

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from bench_common import (
+    SHARED,
     load_case_stacks,
     reconstruct_default,
     run_scorer,
@@ -51,7 +52,6 @@ from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
 from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 # name: (atlas age folder, orientations, motion scale of the real trajectories, stacks, seed)
 SIMULATED = {
     "ga24-traj0.5-orth": ("GA24_notoperated", "orthogonal", 0.5, 3, 11),

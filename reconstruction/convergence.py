@@ -20,7 +20,7 @@ from torch import Tensor
 from svr.geometry import se3_to_vector
 from svr.metrics import rotation_error_rad, translation_error_mm
 
-__all__ = ["RoundRecord", "pose_change", "round_summary"]
+__all__ = ["RoundRecord", "pose_change", "round_summary", "verdict"]
 
 
 @dataclass(frozen=True)
@@ -30,9 +30,8 @@ class RoundRecord:
     Attributes:
         index: The round, from 0.
         stage: ``"first"`` (super-resolution only), ``"groups of N"`` (temporal neighbours
-            registered together), ``"slices"`` (one by one), ``"recapture"`` (a one-by-one
-            round in which slices that still fit badly were also searched from wider starts),
-            or ``"final"`` (the last registration and the volume restarted at the final poses).
+            registered together), ``"slices"`` (one by one) or ``"final"`` (the adaptive
+            schedule's last registration, if any, and the volume restarted at the final poses).
         registered: Slices registered in this round (0 in the first round).
         moving: Registered slices that moved more than the convergence thresholds.
         rotation_deg: Median rotation change of the registered slices (degrees; 0 if none).
@@ -40,7 +39,8 @@ class RoundRecord:
         translation_mm: Median displacement of the registered slices' centres (mm).
         translation_p90_mm: Their 90th percentile (mm).
         ncc: Mean NCC of the slices with their simulation from the volume the round started
-            from, at the round's poses (before its super-resolution).
+            from, at the round's poses (before its super-resolution); for the final round, from
+            the final volume.
         excluded: Slices excluded after the round (NCC below the threshold).
         newly_excluded: Of those, slices that were not excluded after the previous round.
         seconds: Wall time of the round.
@@ -115,3 +115,15 @@ def round_summary(
     r = torch.quantile(rotation_deg.double(), q)
     t = torch.quantile(translation_mm.double(), q)
     return (float(r[0]), float(r[1]), float(t[0]), float(t[1]))
+
+
+def verdict(converged: bool | None) -> str:
+    """How the rounds ended, in words: ``""`` when there is no verdict (``converged`` is ``None``).
+
+    A run that did not converge ran up to its cap, so its number of rounds is the cap.
+    """
+    if converged is None:
+        return ""
+    if converged:
+        return "converged"
+    return "NOT converged: slices still moved at the cap on rounds (--iterations)"

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -118,8 +117,13 @@ def slice_groups(slices: SliceSet, packets: int, size: int) -> Tensor:
     if size <= 1:
         return torch.arange(len(slices), device=slices.device)
     k = slices.slice_indices
-    key = (slices.stack_ids * packets + k % packets) * (int(k.max()) + 1) + (k // packets) // size
+    key = _packet_key(slices, packets) * (int(k.max()) + 1) + (k // packets) // size
     return torch.unique(key, return_inverse=True)[1]
+
+
+def _packet_key(slices: SliceSet, packets: int) -> Tensor:
+    """(N,) int64 the same for slices of one interleaved packet of one stack."""
+    return slices.stack_ids * packets + slices.slice_indices % packets
 
 
 def _group_size(config: ReconstructionConfig, round_index: int) -> int:
@@ -425,15 +429,15 @@ def recapture(
     start_poses: Tensor,
     candidates: Tensor,
     config: ReconstructionConfig,
-    turn_deg: float | None = None,
+    turn_rad: float | None = None,
     extra_levels: int = 0,
 ) -> tuple[Tensor, Tensor]:
     """A wider search for slices that still fit badly: their packet neighbours' motion as starts.
 
     Each slice in ``candidates`` is registered alone from its current pose and from the poses its
     temporal neighbours' motion gives it (the corrections that moved the previous and next slice
-    of its packet since ``start_poses``, applied to it); with ``turn_deg``, also from its current
-    pose turned by ``+-turn_deg`` about each of its own axes; with ``extra_levels``, with that
+    of its packet since ``start_poses``, applied to it); with ``turn_rad``, also from its current
+    pose turned by ``+-turn_rad`` about each of its own axes; with ``extra_levels``, with that
     many more coarse levels (each at twice the previous blur). It takes the result that matches
     its simulation from ``volume`` best (NCC over its brain pixels), if that beats its current
     pose by ``RECAPTURE_MARGIN``. On sb24-large the neighbours' starts shortened the tail of
@@ -447,7 +451,7 @@ def recapture(
         start_poses: (N, 4, 4) the poses the rounds started from (for the neighbours' motion).
         candidates: (N,) bool, the slices to search for.
         config: Settings (``packets``, ``svr_levels``, ``svr_iterations``).
-        turn_deg: The turn of the rotated starts (degrees), or ``None`` for none.
+        turn_rad: The turn of the rotated starts (radians), or ``None`` for none.
         extra_levels: Coarse levels added to ``config.svr_levels`` (>= 0).
 
     Returns:
@@ -464,12 +468,10 @@ def recapture(
     starts, owners = [], []
     neighbour = _packet_neighbours(slices, config.packets)
     motion = poses @ torch.linalg.inv(start_poses.to(poses))
-    turns = [
-        so3_exp(sign * math.radians(turn_deg) * axis)
-        for axis in torch.eye(3, dtype=torch.float64, device=device)
-        for sign in (1, -1)
-        if turn_deg is not None
-    ]
+    turns = []
+    if turn_rad is not None:
+        axes = torch.eye(3, dtype=torch.float64, device=device)
+        turns = [so3_exp(sign * turn_rad * axis) for axis in axes for sign in (1, -1)]
     for i in index.tolist():
         own = [poses[i]]
         for j in neighbour[i]:
@@ -511,7 +513,7 @@ def recapture(
 
 def _packet_neighbours(slices: SliceSet, packets: int) -> list[list[int]]:
     """Per slice, the slices acquired just before and after it in its stack's packet."""
-    key = slices.stack_ids * packets + slices.slice_indices % packets
+    key = _packet_key(slices, packets)
     order = torch.argsort(key * (int(slices.slice_indices.max()) + 1) + slices.slice_indices)
     out: list[list[int]] = [[] for _ in range(len(slices))]
     sorted_key = key[order].tolist()
@@ -794,21 +796,23 @@ def _record(
     index: int,
     stage: str,
     changes: tuple[Tensor, Tensor] | None,
-    registered: Tensor,
+    registered: Tensor | None,
     config: ReconstructionConfig,
     outliers: OutlierWeights,
     previous_excluded: Tensor,
     started: float,
     ncc: Tensor | None = None,
 ) -> RoundRecord:
-    """The round's record (also logged); ``changes`` is ``None`` for a round without SVR.
+    """The round's record (also logged).
 
-    ``ncc`` (N,) replaces the NCCs of ``outliers`` (those at the round's start).
+    ``changes`` is ``None`` for a round without SVR; otherwise ``registered`` (N,) bool says
+    which slices it registered. ``ncc`` (N,) replaces the NCCs of ``outliers`` (those at the
+    round's start).
     """
-    registered = registered.cpu()
-    if changes is None:
+    if changes is None or registered is None:
         rotation, translation = torch.zeros(0), torch.zeros(0)
     else:
+        registered = registered.cpu()
         rotation, translation = changes[0][registered], changes[1][registered]
     moving = (rotation > config.converged_deg) | (translation > config.converged_mm)
     excluded = outliers.excluded.cpu()
@@ -840,7 +844,6 @@ def _fixed_rounds(
 ) -> tuple[list[RoundRecord], bool | None]:
     """``config.rounds`` rounds with the per-round settings (fetal-svr 0.1.0's schedule)."""
     records = []
-    everything = torch.ones(len(model.slices), dtype=torch.bool)
     bar = tqdm(range(config.rounds), desc="reconstruction", disable=not progress)
     for round_index in bar:
         started, before = time.perf_counter(), state.excluded
@@ -849,9 +852,7 @@ def _fixed_rounds(
         if round_index > 0:
             changes = _register(model, state, config, timer, size)
         outliers = _reconstruct_volume(model, state, config, timer, round_index)
-        registered = (
-            _registrable(model, config, size) & ~before.cpu() if changes is not None else everything
-        )
+        registered = _registrable(model, config, size) & ~before.cpu()
         stage = "first" if changes is None else _stage(size)
         records.append(
             _record(round_index, stage, changes, registered, config, outliers, before, started)
@@ -886,8 +887,7 @@ def _adaptive_rounds(
     started, before = time.perf_counter(), state.excluded
     settings = _alignment_settings(config, 0) if cap > 1 else _final_settings(config)
     outliers = _reconstruct_volume(model, state, config, timer, 0, settings)
-    everything = torch.ones(len(model.slices), dtype=torch.bool)
-    records.append(_record(0, "first", None, everything, config, outliers, before, started))
+    records.append(_record(0, "first", None, None, config, outliers, before, started))
     bar.update()
     if cap == 1:
         bar.close()
@@ -901,7 +901,6 @@ def _adaptive_rounds(
     while index < cap - 1:
         started, before = time.perf_counter(), state.excluded
         size = _group_size(config, index)
-        recaptured = torch.zeros(len(single), dtype=torch.bool)
         if config.recapture and size == 1 and _group_size(config, index - 1) == 1:
             low = _fits_badly(outliers.ncc.cpu(), single) & (tries < 2)
             if bool(low.any()):

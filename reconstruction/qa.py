@@ -10,8 +10,8 @@ The page shows, top to bottom:
   the transforms table), coloured by stack, excluded slices marked with a red cross;
 * the wall time of each phase and the initialisation kept for each stack;
 * when the rounds were recorded, the convergence of the rounds: per round, the median pose change
-  of the registered slices (degrees and mm, with the thresholds of the adaptive schedule), the
-  mean slice NCC and the number of slices excluded, titled with whether the slices converged.
+  of the registered slices (degrees and mm), the mean slice NCC and the number of slices
+  excluded, titled with whether the slices converged.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from torch import Tensor
 from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, resample_to_grid
 from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.convergence import verdict
 
 __all__ = ["FIGURE_SUFFIXES", "masks_figure", "qa_figure"]
 
@@ -69,16 +70,6 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     return "\n".join(lines)
 
 
-def convergence_title(result: ReconstructionResult) -> str:
-    """One line: how many rounds ran and whether the slices stopped moving."""
-    count = len(result.rounds)
-    if result.converged is None:
-        return f"{count} rounds"
-    if result.converged:
-        return f"{count} rounds: converged (the slices stopped moving)"
-    return f"{count} rounds: NOT converged (slices still moved at the cap on rounds)"
-
-
 def _convergence_panel(figure: Figure, cell: SubplotSpec, result: ReconstructionResult) -> None:
     rounds = result.rounds
     index = np.array([r.index for r in rounds])
@@ -101,7 +92,8 @@ def _convergence_panel(figure: Figure, cell: SubplotSpec, result: Reconstruction
     handles = ax.get_legend_handles_labels()
     extra = right.get_legend_handles_labels()
     ax.legend(handles[0] + extra[0], handles[1] + extra[1], fontsize=7, loc="upper right")
-    ax.set_title(convergence_title(result), fontsize=9)
+    ending = verdict(result.converged)
+    ax.set_title(f"{len(rounds)} rounds" + (f": {ending}" if ending else ""), fontsize=9)
 
 
 def qa_figure(

@@ -145,7 +145,7 @@ def test_slices_folder_round_trip(scanner_run):
 
 
 def test_qa_figure_and_log(scanner_run):
-    outputs, _ = scanner_run
+    outputs, result = scanner_run
     assert outputs["qa"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = outputs["log"].read_text()
     for expected in (
@@ -159,6 +159,12 @@ def test_qa_figure_and_log(scanner_run):
         "excluded slices: ",
     ):
         assert expected in text
+    # The rounds (adaptive by default; --iterations 2: the first and the final round, so no
+    # verdict), one line each, as the log printed them.
+    assert "rounds: 2 (adaptive schedule)\n" in text
+    assert [r.stage for r in result.rounds] == ["first", "final"]
+    for record in result.rounds:
+        assert f"  {record.line()}\n" in text
 
 
 def test_stack_registration_replaces_an_existing_output_only_when_asked(case, tmp_path, capsys):

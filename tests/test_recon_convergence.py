@@ -17,8 +17,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
-from svr.reconstruction.operators import VolumeGrid
+from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary, verdict
 from svr.reconstruction.pipeline import (
     acquisition_model,
     background_pixels,
@@ -112,6 +111,8 @@ def test_round_record_line_says_what_moved():
     assert "mean NCC 0.931, 2 excluded (+1)" in line
     first = RoundRecord(0, "first", 0, 0, 0.0, 0.0, 0.0, 0.0, 0.8, 0, 0, 0.5).line()
     assert "registered" not in first and first.startswith("round 0 (first); mean NCC 0.800")
+    assert verdict(None) == "" and verdict(True) == "converged"
+    assert verdict(False).startswith("NOT converged") and "--iterations" in verdict(False)
 
 
 # --- the stopping rule on tiny simulated cases -------------------------------------------------
@@ -266,7 +267,7 @@ def test_fixed_schedule_reproduces_version_0_1_0_bit_for_bit():
     assert digests == VERSION_0_1_0
 
 
-# --- per-slice freezing ------------------------------------------------------------------------
+# --- slices that stopped moving sit out a round ----------------------------------------------
 
 
 def test_slices_quiet_for_two_rounds_sit_out_the_next(monkeypatch):
@@ -439,6 +440,20 @@ def test_a_zero_weight_background_changes_nothing():
     torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
 
 
+def test_the_band_changes_neither_the_grid_nor_the_first_volume_where_it_is_not():
+    # The band is data for super-resolution only: the output grid covers the masked pixels with
+    # or without it, and a band of width 0 is no band at all.
+    stacks = tiny_case(0.0, 0.0)
+    one = {**FAST, "outer_iterations": 1}
+    banded = reconstruct(stacks, ReconstructionConfig(**one), progress=False)
+    plain = reconstruct(
+        stacks, ReconstructionConfig(**one, background_mm=(0.0, 0.0)), progress=False
+    )
+    assert banded.volume.shape == plain.volume.shape
+    torch.testing.assert_close(banded.volume.affine, plain.volume.affine, rtol=0, atol=0)
+    assert not torch.equal(banded.volume.data, plain.volume.data)
+
+
 # --- the wider search --------------------------------------------------------------------------
 
 
@@ -470,19 +485,11 @@ def test_recapture_brings_back_a_slice_turned_far_off():
     assert float(ncc[1][big]) > float(ncc[0][big])
     # Turned starts find it without the neighbours' help too.
     alone = off.clone()
-    turned, again = recapture(model, volume, alone, alone, candidates, config, turn_deg=10.0)
+    turned, again = recapture(
+        model, volume, alone, alone, candidates, config, turn_rad=math.radians(10.0)
+    )
     assert again.tolist() == candidates.tolist()
     assert float(pose_change(truth[big : big + 1], turned[big : big + 1])[0]) < 4.0
     # Nothing to search for: nothing changes.
     same, none = recapture(model, volume, off, truth, torch.zeros_like(candidates), config)
     assert torch.equal(same, off.to(same)) and not bool(none.any())
-
-
-def test_volume_grid_is_unchanged_by_the_band():
-    # The band is data for super-resolution only: the output grid covers the masked pixels.
-    stacks = tiny_case(0.0, 0.0)
-    slices = extract_slices(stacks)
-    grid = output_grid(slices, 1.5)
-    assert isinstance(grid, VolumeGrid)
-    a = reconstruct(stacks, ReconstructionConfig(**FAST, outer_iterations=1), progress=False)
-    assert a.volume.shape == grid.shape

@@ -263,8 +263,8 @@ class MethodResult:
         slice_translation_error_mm: Median distance of the final slice centres from the true ones.
         seconds: Wall time of the reconstruction.
         rounds: Rounds the reconstruction ran (the first volume and the final one included).
-        converged: Whether its slices stopped moving before the cap on rounds (``None`` for
-            the fixed schedule).
+        converged: Whether its slices stopped moving before the cap on rounds (``None``:
+            no verdict, as for the fixed schedule or the quick demo's two rounds).
     """
 
     registration: str

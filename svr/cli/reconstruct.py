@@ -446,14 +446,11 @@ def _mask_source(args: argparse.Namespace) -> str:
 
 
 def _rounds_line(config: ReconstructionConfig, result: ReconstructionResult) -> str:
-    """How many rounds ran and whether the slices converged, for the log and the QA figure."""
-    count = len(result.rounds)
-    if result.converged is None:
-        return f"{count} ({config.schedule} schedule)"
-    state = (
-        "converged" if result.converged else f"not converged within --iterations {config.rounds}"
-    )
-    return f"{count} ({config.schedule} schedule, {state})"
+    """How many rounds ran and whether the slices converged, for the log summary."""
+    from svr.reconstruction.convergence import verdict
+
+    ending = verdict(result.converged)
+    return f"{len(result.rounds)} ({config.schedule} schedule{', ' + ending if ending else ''})"
 
 
 def _summary(
