@@ -96,22 +96,53 @@ def reconstruct_default(stacks: list, registration: str, model=None):
     )
 
 
-def simulate_cases(folder: Path, specs: dict[str, tuple[str, str, float, int, int]]) -> list[Path]:
+def neighbour_atlas(age: float, offset: float = 1.0) -> tuple[Path, Path]:
+    """``(srr.nii.gz, mask.nii.gz)`` of the atlas age nearest ``age + offset`` other than ``age``.
+
+    A case simulated from one atlas age is placed with a neighbouring age, as a user would use an
+    atlas of about their fetus's age, never the very brain the case was made from.
+    """
+    from svr.sampling.volume import atlas_volume_paths
+
+    pairs = atlas_volume_paths(ATLAS)
+    ages = [float(v.parent.name[2:4]) for v, _ in pairs]
+    target = age + offset
+    index = min(
+        (i for i, a in enumerate(ages) if a != age), key=lambda i: (abs(ages[i] - target), ages[i])
+    )
+    return pairs[index]
+
+
+def case_age(case: Path) -> float:
+    """The atlas age (weeks) a bench or simulated case was made from (its ``case.json``)."""
+    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+    source = str(info.get("source", ""))
+    at = source.find("GA")
+    if at < 0:
+        raise ValueError(f"{case}/case.json: no GA<weeks> in its source {source!r}")
+    return float(source[at + 2 : at + 4])
+
+
+def simulate_cases(
+    folder: Path, specs: dict[str, tuple[str, str, float, int, int] | tuple]
+) -> list[Path]:
     """Simulate cases into ``folder`` (kept between runs) with ``svr simulate``.
 
     Args:
         folder: Where the case folders go (bench layout: ``stacks/``, ``masks/``, ``case.json``,
             ground truth).
         specs: Case name -> (atlas age folder under ``ATLAS``, stack orientations, scale of the
-            real fetal motion trajectories, number of stacks, seed). Thickness 3 mm, bias field
-            0.2.
+            real fetal motion trajectories, number of stacks, seed[, (low, high) degrees the
+            fetus turns between stacks]). Thickness 3 mm, bias field 0.2.
 
     Returns:
         The case folders, in the order of ``specs``.
     """
     out = []
     folder.mkdir(parents=True, exist_ok=True)
-    for name, (age, orientations, scale, stacks, seed) in specs.items():
+    for name, spec in specs.items():
+        age, orientations, scale, stacks, seed = spec[:5]
+        turn = [str(a) for a in spec[5]] if len(spec) > 5 else ["0", "0"]
         case = folder / name
         if not (case / "case.json").exists():
             subprocess.run(
@@ -127,6 +158,7 @@ def simulate_cases(folder: Path, specs: dict[str, tuple[str, str, float, int, in
                     "--motion-path", str(MOTION),
                     "--motion-scale", str(scale),
                     "--bias-field", "0.2",
+                    "--stack-turn-deg", *turn,
                     "--seed", str(seed),
                     "--device", "cpu",
                     "--quiet",

@@ -40,7 +40,14 @@ import sys
 import time
 from pathlib import Path
 
-from bench_common import SHARED, run_scorer, scanner_frame_copy, simulate_cases
+from bench_common import (
+    SHARED,
+    case_age,
+    neighbour_atlas,
+    run_scorer,
+    scanner_frame_copy,
+    simulate_cases,
+)
 
 from svr.reconstruction.config import SCHEDULES
 
@@ -56,6 +63,11 @@ SIMULATED = {
     "ga26-traj1.0-orth": ("GA26_operated", "orthogonal", 1.0, 3, 126),
     "ga30-traj0.7-obl": ("GA30_operated", "oblique", 0.7, 4, 130),
     "ga33-traj0.5-orth": ("GA33_operated", "orthogonal", 0.5, 3, 133),
+    # the fetus turns 30-180 degrees between stacks (issue 27)
+    "ga23-traj0.5-turn": ("GA23_notoperated", "orthogonal", 0.5, 3, 223, (30.0, 180.0)),
+    "ga27-traj0.3-turn": ("GA27_operated", "oblique", 0.3, 4, 227, (30.0, 180.0)),
+    "ga29-traj0.7-turn": ("GA29_operated", "orthogonal", 0.7, 3, 229, (30.0, 180.0)),
+    "ga31-traj0.5-turn": ("GA31_operated", "oblique", 0.5, 4, 231, (30.0, 180.0)),
 }
 
 
@@ -90,6 +102,17 @@ def peer_figures(path: Path) -> dict[tuple[str, str], dict[str, float]]:
             row["cpu_s"] = float(cpu.group(1))
         figures[(case, peer)] = row
     return figures
+
+
+def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list[str]:
+    """``--model`` and, with ``--atlas-offset``, the neighbouring atlas for a cnn run."""
+    if registration != "cnn":
+        return []
+    options = ["--model", args.model]
+    if args.atlas_offset is not None:
+        volume, mask = neighbour_atlas(case_age(case), args.atlas_offset)
+        options += ["--atlas-volume", str(volume), "--atlas-mask", str(mask)]
+    return options
 
 
 def run_child(command: list[str], threads: int) -> tuple[int, float, float, float]:
@@ -140,6 +163,18 @@ def main() -> int:
     parser.add_argument("--peers", type=Path, default=SHARED / "reference" / "peer_results.md")
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-reconstruct")
     parser.add_argument("--results", type=Path, help="also write the report (.md, .json beside)")
+    parser.add_argument(
+        "--model",
+        default="default",
+        help="--model of the cnn runs ('none': the classical per-stack chain, needs an atlas)",
+    )
+    parser.add_argument(
+        "--atlas-offset",
+        type=float,
+        default=None,
+        help="cnn runs also get --atlas-volume/--atlas-mask: the atlas age nearest the case's "
+        "own age plus this many weeks (never the case's own age); default: no atlas",
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -176,6 +211,7 @@ def main() -> int:
                 *mask_options(kind, masks),
                 "--thicknesses", *map(str, thickness),
                 "--registration", registration,
+                *cnn_options(registration, folder, args),
                 "--schedule", schedule,
                 "--output-volume", f"{stem}.nii.gz",
                 "--output-transforms", f"{stem}.csv",

@@ -44,9 +44,11 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
+from svr.models.stack_pose import StackPoseNet, estimate_stack_pose
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
+from svr.sampling.volume import CanonicalVolume
 
 __all__ = [
     "CnnInitialisation",
@@ -55,6 +57,7 @@ __all__ = [
     "disambiguate_stack",
     "learned_consensus",
     "learned_initialisation",
+    "stack_pose_initialisation",
 ]
 
 log = logging.getLogger(__name__)
@@ -519,6 +522,32 @@ def learned_initialisation(
         "cnn": learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
         "stack": frame @ registered,
     }
+    heads = [
+        f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
+        for sid in range(len(slices.stack_names))
+    ]
+    return _choose_per_stack(slices, candidates, trusted, heads, config)
+
+
+def _choose_per_stack(
+    slices: SliceSet,
+    candidates: dict[str, Tensor],
+    trusted: Tensor,
+    heads: Sequence[str],
+    config: ReconstructionConfig,
+) -> LearnedStart:
+    """Per stack, the ``"cnn"`` or ``"stack"`` candidate poses by NCC, then the joint check.
+
+    Args:
+        slices: All slices.
+        candidates: ``"cnn"`` and ``"stack"``: (N, 4, 4) canonical poses of every slice.
+        trusted: (S,) bool, stacks that may keep ``"cnn"`` (the others keep ``"stack"``).
+        heads: Per stack, what the learned estimate says of itself (for the notes).
+        config: Settings.
+
+    Returns:
+        The slices at the chosen poses, the choice and the notes per stack.
+    """
     # The learned candidate is only scored when some stack may keep it.
     scores = {
         name: stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
@@ -528,7 +557,7 @@ def learned_initialisation(
     choice, notes = [], []
     poses = candidates["stack"].clone()
     for sid, name in enumerate(slices.stack_names):
-        head = f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
+        head = heads[sid]
         if not bool(trusted[sid]):
             best, why = "stack", f"cnn unsure ({head})"
         else:
@@ -556,3 +585,57 @@ def learned_initialisation(
             notes = [f"{n}; joint check failed ({mixed:.3f} < {alone:.3f})" for n in notes]
             choice = ["stack"] * len(choice)
     return LearnedStart(slices.with_poses(poses, "canonical"), tuple(choice), tuple(notes))
+
+
+def stack_pose_initialisation(
+    slices: SliceSet,
+    stacks: Sequence[Stack],
+    model: StackPoseNet | None,
+    config: ReconstructionConfig,
+    atlas: CanonicalVolume | None = None,
+) -> LearnedStart:
+    """Every stack placed in canonical space from its own data, or stack registration, per stack.
+
+    1. **Per-stack poses.** Each stack's scanner -> canonical frame ``E_s`` comes from its own
+       slices and mask (:func:`svr.models.stack_pose.estimate_stack_pose`: mask-axis hypotheses,
+       refined by the stack-pose model, chosen by its score or, with an atlas, by agreement with
+       the atlas and fitted to it). No template stack: a fetus that turned between stacks is
+       placed stack by stack. A slice's start is ``E_s o S_i`` (``S_i`` its scanner pose).
+    2. **Canonical frame of the fallback.** Stack registration moves stack ``s`` by ``M_s`` in the
+       template's frame; ``G``, the robust mean of ``E_s o M_s^-1`` over the stacks (weighted by
+       their slices), brings it into canonical space, so the output is in atlas orientation
+       whichever start each stack keeps.
+    3. **Safe choice.** Per stack by NCC, then the joint check (as
+       :func:`learned_initialisation`).
+
+    Args:
+        slices: All slices, at their scanner poses.
+        stacks: The stacks they were cut from (same order as ``slices.stack_names``).
+        model: The stack-pose network, or ``None`` (then ``atlas`` is required).
+        config: Settings.
+        atlas: A brain of about the fetus's age in canonical space, or ``None``.
+
+    Returns:
+        The slices at their initial canonical poses, the choice and notes per stack.
+    """
+    scanner = slices.poses.to(torch.float64).cpu()
+    ids = slices.stack_ids.cpu()
+    frames, heads = [], []
+    for _sid, stack in enumerate(stacks):
+        estimate = estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, atlas=atlas)
+        frames.append(estimate.frame)
+        heads.append(f"{estimate.method}, score {estimate.score:.2f}")
+        log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
+    frame_of = torch.stack(frames)  # (S, 4, 4) scanner -> canonical
+    cnn = se3_compose(frame_of[ids], scanner)
+    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    registered = registered.to(torch.float64).cpu()
+    # M_s o S_i = X_i for every slice of stack s: E_s o M_s^-1 = E_s o S_i o X_i^-1.
+    implied = se3_compose(cnn, se3_inverse(registered))
+    to_canonical = robust_mean_pose(implied)
+    candidates = {
+        "cnn": cnn.to(slices.poses),
+        "stack": se3_compose(to_canonical[None], registered).to(slices.poses),
+    }
+    trusted = torch.ones(len(stacks), dtype=torch.bool, device=slices.device)
+    return _choose_per_stack(slices, candidates, trusted, heads, config)

@@ -35,7 +35,13 @@ from tqdm import tqdm
 from svr.geometry import so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.models.network import SlicePoseNet
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_initialisation
+from svr.models.stack_pose import StackPoseNet
+from svr.reconstruction.atlas_frame import align_to_atlas
+from svr.reconstruction.cnn_init import (
+    cnn_slice_poses,
+    learned_initialisation,
+    stack_pose_initialisation,
+)
 from svr.reconstruction.config import REGISTRATIONS, ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
@@ -56,6 +62,7 @@ from svr.reconstruction.superres import (
     slice_intensity_scales,
     super_resolution,
 )
+from svr.sampling.volume import CanonicalVolume
 
 __all__ = [
     "Acquisition",
@@ -139,26 +146,35 @@ def _per_round(values: tuple[_T, ...], round_index: int) -> _T:
 def reconstruct(
     stacks: list[Stack],
     config: ReconstructionConfig | None = None,
-    model: SlicePoseNet | None = None,
+    model: SlicePoseNet | StackPoseNet | None = None,
     initial_poses: Tensor | None = None,
     frame: str = "scanner",
     initialisation: tuple[str, ...] | None = None,
     device: str | torch.device = "cpu",
     progress: bool = True,
+    atlas: CanonicalVolume | None = None,
 ) -> ReconstructionResult:
     """Reconstruct a volume from prepared stacks.
 
     Args:
         stacks: The stacks (:func:`svr.reconstruction.stacks.load_stacks`).
         config: Settings.
-        model: The slice-pose network, with its configuration ``model.config``
-            (:func:`svr.models.predict.load_pose_model`), needed by ``registration="cnn"``.
+        model: For ``registration="cnn"``: a stack-pose network
+            (:func:`svr.models.stack_pose.load_stack_pose_model`; every stack placed from its own
+            data, :func:`svr.reconstruction.cnn_init.stack_pose_initialisation`) or a slice-pose
+            network with its configuration ``model.config``
+            (:func:`svr.models.predict.load_pose_model`; per-slice predictions made rigid per
+            stack, :func:`svr.reconstruction.cnn_init.learned_initialisation`).
         initial_poses: (N, 4, 4) starting poses of :func:`extract_slices`'s slices in ``frame``;
             when given, ``config.registration`` is not run.
         frame: The frame of ``initial_poses``.
         initialisation: Per stack, how ``initial_poses`` were obtained (for the report).
         device: Where to compute.
         progress: Show a progress bar.
+        atlas: For ``registration="cnn"``: a brain of about the fetus's age in canonical space.
+            Each stack's pose hypotheses are then chosen by agreement with it and fitted to it
+            (with or without a stack-pose model), and the final volume is brought into its frame
+            (:func:`svr.reconstruction.atlas_frame.align_to_atlas`).
 
     Returns:
         The result: volume in the canonical frame for ``"cnn"``, in ``frame`` for given poses,
@@ -190,9 +206,19 @@ def reconstruct(
                 init = ("stack",) * len(stacks)
             elif config.registration == "none":
                 init = ("none",) * len(stacks)
+            elif config.registration == "cnn" and (
+                isinstance(model, StackPoseNet) or (model is None and atlas is not None)
+            ):
+                slices, init, notes = stack_pose_initialisation(
+                    slices,
+                    stacks,
+                    model if isinstance(model, StackPoseNet) else None,
+                    config,
+                    atlas,
+                )
             elif config.registration == "cnn":
-                if model is None:
-                    raise ValueError("reconstruct(): registration 'cnn' needs a model")
+                if not isinstance(model, SlicePoseNet):
+                    raise ValueError("reconstruct(): registration 'cnn' needs a model or an atlas")
                 learned = cnn_slice_poses(
                     model,
                     stacks,
@@ -207,7 +233,12 @@ def reconstruct(
                     f"got {config.registration!r}"
                 )
         result = _rounds(slices, config, init, timer, progress)
-        return dataclasses.replace(result, initialisation_notes=notes) if notes else result
+        if notes:
+            result = dataclasses.replace(result, initialisation_notes=notes)
+        if atlas is not None and config.registration == "cnn":
+            with timer.phase("atlas frame"):
+                result = align_to_atlas(result, atlas)
+        return result
     finally:
         torch.random.set_rng_state(generator_state)
 

@@ -36,7 +36,12 @@ from svr.files import atomic_directory
 from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti, voxel_to_world
 from svr.sampling._validation import is_finite_number
-from svr.sampling.motion import load_trajectories, random_walk_motion, trajectory_motion
+from svr.sampling.motion import (
+    Trajectory,
+    load_trajectories,
+    random_walk_motion,
+    trajectory_motion,
+)
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
 
@@ -82,6 +87,10 @@ class SimulationConfig:
             mask is smaller than this fraction of their partial-volume mask (those grazing the
             brain's top or bottom, or running along its surface); the others keep the
             centre-plane mask, so their outline is not widened by the profile's tails.
+        stack_turn_deg: ``(low, high)``: the fetus turns between stacks: each stack after the
+            first is acquired with the brain turned (about its centre, relative to the first
+            stack) by an angle drawn uniformly in this range (degrees) about a random axis, on
+            top of the motion. ``(0, 0)`` (default) for no turn.
         seed: Seed of every random choice.
     """
 
@@ -105,6 +114,7 @@ class SimulationConfig:
     in_plane_psf: bool = False
     mask_fraction: float | None = None
     grazing_ratio: float | None = None
+    stack_turn_deg: tuple[float, float] = (0.0, 0.0)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -158,6 +168,16 @@ class SimulationConfig:
             raise ValueError("SimulationConfig: 'grazing_ratio' needs 'mask_fraction'")
         if self.motion == "trajectories" and self.motion_path is None:
             raise ValueError("SimulationConfig: motion='trajectories' needs 'motion_path'")
+        turn = self.stack_turn_deg
+        if not (
+            len(turn) == 2
+            and all(is_finite_number(a) for a in turn)
+            and 0 <= turn[0] <= turn[1] <= 180
+        ):
+            raise ValueError(
+                "SimulationConfig: 'stack_turn_deg' must be (low, high) with "
+                f"0 <= low <= high <= 180, got {turn!r}"
+            )
 
     @property
     def slice_spacing_mm(self) -> float:
@@ -306,6 +326,7 @@ def simulate_case(
     config: SimulationConfig,
     progress: bool = False,
     device: torch.device | str = "cpu",
+    trajectories: list[Trajectory] | None = None,
 ) -> SimulatedCase:
     """Simulate motion-corrupted stacks from a canonical volume.
 
@@ -315,13 +336,16 @@ def simulate_case(
         progress: Show a progress bar over stacks.
         device: Where slices are sampled; random draws and results stay on the CPU, so the
             output does not depend on the device beyond floating-point rounding.
+        trajectories: The recordings of ``config.motion_path`` already loaded (to simulate many
+            cases without reading the file each time); ``None`` reads them when needed.
 
     Returns:
         The simulated case (CPU tensors).
     """
     generator = torch.Generator().manual_seed(config.seed)
-    trajectories = None
-    if config.motion == "trajectories":
+    if config.motion != "trajectories":
+        trajectories = None
+    elif trajectories is None:
         assert config.motion_path is not None  # checked by SimulationConfig
         trajectories = load_trajectories(config.motion_path)
     brain_idx = torch.nonzero(volume.mask).to(torch.float64)
@@ -373,6 +397,17 @@ def simulate_case(
         acq = acquisition_order(num_slices, config.interleave)
         times = ((s * num_slices + acq).double() * config.slice_time_s).numpy()
         motion = _motions(config, times, generator, trajectories)
+        if s > 0 and config.stack_turn_deg[1] > 0:
+            low, high = config.stack_turn_deg
+            angle = math.radians(
+                low + (high - low) * float(torch.rand(1, generator=generator, dtype=torch.float64))
+            )
+            axis = torch.nn.functional.normalize(
+                torch.randn(3, generator=generator, dtype=torch.float64), dim=0
+            )
+            turn = torch.eye(4, dtype=torch.float64)
+            turn[:3, :3] = _axis_rotation(axis, angle)
+            motion = se3_compose(motion, turn)
         # D acts about the brain centre, which sits at placement_t in the scanner frame.
         about_centre = torch.eye(4, dtype=torch.float64)
         about_centre[:3, 3] = placement_t

@@ -224,3 +224,36 @@ def load_volumes(
         for ga in phantom_ages
     ]
     return volumes, [f"phantom GA {ga:g}" for ga in phantom_ages]
+
+
+def downsample_volume(volume: CanonicalVolume, factor: int) -> CanonicalVolume:
+    """Average a canonical volume over ``factor``-cubed voxel blocks (a coarser copy, same frame).
+
+    The canonical frame is kept: the new voxel centres are the means of the blocks' centres, so
+    world positions are unchanged. The mask is the blocks' majority. Meant for simulating coarse
+    training data quickly (sampling a volume 8 times smaller is about 8 times faster).
+
+    Args:
+        volume: The volume.
+        factor: Block side in voxels, >= 1 (1 returns ``volume``).
+
+    Returns:
+        The coarser volume.
+    """
+    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+        raise ValueError(f"downsample_volume(): 'factor' must be an int >= 1, got {factor!r}")
+    if factor == 1:
+        return volume
+    both = torch.stack([volume.image.data.float(), volume.mask.float()])[None]
+    pooled = torch.nn.functional.avg_pool3d(
+        both, factor, stride=factor, ceil_mode=True, count_include_pad=False
+    )[0]
+    affine = volume.image.affine.to(torch.float64).clone()
+    affine[:3, 3] += (factor - 1) / 2 * affine[:3, :3].sum(1)
+    affine[:3, :3] *= factor
+    return CanonicalVolume(
+        Image(pooled[0].contiguous(), affine),
+        pooled[1] > 0.5,
+        volume.centre_mm,
+        volume.intensity_scale,
+    )

@@ -22,8 +22,10 @@ __all__ = [
     "BRAIN_MASK_FOLDER",
     "DEFAULT_MODEL",
     "MAX_MODEL_BYTES",
+    "STACK_POSE_FOLDER",
     "brain_mask_model_path",
     "default_model_path",
+    "stack_pose_model_path",
 ]
 
 DEFAULT_MODEL = "default"
@@ -54,6 +56,19 @@ def brain_mask_model_path() -> Path:
         CheckpointError: If the package is not installed as plain files.
     """
     return _shipped_folder(BRAIN_MASK_FOLDER)
+
+
+STACK_POSE_FOLDER = "stack_pose"
+"""The package-data folder of the shipped stack-pose model (:mod:`svr.models.stack_pose`)."""
+
+
+def stack_pose_model_path() -> Path:
+    """The folder of the shipped stack-pose model inside the installed package (it may be absent).
+
+    Raises:
+        CheckpointError: If the package is not installed as plain files.
+    """
+    return _shipped_folder(STACK_POSE_FOLDER)
 
 
 def _shipped_folder(name: str) -> Path:

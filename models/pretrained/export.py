@@ -26,7 +26,7 @@ from svr.models.network import checkpoint_model_config
 from svr.models.predict import pose_model_from_checkpoint
 from svr.models.pretrained import MAX_MODEL_BYTES
 
-__all__ = ["REQUIRED_PROVENANCE", "export_model"]
+__all__ = ["REQUIRED_PROVENANCE", "export_model", "export_stack_pose_model"]
 
 REQUIRED_PROVENANCE = ("training_command", "data")
 """Keys that the ``provenance`` of :func:`export_model` must have."""
@@ -128,4 +128,55 @@ def export_model(
             f"the exported model would take about {size / 1e6:.2f} MB; it must stay within "
             f"{MAX_MODEL_BYTES / 1e6:g} MB (train a smaller model: --width, --depth)",
         )
+    return save_checkpoint(out, state_dict, export_config, half_precision=True, overwrite=overwrite)
+
+
+def export_stack_pose_model(
+    checkpoint_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    provenance: dict[str, Any],
+    overwrite: bool = False,
+) -> Path:
+    """Write a stack-pose checkpoint as a float16 model folder with its provenance.
+
+    Args:
+        checkpoint_dir: A checkpoint folder (or training run folder) of ``svr train-stack-pose``.
+        out_dir: The model folder to create (not ``checkpoint_dir``).
+        provenance: As for :func:`export_model` (``"training_command"`` and ``"data"`` required).
+        overwrite: Whether an existing ``out_dir`` may be replaced.
+
+    Returns:
+        ``out_dir``.
+
+    Raises:
+        CheckpointError: If the checkpoint is not a stack-pose model, the provenance is
+            incomplete, or the model would exceed :data:`~svr.models.pretrained.MAX_MODEL_BYTES`.
+    """
+    from svr.models.stack_pose import load_stack_pose_model
+
+    source, out = Path(checkpoint_dir), Path(out_dir)
+    if out.resolve() == source.resolve():
+        raise ValueError(f"export_stack_pose_model(): 'out_dir' {out} is the checkpoint folder")
+    provenance = _check_provenance(out, provenance)
+    model = load_stack_pose_model(source)
+    state_dict = model.state_dict()
+    export_config = {
+        "architecture": "stack_pose",
+        "model": model.config.to_dict(),
+        "provenance": provenance,
+        "export": {
+            "source_checkpoint": str(source),
+            "weights_dtype": str(_HALF).removeprefix("torch."),
+            "versions": {
+                "fetal_svr": svr_version,
+                "torch": torch.__version__,
+                "safetensors": safetensors.__version__,
+                "python": platform.python_version(),
+            },
+        },
+    }
+    size = _stored_bytes(state_dict) + _BYTES_PER_TENSOR_RECORD * len(state_dict)
+    if size > MAX_MODEL_BYTES:
+        raise CheckpointError(source, f"the model would take about {size / 1e6:.2f} MB (> 10 MB)")
     return save_checkpoint(out, state_dict, export_config, half_precision=True, overwrite=overwrite)

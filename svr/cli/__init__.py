@@ -25,6 +25,7 @@ from svr.cli import (
     segment_stack,
     simulate,
     train,
+    train_stack_pose,
 )
 from svr.cli.common import CliError
 from svr.files import OutputExistsError
@@ -33,6 +34,7 @@ SUBCOMMANDS = {
     "simulate": simulate,
     "sample": sample,
     "train": train,
+    "train-stack-pose": train_stack_pose,
     "predict": predict,
     "evaluate": evaluate,
     "segment-stack": segment_stack,

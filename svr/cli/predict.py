@@ -13,6 +13,7 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    load_any_pose_model,
     positive_int,
     resolve_device,
 )
@@ -54,7 +55,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--model",
         required=True,
         metavar="CHECKPOINT_DIR",
-        help=f"slice-pose model: {MODEL_HELP}",
+        help=f"pose model: {MODEL_HELP}; with a stack-pose model (svr train-stack-pose, or "
+        "'stack-pose' for the shipped one) every stack is posed as a whole from its own data "
+        "and each slice takes its stack's pose (needs --stack-masks)",
     )
     p.add_argument("--input-stacks", nargs="+", default=[], metavar="STACK", help="stacks (NIfTI)")
     p.add_argument(
@@ -74,6 +77,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--output-poses", required=True, metavar="FILE", help="pose table to write (.csv or .json)"
     )
+    p.add_argument(
+        "--output-stack-poses",
+        metavar="FILE.json",
+        help="with a stack-pose model: also write each stack's pose (stack frame -> canonical: "
+        "origin at the stack's centre voxel, axes along its array axes i, j and the slice "
+        "normal; 6-vector in rad and mm, and the 4x4 matrix) and how it was found",
+    )
+    p.add_argument(
+        "--atlas-volume",
+        metavar="NIFTI",
+        help="with a stack-pose model: an atlas of about the fetus's age (with --atlas-mask) to "
+        "choose and fit each stack's pose (see svr reconstruct --help)",
+    )
+    p.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
     p.add_argument("--batch-size", type=positive_int, default=64, help="slices per forward pass")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_common_options(p)
@@ -82,7 +99,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr predict``."""
     from svr.image import ImageError, load_nifti
-    from svr.models.predict import load_pose_model, predict_plane_poses, predict_slice_folder
+    from svr.models.predict import predict_plane_poses, predict_slice_folder
+    from svr.models.stack_pose import StackPoseNet
     from svr.pose_io import PoseTable, write_pose_table
 
     if not args.input_stacks and not args.input_slices:
@@ -95,8 +113,21 @@ def run(args: argparse.Namespace) -> int:
     if not args.output_poses.endswith((".csv", ".json")):
         raise CliError(f"--output-poses {args.output_poses}: must end in .csv or .json")
     check_output_path(args.output_poses, args.overwrite)
+    if args.output_stack_poses is not None:
+        if not args.output_stack_poses.endswith(".json"):
+            raise CliError(f"--output-stack-poses {args.output_stack_poses}: must end in .json")
+        check_output_path(args.output_stack_poses, args.overwrite)
+    if (args.atlas_volume is None) != (args.atlas_mask is None):
+        raise CliError("--atlas-volume and --atlas-mask go together")
     device = resolve_device(args.device)
-    model = load_pose_model(args.model, device)
+    model = load_any_pose_model(args.model, device)
+    if isinstance(model, StackPoseNet):
+        return _predict_stacks(args, model)
+    if args.output_stack_poses is not None or args.atlas_volume is not None:
+        raise CliError(
+            "--output-stack-poses and --atlas-volume need a stack-pose model "
+            f"(--model {args.model} is a slice-pose model)"
+        )
     masks = args.stack_masks or [None] * len(args.input_stacks)
     inputs = [
         *((path, mask, False) for path, mask in zip(args.input_stacks, masks, strict=True)),
@@ -129,4 +160,67 @@ def run(args: argparse.Namespace) -> int:
     )
     write_pose_table(result, args.output_poses, args.overwrite)
     print(f"wrote {args.output_poses}: {len(result.poses)} slices from {len(inputs)} inputs")
+    return 0
+
+
+def _predict_stacks(args: argparse.Namespace, model) -> int:
+    """``svr predict`` with a stack-pose model: one pose per stack, its slices follow it."""
+    import json
+
+    from svr.files import atomic_write_text
+    from svr.geometry import se3_compose, se3_to_vector
+    from svr.image import ImageError, load_nifti, stack_slice_poses
+    from svr.models.stack_pose import estimate_stack_pose
+    from svr.pose_io import PoseTable, write_pose_table
+    from svr.sampling.volume import load_canonical_volume
+
+    if args.input_slices:
+        raise CliError("--input-slices: a stack-pose model poses whole stacks; give --input-stacks")
+    if not args.stack_masks:
+        raise CliError("a stack-pose model needs --stack-masks (one brain mask per stack)")
+    atlas = None
+    if args.atlas_volume is not None:
+        atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
+    files, indices, poses, records = [], [], [], []
+    for path, mask_path in tqdm(
+        list(zip(args.input_stacks, args.stack_masks, strict=True)),
+        desc="stacks",
+        unit="stack",
+        disable=args.quiet,
+    ):
+        stack, mask = load_nifti(path), load_nifti(mask_path)
+        if mask.shape != stack.shape:
+            raise ImageError(
+                f"{mask_path}: shape {mask.shape} differs from the stack's {stack.shape}"
+            )
+        inside = mask.data > 0.5
+        if int(inside.sum()) < 4:
+            raise ImageError(f"{mask_path}: the mask is empty")
+        estimate = estimate_stack_pose(model, stack, inside, atlas=atlas)
+        planes = se3_compose(estimate.frame[None], stack_slice_poses(stack))
+        keep = inside.flatten(0, 1).any(0)
+        for k in torch.nonzero(keep).flatten().tolist():
+            files.append(str(path))
+            indices.append(k)
+            poses.append(se3_to_vector(planes[k]))
+        records.append(
+            {
+                "file": str(path),
+                "pose": se3_to_vector(estimate.pose).tolist(),
+                "matrix": estimate.pose.tolist(),
+                "frame": "canonical",
+                "method": estimate.method,
+                "score": estimate.score,
+            }
+        )
+    table = PoseTable(
+        files, torch.tensor(indices, dtype=torch.long), torch.stack(poses), "canonical"
+    )
+    write_pose_table(table, args.output_poses, args.overwrite)
+    written = [args.output_poses]
+    if args.output_stack_poses is not None:
+        text = json.dumps({"stacks": records}, indent=1)
+        atomic_write_text(args.output_stack_poses, text + "\n", args.overwrite)
+        written.append(args.output_stack_poses)
+    print(f"wrote {', '.join(written)}: {len(files)} slices of {len(records)} stacks")
     return 0

@@ -23,6 +23,7 @@ from svr.cli.common import (
     check_fusion_count,
     check_outputs,
     check_thickness_count,
+    load_any_pose_model,
     non_negative_float,
     positive_float,
     positive_int,
@@ -188,8 +189,20 @@ def add_options(
         "--model",
         default="default",
         metavar="CHECKPOINT_DIR",
-        help=f"slice-pose model for --registration cnn: {MODEL_HELP}",
+        help=f"pose model for --registration cnn: {MODEL_HELP}; a stack-pose model (svr "
+        "train-stack-pose) places each stack from its own data; 'none' uses no model (needs "
+        "--atlas-volume)",
     )
+    settings.add_argument(
+        "--atlas-volume",
+        metavar="NIFTI",
+        help="--registration cnn: a brain atlas volume of about the fetus's gestational age (for "
+        "example GA28/srr.nii.gz of the Fidon 2021 spina bifida atlas, zenodo.org/record/5524312, "
+        "or the CRL fetal atlas), with --atlas-mask. Each stack's pose is then chosen by "
+        "agreement with it and fitted to it, and the output is brought into its frame (rigid "
+        "registration, 180-degree flips tested)",
+    )
+    settings.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
     settings.add_argument(
         "--template",
         type=int,
@@ -265,17 +278,26 @@ def run(args: argparse.Namespace) -> int:
         CliError: For inconsistent options or output paths.
         ValueError, OSError: From the library (bad or missing files, checkpoints), naming the file.
     """
-    from svr.models.predict import load_pose_model
     from svr.reconstruction.pipeline import reconstruct
     from svr.reconstruction.stacks import load_stacks
+    from svr.sampling.volume import load_canonical_volume
 
     stack_config, config = _configs(args)
     _check_outputs(args)
     device = resolve_device(args.device)
     if config.registration != "cnn" and args.model != "default":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
+    if (args.atlas_volume is None) != (args.atlas_mask is None):
+        raise CliError("--atlas-volume and --atlas-mask go together")
+    if config.registration == "cnn" and args.model == "none" and args.atlas_volume is None:
+        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
     with _captured_log() as captured:
-        model = load_pose_model(args.model, device) if config.registration == "cnn" else None
+        model = None
+        if config.registration == "cnn" and args.model != "none":
+            model = load_any_pose_model(args.model, device)
+        atlas = None
+        if config.registration == "cnn" and args.atlas_volume is not None:
+            atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
         stacks = load_stacks(
             args.input_stacks,
             args.stack_masks,
@@ -284,7 +306,9 @@ def run(args: argparse.Namespace) -> int:
             args.mask_model,
             device,
         )
-        result = reconstruct(stacks, config, model=model, device=device, progress=not args.quiet)
+        result = reconstruct(
+            stacks, config, model=model, device=device, progress=not args.quiet, atlas=atlas
+        )
         _log_result(result)
         written = _write_outputs(args, result)
     if args.output_log is not None:

@@ -95,6 +95,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="magnitude factor for the trajectories",
     )
     p.add_argument(
+        "--stack-turn-deg",
+        type=float,
+        nargs=2,
+        metavar=("LOW", "HIGH"),
+        default=list(d.stack_turn_deg),
+        help="the fetus turns between stacks: each stack after the first sees the brain turned "
+        "by an angle drawn in [LOW, HIGH] degrees about a random axis (0 0: no turn)",
+    )
+    p.add_argument(
         "--rotation-deg",
         type=float,
         default=d.random_walk_rotation_deg,
@@ -159,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         bias_field=args.bias_field,
         signal_void_probability=args.signal_voids,
         random_placement=not args.no_random_placement,
+        stack_turn_deg=(args.stack_turn_deg[0], args.stack_turn_deg[1]),
         seed=args.seed,
     )
     device = resolve_device(args.device)

@@ -12,6 +12,7 @@ from svr.geometry.representations import (
     quat_translation_to_pose,
     rotation_6d_translation_to_pose,
 )
+from svr.geometry.rigid_fit import RigidFitError, weighted_rigid_fit
 from svr.geometry.se3 import (
     se3_compose,
     se3_error,
@@ -42,6 +43,7 @@ from svr.geometry.so3 import (
 
 __all__ = [
     "ANCHOR_HALF_SIZE_MM",
+    "RigidFitError",
     "anchor_points_to_pose",
     "euler_to_matrix",
     "hat",
@@ -71,4 +73,5 @@ __all__ = [
     "so3_left_jacobian_inverse",
     "so3_log",
     "vector_to_se3",
+    "weighted_rigid_fit",
 ]

@@ -1,0 +1,358 @@
+"""Per-stack canonical poses before any registration: learned stack-pose model vs classical chain.
+
+Stacks measured (each on its own; no stack helps another):
+
+* **held-out ages** (default GA 24, 28, 32; the model never saw them): ``--cases-per-age`` cases of
+  ``--stacks-per-case`` stacks each, simulated here at uniformly random orientations (so a fetus
+  that turned between stacks is the rule), real fetal motion at 0.3-1.0 of its recorded size,
+  thickness 2.5-4.5 mm, in-plane 1 mm, bias field and noise; the simulator's slice masks;
+* **the bench cases** (``sb24-large``, ``sb28-moderate``) with their own masks.
+
+Methods, each giving one scanner -> canonical frame per stack:
+
+* ``axes+oracle``: the mask-axis hypothesis nearest the truth (the coarse step's best case);
+* ``axes+atlas``: the classical chain, the hypothesis whose atlas agreement (NCC of the stack with
+  an atlas of a neighbouring age sampled at the hypothesis; ``--atlas-age-offset``) is highest;
+* ``learned``: every hypothesis refined by the network, the best-scored kept
+  (:func:`svr.models.stack_pose.estimate_stack_pose`);
+* ``axes+atlas+fit``: that hypothesis refined by rigid registration of the stack's masked voxels
+  to the atlas (:func:`svr.models.stack_pose.fit_to_atlas`): the classical estimate in full;
+* ``learned+atlas``: the refined hypotheses, chosen by atlas agreement;
+* ``learned+atlas+fit``: the refined hypotheses chosen by atlas agreement, then the atlas fit.
+
+Errors: the rotation angle between the estimated and the true stack pose (the robust mean of the
+slices' true canonical poses, :func:`svr.sampling.blocks.stack_pose_from_slices`) and the distance
+between the estimated and true canonical positions of the stack's centre. With ``--k`` it also
+measures blocks of k neighbouring central slices (and one interleaved packet) refined from the
+truth turned by ``--k-start-deg`` about a random axis and shifted 5 mm: accuracy against k.
+
+Run from the repository root::
+
+    python benchmarks/bench_learned_stack_poses.py --model CHECKPOINT_OR_MODEL_FOLDER
+        [--threads 2] [--cases-per-age 4] [--k 1 2 4 8 16] [--results PATH.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_common import ATLAS, MOTION, SHARED, true_slice_poses
+
+from svr.geometry import se3_compose, se3_inverse, so3_exp
+from svr.image import load_nifti, voxel_to_world
+from svr.models.stack_pose import (
+    atlas_agreement,
+    estimate_stack_pose,
+    load_stack_pose_model,
+    mask_axis_hypotheses,
+    refine_frames,
+)
+from svr.sampling.blocks import coarsen_stack, stack_frame, stack_pose_from_slices
+from svr.sampling.motion import load_trajectories
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
+
+
+def rotation_deg(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Angle between the rotations of two (4, 4) transforms, degrees."""
+    r = a[:3, :3].T @ b[:3, :3]
+    return math.degrees(math.acos(max(-1.0, min(1.0, (float(r.trace()) - 1) / 2))))
+
+
+def held_out_stacks(args, trajectories) -> list[dict]:
+    """Simulated stacks from the held-out ages, with their true poses."""
+    rng = np.random.default_rng(args.seed)
+    out = []
+    for age in args.ages:
+        (vol_path, mask_path), *_ = atlas_volume_paths(args.atlas, only=(age,))
+        volume = load_canonical_volume(vol_path, mask_path)
+        for c in range(args.cases_per_age):
+            thickness = float(rng.uniform(2.5, 4.5))
+            config = SimulationConfig(
+                num_stacks=args.stacks_per_case,
+                orientations="random",
+                thickness_mm=thickness,
+                in_plane_mm=1.0,
+                motion="trajectories",
+                motion_path=str(args.motion),
+                motion_scale=float(rng.uniform(0.3, 1.0)),
+                noise=0.03,
+                bias_field=0.2,
+                mask_fraction=0.5,
+                grazing_ratio=0.5,
+                seed=int(rng.integers(2**31 - 1)),
+            )
+            case = simulate_case(volume, config, trajectories=trajectories)
+            to_canonical = torch.eye(4, dtype=torch.float64)
+            to_canonical[:3, 3] = -volume.centre_mm.double()
+            for s, stack in enumerate(case.stacks):
+                truth = se3_compose(to_canonical[None], stack.atlas_poses)
+                out.append(
+                    {
+                        "name": f"GA{age:g}-case{c}-stack{s}",
+                        "group": f"held-out GA {', '.join(f'{a:g}' for a in args.ages)}",
+                        "age": age,
+                        "image": stack.image,
+                        "mask": stack.mask.data > 0.5,
+                        "pose": stack_pose_from_slices(truth, stack.image),
+                        "slice_poses": truth,
+                        "acquisition": stack.acquisition_index,
+                    }
+                )
+    return out
+
+
+def bench_stacks(args) -> list[dict]:
+    """The bench cases' stacks with their true poses."""
+    out = []
+    for name in args.bench:
+        case = args.data / name
+        info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+        truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
+        centre = torch.tensor(info["atlas_centre_mm"], dtype=torch.float64)
+        age = float(info["source"].split("GA")[1][:2])
+        for entry in truth:
+            file = Path(entry["file"]).name
+            image = load_nifti(case / "stacks" / file)
+            mask = load_nifti(case / "masks" / file.replace(".nii.gz", "_mask.nii.gz"))
+            poses = true_slice_poses(entry["slices"], "atlas", centre)
+            out.append(
+                {
+                    "name": f"{name}-{file.split('.')[0]}",
+                    "group": name,
+                    "age": age,
+                    "image": image,
+                    "mask": mask.data > 0.5,
+                    "pose": stack_pose_from_slices(poses, image),
+                    "slice_poses": poses,
+                    "acquisition": torch.tensor([s["acq_index"] for s in entry["slices"]]),
+                }
+            )
+    return out
+
+
+def summarise(rows: list[dict], method: str) -> dict:
+    rot = np.array([r[method]["rot_deg"] for r in rows])
+    cen = np.array([r[method]["centre_mm"] for r in rows])
+    return {
+        "stacks": len(rows),
+        "median_deg": float(np.median(rot)),
+        "p90_deg": float(np.percentile(rot, 90)),
+        "within10": float((rot <= 10).mean()),
+        "within30": float((rot <= 30).mean()),
+        "median_centre_mm": float(np.median(cen)),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True, help="checkpoint or model folder")
+    parser.add_argument("--atlas", type=Path, default=ATLAS)
+    parser.add_argument("--motion", type=Path, default=MOTION)
+    parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
+    parser.add_argument("--ages", type=float, nargs="*", default=[24.0, 28.0, 32.0])
+    parser.add_argument("--bench", nargs="*", default=["sb24-large", "sb28-moderate"])
+    parser.add_argument("--cases-per-age", type=int, default=4)
+    parser.add_argument("--stacks-per-case", type=int, default=3)
+    parser.add_argument("--atlas-age-offset", type=float, default=1.0)
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--k", type=int, nargs="*", default=[])
+    parser.add_argument("--k-start-deg", type=float, default=20.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--results", type=Path, default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model = load_stack_pose_model(args.model)
+    trajectories = load_trajectories(args.motion)
+    stacks = held_out_stacks(args, trajectories) + bench_stacks(args)
+    atlases: dict[float, CanonicalVolume] = {}
+    available = sorted({float(p.parent.name[2:4]) for p, _ in atlas_volume_paths(args.atlas)})
+
+    def atlas_for(age: float) -> CanonicalVolume:
+        target = age + args.atlas_age_offset
+        near = min((a for a in available if a != age), key=lambda a: (abs(a - target), a))
+        if near not in atlases:
+            atlases[near] = load_canonical_volume(*atlas_volume_paths(args.atlas, only=(near,))[0])
+        return atlases[near]
+
+    rows = []
+    for item in stacks:
+        image, mask, truth = item["image"], item["mask"], item["pose"]
+        frame_of = stack_frame(image)
+        row = {"name": item["name"], "group": item["group"]}
+
+        def record(
+            method: str,
+            frame: torch.Tensor,
+            row: dict = row,
+            frame_of: torch.Tensor = frame_of,
+            truth: torch.Tensor = truth,
+        ) -> None:
+            pose = se3_compose(frame, frame_of)
+            row[method] = {
+                "rot_deg": rotation_deg(pose, truth),
+                "centre_mm": float((pose[:3, 3] - truth[:3, 3]).norm()),
+            }
+
+        coarse, fractions = coarsen_stack(image, mask, model.config.in_plane_mm)
+        idx = torch.nonzero(fractions > 0.5).to(torch.float64)
+        starts = mask_axis_hypotheses(voxel_to_world(coarse.affine, idx))
+        errors = [rotation_deg(se3_compose(f, frame_of), truth) for f in starts]
+        record("axes+oracle", starts[int(np.argmin(errors))])
+        atlas = atlas_for(item["age"])
+        record(
+            "axes+atlas",
+            starts[int(torch.argmax(atlas_agreement(coarse, fractions, starts, atlas)))],
+        )
+        began = time.perf_counter()
+        classical = estimate_stack_pose(None, image, mask, atlas=atlas)
+        row["classical_seconds"] = time.perf_counter() - began
+        record("axes+atlas+fit", classical.frame)
+        began = time.perf_counter()
+        estimate = estimate_stack_pose(model, image, mask, args.iterations)
+        row["seconds"] = time.perf_counter() - began
+        record("learned", estimate.frame)
+        refined_agreement = atlas_agreement(coarse, fractions, estimate.hypotheses, atlas)
+        record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
+        both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
+        record("learned+atlas+fit", both.frame)
+        row["chosen_ok"] = row["learned"]["rot_deg"] <= 30
+        rows.append(row)
+        print(
+            f"{item['name']:28s} oracle {row['axes+oracle']['rot_deg']:6.1f}  atlas "
+            f"{row['axes+atlas']['rot_deg']:6.1f}  fit {row['axes+atlas+fit']['rot_deg']:6.1f} "
+            f"{row['axes+atlas+fit']['centre_mm']:5.1f} mm  "
+            f"learned {row['learned']['rot_deg']:6.1f} deg "
+            f"{row['learned']['centre_mm']:5.1f} mm  learned+atlas "
+            f"{row['learned+atlas']['rot_deg']:6.1f}  "
+            f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
+            f"({row['seconds']:.2f} s, classical {row['classical_seconds']:.2f} s)",
+            flush=True,
+        )
+
+    k_rows = []
+    if args.k:
+        gen = torch.Generator().manual_seed(args.seed)
+        for item in stacks:
+            if not item["group"].startswith("held-out"):
+                continue
+            image, fractions = coarsen_stack(item["image"], item["mask"], model.config.in_plane_mm)
+            count = image.shape[2]
+            frame_true = se3_compose(item["pose"], se3_inverse(stack_frame(item["image"])))
+            axis = torch.nn.functional.normalize(
+                torch.randn(3, generator=gen, dtype=torch.float64), dim=0
+            )
+            start = torch.eye(4, dtype=torch.float64)
+            start[:3, :3] = so3_exp(axis * math.radians(args.k_start_deg))
+            start[:3, 3] = (
+                torch.nn.functional.normalize(
+                    torch.randn(3, generator=gen, dtype=torch.float64), dim=0
+                )
+                * 5.0
+            )
+            start = se3_compose(start, frame_true)
+            subsets = {}
+            for k in args.k:
+                if k < count:
+                    present = torch.zeros(count, dtype=torch.bool)
+                    first = (count - k) // 2
+                    present[first : first + k] = True
+                    subsets[str(k)] = present
+            order = torch.argsort(item["acquisition"])
+            breaks = torch.nonzero(order[1:] < order[:-1]).flatten() + 1
+            packet = torch.zeros(count, dtype=torch.bool)
+            packet[order[: int(breaks[0]) if len(breaks) else count]] = True
+            subsets["packet"] = packet
+            subsets["all"] = torch.ones(count, dtype=torch.bool)
+            for label, present in subsets.items():
+                frames, _ = refine_frames(
+                    model, image, fractions, start[None], args.iterations, present
+                )
+                pose = se3_compose(frames[0], stack_frame(item["image"]))
+                k_rows.append(
+                    {
+                        "k": label,
+                        "rot_deg": rotation_deg(pose, item["pose"]),
+                        "centre_mm": float((pose[:3, 3] - item["pose"][:3, 3]).norm()),
+                    }
+                )
+
+    methods = [
+        "axes+oracle",
+        "axes+atlas",
+        "axes+atlas+fit",
+        "learned",
+        "learned+atlas",
+        "learned+atlas+fit",
+    ]
+    groups = sorted({r["group"] for r in rows})
+    lines = [
+        "| stacks | method | n | median (deg) | p90 (deg) | within 10 deg | within 30 deg "
+        "| centre median (mm) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    summary = {}
+    for group in groups:
+        members = [r for r in rows if r["group"] == group]
+        for method in methods:
+            s = summarise(members, method)
+            summary[f"{group}/{method}"] = s
+            lines.append(
+                f"| {group} | {method} | {s['stacks']} | {s['median_deg']:.1f} | "
+                f"{s['p90_deg']:.1f} | {100 * s['within10']:.0f} % | {100 * s['within30']:.0f} % | "
+                f"{s['median_centre_mm']:.1f} |"
+            )
+    seconds = np.array([r["seconds"] for r in rows])
+    classical = np.array([r["classical_seconds"] for r in rows])
+    lines.append("")
+    lines.append(
+        f"Time per stack ({args.threads} threads): learned estimate median "
+        f"{np.median(seconds):.2f} s (max {seconds.max():.2f} s); axes + atlas choice + fit "
+        f"median {np.median(classical):.2f} s "
+        f"(max {classical.max():.2f} s)."
+    )
+    if k_rows:
+        lines += [
+            "",
+            f"Accuracy against k (refined from the truth turned by {args.k_start_deg:g} deg "
+            "and shifted 5 mm):",
+            "",
+        ]
+        lines += [
+            "| block | n | median (deg) | within 10 deg | centre median (mm) |",
+            "|---|---|---|---|---|",
+        ]
+        for label in dict.fromkeys(r["k"] for r in k_rows):
+            members = [r for r in k_rows if r["k"] == label]
+            rot = np.array([r["rot_deg"] for r in members])
+            cen = np.array([r["centre_mm"] for r in members])
+            lines.append(
+                f"| {label} | {len(members)} | {np.median(rot):.1f} | "
+                f"{100 * (rot <= 10).mean():.0f} % | "
+                f"{np.median(cen):.1f} |"
+            )
+    text = "\n".join(lines)
+    print(text)
+    if args.results is not None:
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        command = "python benchmarks/bench_learned_stack_poses.py " + " ".join(sys.argv[1:])
+        args.results.write_text(
+            f"# Learned stack poses\n\nCommand: `{command}`\n\nModel: `{args.model}`\n\n{text}\n",
+            encoding="utf-8",
+        )
+        args.results.with_suffix(".json").write_text(
+            json.dumps({"summary": summary, "rows": rows, "k": k_rows}, indent=1), encoding="utf-8"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,542 @@
+"""Learned stack poses in canonical space: geometric hypotheses refined by a local 3D CNN.
+
+The global part of a stack's orientation comes from structure, the local part is learned:
+
+1. **Hypotheses** (:func:`mask_axis_hypotheses`): the principal axes of the stack's brain mask
+   give the brain's axes (fetal brains are longest front to back, then left to right, then top to
+   bottom), up to their signs and, where two lengths are close, their order: 8 candidate frames.
+2. **Refinement** (:class:`StackPoseNet`): the stack resampled in a candidate frame
+   (:func:`svr.sampling.blocks.block_inputs`) goes through a small 3D CNN that predicts the
+   residual rigid transform to the true canonical frame (within about 40 degrees and a few
+   centimetres), applied and iterated; the same network scores how likely the frame is right.
+3. **Choice**: the hypothesis whose refined frame scores highest.
+
+Two heads share the encoder, both trained with the SE(3) geodesic loss on the final stack pose:
+
+* ``"regress"``: a rotation vector and a translation, regressed from the flattened features;
+* ``"coords"``: per-cell canonical coordinates with confidences on a coarse grid, turned into
+  the residual by a differentiable weighted rigid fit (:func:`svr.geometry.weighted_rigid_fit`),
+  with an auxiliary loss on the coordinates.
+
+Frames and poses follow :mod:`svr.sampling.blocks`: a *frame* ``E`` maps scanner mm to canonical
+mm, a *stack pose* ``P = E o F`` maps the stack frame ``F`` to canonical mm.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal, NamedTuple
+
+import torch
+from scipy.ndimage import gaussian_filter
+from torch import Tensor, nn
+
+from svr.geometry import se3_compose, se3_inverse, so3_exp, weighted_rigid_fit
+from svr.image import Image, sample_world, voxel_to_world
+from svr.models.checkpoint import (
+    CHECKPOINT_CONFIG,
+    CheckpointError,
+    latest_checkpoint,
+    load_checkpoint,
+)
+from svr.models.pretrained import stack_pose_model_path
+from svr.sampling.blocks import BlockGrid, block_inputs, coarsen_stack, stack_frame
+from svr.sampling.volume import CanonicalVolume
+
+__all__ = [
+    "STACK_POSE_MODEL",
+    "AtlasFitConfig",
+    "StackPoseConfig",
+    "StackPoseEstimate",
+    "StackPoseNet",
+    "atlas_agreement",
+    "estimate_stack_pose",
+    "fit_to_atlas",
+    "load_stack_pose_model",
+    "mask_axis_hypotheses",
+]
+
+Head = Literal["regress", "coords"]
+
+STACK_POSE_MODEL = "stack-pose"
+"""The name that stands for the stack-pose model shipped in the package."""
+
+
+@dataclass(frozen=True)
+class StackPoseConfig:
+    """The stack-pose network.
+
+    Attributes:
+        head: ``"regress"`` or ``"coords"`` (see the module docstring).
+        width: Channels of the first stage (doubled at each of the three stages), >= 4.
+        grid_size: Block voxels per side, a multiple of 8, >= 16.
+        grid_spacing_mm: Block voxel spacing (mm).
+        in_plane_mm: Stacks are averaged in-plane to about this spacing first (mm).
+        translation_scale_mm: The network's translation outputs are in units of this (mm).
+    """
+
+    head: Head = "regress"
+    width: int = 16
+    grid_size: int = 32
+    grid_spacing_mm: float = 4.0
+    in_plane_mm: float = 2.0
+    translation_scale_mm: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.head not in ("regress", "coords"):
+            raise ValueError(
+                f"StackPoseConfig: 'head' must be regress or coords, got {self.head!r}"
+            )
+        for name, low in (("width", 4), ("grid_size", 16)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(
+                    f"StackPoseConfig: '{name}' must be an int >= {low}, got {value!r}"
+                )
+        if self.grid_size % 8:
+            raise ValueError(
+                f"StackPoseConfig: 'grid_size' must be a multiple of 8, got {self.grid_size}"
+            )
+        for name in ("grid_spacing_mm", "in_plane_mm", "translation_scale_mm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"StackPoseConfig: '{name}' must be > 0, got {getattr(self, name)}"
+                )
+
+    @property
+    def grid(self) -> BlockGrid:
+        """The block grid."""
+        return BlockGrid(self.grid_size, self.grid_spacing_mm, self.in_plane_mm)
+
+    def to_dict(self) -> dict:
+        """JSON-ready fields."""
+        return asdict(self)
+
+
+def _stage(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv3d(c_in, c_out, 3, stride=2, padding=1, bias=False),
+        nn.BatchNorm3d(c_out),
+        nn.ReLU(inplace=True),
+        nn.Conv3d(c_out, c_out, 3, padding=1, bias=False),
+        nn.BatchNorm3d(c_out),
+        nn.ReLU(inplace=True),
+    )
+
+
+class StackPoseNet(nn.Module):
+    """Block -> residual transform to the canonical frame, and a score for the frame.
+
+    Input ``(B, 3, S, S, S)`` blocks (:func:`svr.sampling.blocks.block_inputs`); three stages of two
+    3D convolutions (the first with stride 2) to ``(4w, S/8, S/8, S/8)`` features.
+    """
+
+    cells: Tensor
+    """(N, 3) the coordinate head's cell centres in the block frame (mm)."""
+
+    def __init__(self, config: StackPoseConfig) -> None:
+        super().__init__()
+        self.config = config
+        w, s = config.width, config.grid_size
+        self.stages = nn.ModuleList([_stage(3, w), _stage(w, 2 * w), _stage(2 * w, 4 * w)])
+        flat = 4 * w * (s // 8) ** 3
+        self.fc = nn.Sequential(nn.Flatten(), nn.Linear(flat, 8 * w), nn.ReLU(inplace=True))
+        self.score = nn.Linear(8 * w, 1)
+        if config.head == "regress":
+            self.pose = nn.Linear(8 * w, 6)
+            nn.init.zeros_(self.pose.weight)
+            nn.init.zeros_(self.pose.bias)
+        else:
+            self.decode = nn.Sequential(
+                nn.Upsample(scale_factor=2, mode="trilinear", align_corners=False),
+            )
+            last = nn.Conv3d(2 * w, 4, 1)
+            assert last.bias is not None
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+            self.coords = nn.Sequential(
+                nn.Conv3d(6 * w, 2 * w, 3, padding=1), nn.ReLU(inplace=True), last
+            )
+            g = config.grid
+            cells = BlockGrid(s // 4, g.spacing_mm * 4, g.in_plane_mm).points(torch.float32)
+            self.register_buffer("cells", cells.reshape(-1, 3), persistent=False)
+
+    def forward(self, blocks: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """Predict.
+
+        Args:
+            blocks: (B, 3, S, S, S) float blocks.
+
+        Returns:
+            ``(residual, score, coords)``: (B, 4, 4) residual transforms (the block's canonical
+            frame -> the true canonical frame, mm), (B,) logits that the frame is within the
+            refinement's reach, and for the ``"coords"`` head (B, N, 4) per-cell predicted
+            canonical coordinates (mm) and confidence logits (else ``None``).
+        """
+        features = []
+        x = blocks
+        for stage in self.stages:
+            x = stage(x)
+            features.append(x)
+        hidden = self.fc(x)
+        score = self.score(hidden)[:, 0]
+        scale = self.config.translation_scale_mm
+        if self.config.head == "regress":
+            out = self.pose(hidden)
+            residual = torch.zeros(blocks.shape[0], 4, 4, dtype=out.dtype, device=out.device)
+            residual[:, :3, :3] = so3_exp(out[:, :3])
+            residual[:, :3, 3] = out[:, 3:] * scale
+            residual[:, 3, 3] = 1.0
+            return residual, score, None
+        up = torch.cat([self.decode(features[2]), features[1]], dim=1)
+        raw = self.coords(up).flatten(2).transpose(1, 2)  # (B, N, 4)
+        cells = self.cells.to(raw)
+        coords = torch.cat([cells + raw[..., :3] * scale, raw[..., 3:]], dim=-1)
+        weights = torch.sigmoid(raw[..., 3]) + 1e-4
+        residual = weighted_rigid_fit(cells.expand_as(coords[..., :3]), coords[..., :3], weights)
+        return residual, score, coords
+
+
+def mask_axis_hypotheses(points: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Candidate canonical frames from the principal axes of a brain mask.
+
+    The longest axis is taken as the brain's front-back (canonical y), the middle one as left-right
+    (x) and the shortest as top-bottom (z), or with x and z swapped (their lengths are close in
+    young brains); each with the 4 sign choices that keep the frame right-handed.
+
+    Args:
+        points: (N, 3) world positions (mm) of the mask's voxels, N >= 4.
+        weights: (N,) non-negative weights (mask fractions), default 1.
+
+    Returns:
+        (8, 4, 4) float64 frames (scanner mm -> canonical mm), each mapping the mask's centroid to
+        the canonical origin.
+    """
+    if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] < 4:
+        raise ValueError(
+            "mask_axis_hypotheses(): 'points' must have shape (N >= 4, 3), got "
+            f"{tuple(points.shape)}"
+        )
+    p = points.to(torch.float64)
+    w = torch.ones(p.shape[0], dtype=torch.float64) if weights is None else weights.double()
+    w = w / w.sum()
+    centre = (w[:, None] * p).sum(0)
+    d = p - centre
+    _, vectors = torch.linalg.eigh((w[:, None] * d).T @ d)  # ascending: shortest first
+    short, middle, longest = vectors[:, 0], vectors[:, 1], vectors[:, 2]
+    frames = []
+    for x_axis, z_axis in ((middle, short), (short, middle)):
+        for sx, sy in ((1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)):
+            x, y = sx * x_axis, sy * longest
+            rows = torch.stack([x, y, torch.linalg.cross(x, y)])
+            if float(rows[2] @ z_axis) == 0.0:  # pragma: no cover - eigh gives orthonormal axes
+                raise ValueError("mask_axis_hypotheses(): degenerate axes")
+            frame = torch.eye(4, dtype=torch.float64)
+            frame[:3, :3] = rows
+            frame[:3, 3] = -rows @ centre
+            frames.append(frame)
+    return torch.stack(frames)
+
+
+@dataclass(frozen=True)
+class AtlasFitConfig:
+    """The rigid fit of a stack to an atlas (the classical chain's refinement).
+
+    Attributes:
+        blur_mm: Gaussian blur (standard deviation, mm) of the atlas at each level, coarse first.
+        iterations: L-BFGS iterations per level, >= 1.
+        max_points: Most mask voxels used (an even subsample of the rest), >= 100.
+    """
+
+    blur_mm: tuple[float, ...] = (4.0, 2.0)
+    iterations: int = 30
+    max_points: int = 20000
+
+    def __post_init__(self) -> None:
+        if not self.blur_mm or any(not b >= 0 for b in self.blur_mm):
+            raise ValueError(f"AtlasFitConfig: 'blur_mm' must be values >= 0, got {self.blur_mm}")
+        if (
+            isinstance(self.iterations, bool)
+            or not isinstance(self.iterations, int)
+            or self.iterations < 1
+        ):
+            raise ValueError(
+                f"AtlasFitConfig: 'iterations' must be an int >= 1, got {self.iterations!r}"
+            )
+        if (
+            isinstance(self.max_points, bool)
+            or not isinstance(self.max_points, int)
+            or self.max_points < 100
+        ):
+            raise ValueError(
+                f"AtlasFitConfig: 'max_points' must be an int >= 100, got {self.max_points!r}"
+            )
+
+
+def _mask_samples(stack: Image, mask: Tensor, max_points: int) -> tuple[Tensor, Tensor]:
+    """World points (N, 3) float64 of a stack's mask voxels and their standardised intensities."""
+    inside = mask > 0.5
+    idx = torch.nonzero(inside).to(torch.float64)
+    values = stack.data[inside].double()
+    if len(idx) > max_points:
+        keep = torch.linspace(0, len(idx) - 1, max_points).round().long()
+        idx, values = idx[keep], values[keep]
+    values = (values - values.mean()) / values.std().clamp_min(1e-9)
+    return voxel_to_world(stack.affine, idx), values
+
+
+def _blurred(atlas: CanonicalVolume, sigma_mm: float) -> Image:
+    if sigma_mm <= 0:
+        return atlas.image
+    spacing = atlas.image.spacing.double().cpu().numpy()
+    data = gaussian_filter(atlas.image.data.double().cpu().numpy(), sigma_mm / spacing)
+    return Image(torch.from_numpy(data).float(), atlas.image.affine)
+
+
+def _ncc(a: Tensor, b: Tensor) -> Tensor:
+    a = a - a.mean(-1, keepdim=True)
+    return (a * b).mean(-1) / a.std(-1).clamp_min(1e-9)
+
+
+def atlas_agreement(
+    stack: Image, mask: Tensor, frames: Tensor, atlas: CanonicalVolume, max_points: int = 20000
+) -> Tensor:
+    """How well each candidate frame puts the stack on the atlas: NCC over the mask's voxels.
+
+    Args:
+        stack: (I, J, K) stack in its scanner frame.
+        mask: (I, J, K) brain mask on its grid.
+        frames: (H, 4, 4) candidate frames (scanner mm -> canonical mm).
+        atlas: A brain of about the same age in canonical space.
+        max_points: Most mask voxels used.
+
+    Returns:
+        (H,) float64 normalised cross-correlations in [-1, 1].
+    """
+    points, values = _mask_samples(stack, mask, max_points)
+    canonical = (
+        points @ frames[:, :3, :3].transpose(1, 2).double() + frames[:, None, :3, 3].double()
+    )
+    sampled = sample_world(atlas.image, canonical.float()).double()
+    return _ncc(sampled, values)
+
+
+def fit_to_atlas(
+    stack: Image,
+    mask: Tensor,
+    frame: Tensor,
+    atlas: CanonicalVolume,
+    config: AtlasFitConfig | None = None,
+) -> tuple[Tensor, float]:
+    """Refine a stack's frame by rigid registration of its masked voxels to an atlas (NCC).
+
+    The stack moves as one rigid body about the canonical origin; L-BFGS on the rotation vector
+    and shift of the correction, coarse to fine over blurred copies of the atlas.
+
+    Args:
+        stack: (I, J, K) stack in its scanner frame.
+        mask: (I, J, K) brain mask on its grid.
+        frame: (4, 4) starting frame (scanner mm -> canonical mm).
+        atlas: A brain of about the same age in canonical space.
+        config: Levels and iterations.
+
+    Returns:
+        The refined (4, 4) float64 frame and its NCC with the atlas at the finest level.
+    """
+    config = config or AtlasFitConfig()
+    points, values = _mask_samples(stack, mask, config.max_points)
+    start = points @ frame[:3, :3].T.double() + frame[:3, 3].double()
+    params = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    ncc = 0.0
+    for sigma in config.blur_mm:
+        level = _blurred(atlas, sigma)
+        optimiser = torch.optim.LBFGS(
+            [params], lr=1.0, max_iter=config.iterations, line_search_fn="strong_wolfe"
+        )
+
+        def closure(level: Image = level, optimiser: torch.optim.LBFGS = optimiser) -> Tensor:
+            optimiser.zero_grad()
+            moved = start @ so3_exp(params[:3]).T + params[3:] * 10.0
+            loss = -_ncc(sample_world(level, moved), values)
+            loss.backward()
+            return loss
+
+        optimiser.step(closure)
+        with torch.no_grad():
+            moved = start @ so3_exp(params[:3]).T + params[3:] * 10.0
+            ncc = float(_ncc(sample_world(level, moved), values))
+    correction = torch.eye(4, dtype=torch.float64)
+    with torch.no_grad():
+        correction[:3, :3] = so3_exp(params[:3])
+        correction[:3, 3] = params[3:] * 10.0
+    return se3_compose(correction, frame.double()), ncc
+
+
+class StackPoseEstimate(NamedTuple):
+    """A stack's estimated canonical pose.
+
+    Attributes:
+        pose: (4, 4) float64 stack pose (stack frame mm -> canonical mm).
+        frame: (4, 4) float64 frame (the stack's scanner mm -> canonical mm).
+        score: What chose it: the model's logit, or the atlas NCC where an atlas chose.
+        hypotheses: (H, 4, 4) frames of every hypothesis (refined by the model if given).
+        scores: (H,) their scores (model logits, or atlas NCCs where an atlas chose).
+        method: How it was made: ``"learned"``, ``"learned+atlas"`` or ``"axes+atlas"``.
+    """
+
+    pose: Tensor
+    frame: Tensor
+    score: float
+    hypotheses: Tensor
+    scores: Tensor
+    method: str
+
+
+@torch.no_grad()
+def refine_frames(
+    model: StackPoseNet,
+    stack: Image,
+    mask: Tensor,
+    frames: Tensor,
+    iterations: int = 3,
+    present: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Apply the network's residual to candidate frames, ``iterations`` times, and score them.
+
+    Args:
+        model: The network (eval mode).
+        stack: (I, J, K) stack, already coarsened (:func:`svr.sampling.blocks.coarsen_stack`).
+        mask: (I, J, K) float mask on its grid.
+        frames: (H, 4, 4) starting frames (scanner -> canonical).
+        iterations: Refinement steps, >= 0.
+        present: (K,) bool slices to use (default all).
+
+    Returns:
+        The (H, 4, 4) float64 refined frames and (H,) float logits scored at them.
+    """
+    device = next(model.parameters()).device
+    grid = model.config.grid
+    frames = frames.to(torch.float64)
+    score = torch.zeros(frames.shape[0])
+    for step in range(iterations + 1):
+        blocks = block_inputs(stack, mask, frames, grid, present).to(device)
+        residual, logits, _ = model(blocks)
+        score = logits.float().cpu()
+        if step < iterations:
+            frames = se3_compose(residual.double().cpu(), frames)
+    return frames, score
+
+
+def estimate_stack_pose(
+    model: StackPoseNet | None,
+    stack: Image,
+    mask: Tensor,
+    iterations: int = 3,
+    atlas: CanonicalVolume | None = None,
+    fit: AtlasFitConfig | None = None,
+    in_plane_mm: float = 2.0,
+) -> StackPoseEstimate:
+    """A stack's canonical pose from its own data: mask-axis hypotheses, refined, one chosen.
+
+    With a model, every hypothesis is refined by it. With an atlas, the hypothesis that agrees
+    best with it (NCC, :func:`atlas_agreement`) is chosen and then rigidly fitted to it
+    (:func:`fit_to_atlas`); without one, the model's score chooses.
+
+    Args:
+        model: The trained network, or ``None`` (then ``atlas`` is required).
+        stack: (I, J, K) stack in its scanner frame (any in-plane spacing).
+        mask: (I, J, K) brain mask on its grid (bool or fractions).
+        iterations: Refinement steps per hypothesis.
+        atlas: A brain of about the stack's age in canonical space, or ``None``.
+        fit: The atlas fit's settings (default :class:`AtlasFitConfig`).
+        in_plane_mm: In-plane spacing the stack is averaged to without a model (with one, the
+            model's).
+
+    Returns:
+        The estimate.
+
+    Raises:
+        ValueError: If the mask has fewer than 4 voxels, or neither a model nor an atlas is given.
+    """
+    if model is None and atlas is None:
+        raise ValueError("estimate_stack_pose(): give a 'model', an 'atlas' or both")
+    if model is not None:
+        model.eval()
+        in_plane_mm = model.config.in_plane_mm
+    image, fractions = coarsen_stack(stack, mask, in_plane_mm)
+    inside = fractions > 0.5
+    if int(inside.sum()) < 4:
+        raise ValueError("estimate_stack_pose(): the brain mask has fewer than 4 voxels")
+    idx = torch.nonzero(inside).to(torch.float64)
+    frames = mask_axis_hypotheses(voxel_to_world(image.affine, idx))
+    method = "axes"
+    if model is not None:
+        frames, scores = refine_frames(model, image, fractions, frames, iterations)
+        method = "learned"
+    if atlas is not None:
+        with torch.no_grad():
+            scores = atlas_agreement(image, fractions, frames, atlas).float()
+        best = int(torch.argmax(scores))
+        frame, ncc = fit_to_atlas(image, fractions, frames[best], atlas, fit)
+        method += "+atlas"
+        score = ncc
+    else:
+        best = int(torch.argmax(scores))
+        frame, score = frames[best], float(scores[best])
+    return StackPoseEstimate(
+        pose=se3_compose(frame, stack_frame(stack)),
+        frame=frame,
+        score=score,
+        hypotheses=frames,
+        scores=scores,
+        method=method,
+    )
+
+
+def pose_of_frame(frame: Tensor, stack: Image) -> Tensor:
+    """The stack pose ``E o F`` of frames ``E`` (..., 4, 4) for ``stack``."""
+    return se3_compose(frame, stack_frame(stack).to(frame))
+
+
+def frame_of_pose(pose: Tensor, stack: Image) -> Tensor:
+    """The frame ``P o F^-1`` of stack poses ``P`` (..., 4, 4) for ``stack``."""
+    return se3_compose(pose, se3_inverse(stack_frame(stack).to(pose)))
+
+
+def load_stack_pose_model(
+    path: str | os.PathLike[str], device: str | torch.device = "cpu"
+) -> StackPoseNet:
+    """Load a stack-pose network from a checkpoint or model folder (or a run folder: its newest).
+
+    Args:
+        path: A folder written by :func:`svr.models.checkpoint.save_checkpoint` whose config has
+            ``"architecture": "stack_pose"``, a training run's folder of such checkpoints, or
+            :data:`STACK_POSE_MODEL` for the shipped model.
+        device: Where to put the network.
+
+    Returns:
+        The network in eval mode.
+
+    Raises:
+        CheckpointError: If the folder is not a stack-pose checkpoint (nothing in it is executed).
+    """
+    folder = stack_pose_model_path() if str(path) == STACK_POSE_MODEL else Path(path)
+    if not (folder / CHECKPOINT_CONFIG).exists():
+        newest = latest_checkpoint(folder)
+        if newest is not None:
+            folder = newest
+    checkpoint = load_checkpoint(folder, map_location=device)
+    if checkpoint.config.get("architecture") != "stack_pose":
+        raise CheckpointError(
+            folder,
+            f"not a stack-pose model (architecture {checkpoint.config.get('architecture')!r})",
+        )
+    try:
+        config = StackPoseConfig(**checkpoint.config["model"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(folder, f"bad 'model' section in config.json: {exc}") from exc
+    net = StackPoseNet(config)
+    net.load_state_dict(checkpoint.state_dict)
+    return net.to(device).eval()

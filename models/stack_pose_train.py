@@ -1,0 +1,373 @@
+"""Training the stack-pose network on stacks simulated on the fly, on one CPU core.
+
+Each step simulates ``stacks_per_step`` stacks from the training volumes
+(:func:`svr.sampling.blocks.simulate_training_stack`: uniform orientation, real motion, thickness
+2-5 mm, gaps and overlaps, bias, noise, voids, imperfect masks) and cuts ``samples_per_stack``
+blocks from each, in frames drawn around the truth:
+
+* within reach (probability ``positive_fraction``): the true frame turned by up to
+  ``max_start_deg`` about a random axis and shifted by a Gaussian of ``start_shift_mm`` per axis;
+  the network learns the residual back to the truth, with the SE(3) geodesic loss on the final
+  stack pose, and that the frame is right (score 1);
+* out of reach: a turn of at least 60 degrees (half of them the 180/90 degree turns that wrong
+  mask-axis hypotheses make), score 0.
+
+Blocks use every slice of the stack (probability ``1 - subset_fraction``) or a subset: one
+interleaved packet, or k neighbouring slices (k from 1 to ``max_subset``). Checkpoints
+(:mod:`svr.models.checkpoint`) are written every ``checkpoint_every`` steps and the newest is
+resumed, with the RNG state, so a run that is stopped and started again continues where it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from torch.nn import functional
+
+from svr.geometry import se3_compose, se3_to_vector, so3_exp, vector_to_se3
+from svr.losses.se3 import se3_geodesic_loss
+from svr.models.checkpoint import (
+    checkpoint_name,
+    latest_checkpoint,
+    load_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+)
+from svr.models.stack_pose import StackPoseConfig, StackPoseNet
+from svr.sampling.blocks import (
+    TrainingStack,
+    TrainingStackConfig,
+    block_inputs,
+    coarsen_stack,
+    simulate_training_stack,
+    stack_frame,
+)
+from svr.sampling.motion import Trajectory
+from svr.sampling.volume import CanonicalVolume
+
+__all__ = ["StackPoseTrainingConfig", "draw_samples", "stack_pose_loss", "train_stack_pose"]
+
+log = logging.getLogger(__name__)
+
+_WRONG_TURNS = torch.tensor(
+    [
+        [math.pi, 0.0, 0.0],
+        [0.0, math.pi, 0.0],
+        [0.0, 0.0, math.pi],
+        [0.0, math.pi / 2, 0.0],
+        [0.0, -math.pi / 2, 0.0],
+    ],
+    dtype=torch.float64,
+)
+"""Rotation vectors of the turns that wrong mask-axis hypotheses make (sign flips, x/z swaps)."""
+
+
+@dataclass(frozen=True)
+class StackPoseTrainingConfig:
+    """How the stack-pose network is trained.
+
+    Attributes:
+        steps: Optimiser steps, >= 1.
+        stacks_per_step: Stacks simulated per step, >= 1.
+        samples_per_stack: Blocks cut from each stack, >= 1.
+        learning_rate: Adam's initial rate (cosine decay to 5 % of it).
+        max_start_deg: Largest start error within reach (degrees).
+        start_shift_mm: Per-axis standard deviation of the start's shift (mm).
+        positive_fraction: Share of blocks within reach.
+        subset_fraction: Share of blocks made of a packet or k neighbouring slices.
+        max_subset: Largest k of the neighbouring-slice blocks.
+        score_weight: Weight of the score's cross-entropy beside the pose loss.
+        coords_weight: Weight of the coordinate loss (``"coords"`` head).
+        checkpoint_every: Steps between checkpoints.
+        seed: Seed of every random draw.
+        stacks: The ranges the training stacks are drawn from.
+    """
+
+    steps: int = 14000
+    stacks_per_step: int = 2
+    samples_per_stack: int = 4
+    learning_rate: float = 1e-3
+    max_start_deg: float = 40.0
+    start_shift_mm: float = 5.0
+    positive_fraction: float = 0.65
+    subset_fraction: float = 0.25
+    max_subset: int = 12
+    score_weight: float = 0.2
+    coords_weight: float = 0.1
+    checkpoint_every: int = 250
+    seed: int = 0
+    stacks: TrainingStackConfig = field(default_factory=TrainingStackConfig)
+
+    def __post_init__(self) -> None:
+        for name in (
+            "steps",
+            "stacks_per_step",
+            "samples_per_stack",
+            "checkpoint_every",
+            "max_subset",
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(
+                    f"StackPoseTrainingConfig: '{name}' must be an int >= 1, got {value!r}"
+                )
+        for name in ("positive_fraction", "subset_fraction"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(
+                    f"StackPoseTrainingConfig: '{name}' must be in [0, 1], "
+                    f"got {getattr(self, name)}"
+                )
+        for name in ("learning_rate", "max_start_deg"):
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"StackPoseTrainingConfig: '{name}' must be > 0, got {getattr(self, name)}"
+                )
+
+
+def _random_axis(n: int, generator: torch.Generator) -> Tensor:
+    return functional.normalize(torch.randn(n, 3, generator=generator, dtype=torch.float64), dim=-1)
+
+
+def _subset(
+    stack: TrainingStack, config: StackPoseTrainingConfig, generator: torch.Generator
+) -> Tensor:
+    k = stack.image.shape[2]
+    present = torch.ones(k, dtype=torch.bool)
+    if float(torch.rand(1, generator=generator)) >= config.subset_fraction:
+        return present
+    present[:] = False
+    if float(torch.rand(1, generator=generator)) < 0.5:
+        order = stack.acquisition_index
+        # An interleaved packet: slices acquired in one sweep (consecutive acquisition indices
+        # whose slice positions increase).
+        by_time = torch.argsort(order)
+        breaks = torch.nonzero(by_time[1:] < by_time[:-1]).flatten() + 1
+        bounds = [0, *breaks.tolist(), k]
+        j = int(torch.randint(len(bounds) - 1, (1,), generator=generator))
+        present[by_time[bounds[j] : bounds[j + 1]]] = True
+        return present
+    size = int(torch.randint(1, min(config.max_subset, k) + 1, (1,), generator=generator))
+    first = int(torch.randint(0, k - size + 1, (1,), generator=generator))
+    present[first : first + size] = True
+    return present
+
+
+def draw_samples(
+    stack: TrainingStack,
+    model_config: StackPoseConfig,
+    config: StackPoseTrainingConfig,
+    generator: torch.Generator,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Blocks of one stack in frames drawn around its true frame.
+
+    Args:
+        stack: The simulated stack.
+        model_config: The network's block grid.
+        config: The draw's ranges.
+        generator: Source of the draws.
+
+    Returns:
+        ``(blocks, starts, target, labels)``: (n, 3, S, S, S) float32 blocks, (n, 4, 4) float64
+        start stack poses, the (4, 4) true stack pose and (n,) float labels (1 = within reach).
+    """
+    n = config.samples_per_stack
+    frame_true = se3_compose(stack.pose, torch.linalg.inv(stack_frame(stack.image)))
+    positive = torch.rand(n, generator=generator) < config.positive_fraction
+    angle = torch.rand(n, generator=generator, dtype=torch.float64) * math.radians(
+        config.max_start_deg
+    )
+    rotvec = _random_axis(n, generator) * angle[:, None]
+    shift = torch.randn(n, 3, generator=generator, dtype=torch.float64) * config.start_shift_mm
+    local = vector_to_se3(torch.cat([rotvec, shift], dim=-1))
+    wrong = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    for i in torch.nonzero(~positive).flatten().tolist():
+        if float(torch.rand(1, generator=generator)) < 0.5:
+            turn = _WRONG_TURNS[int(torch.randint(len(_WRONG_TURNS), (1,), generator=generator))]
+        else:
+            far = math.radians(60.0) + float(torch.rand(1, generator=generator)) * math.radians(
+                120.0
+            )
+            turn = _random_axis(1, generator)[0] * far
+        wrong[i, :3, :3] = so3_exp(turn)
+    frames = se3_compose(local, se3_compose(wrong, frame_true.expand(n, 4, 4)))
+    image, mask = coarsen_stack(stack.image, stack.mask, model_config.in_plane_mm)
+    present = _subset(stack, config, generator)
+    blocks = block_inputs(image, mask, frames, model_config.grid, present)
+    starts = se3_compose(frames, stack_frame(stack.image).expand(n, 4, 4))
+    return blocks, starts, stack.pose, positive.float()
+
+
+def stack_pose_loss(
+    residual: Tensor,
+    score: Tensor,
+    coords: Tensor | None,
+    starts: Tensor,
+    targets: Tensor,
+    labels: Tensor,
+    config: StackPoseTrainingConfig,
+    grid_points: Tensor | None = None,
+) -> tuple[Tensor, dict[str, float]]:
+    """SE(3) geodesic loss on the refined stack poses, plus the score's and coordinates' losses.
+
+    Args:
+        residual: (B, 4, 4) predicted residuals (block frame -> canonical).
+        score: (B,) logits.
+        coords: (B, N, 4) predicted cell coordinates and confidences, or ``None``.
+        starts: (B, 4, 4) start stack poses.
+        targets: (B, 4, 4) true stack poses.
+        labels: (B,) 1 where the start is within reach (only these get the pose loss).
+        config: The weights.
+        grid_points: (N, 3) the coordinate cells in the block frame (``"coords"`` head).
+
+    Returns:
+        The scalar loss and its parts (floats, for the log).
+    """
+    pred = se3_to_vector(se3_compose(residual.double(), starts))
+    target = se3_to_vector(targets.double())
+    per = se3_geodesic_loss(pred, target, reduction="none")
+    within = labels > 0.5
+    pose = (per * within).sum() / within.sum().clamp(min=1)
+    bce = functional.binary_cross_entropy_with_logits(score, labels)
+    total = pose + config.score_weight * bce.double()
+    parts = {"pose": float(pose.detach()), "score": float(bce.detach())}
+    if coords is not None and grid_points is not None:
+        # The cells' true canonical positions: true residual = target o start^-1.
+        true_residual = se3_compose(targets.double(), torch.linalg.inv(starts.double()))
+        truth = (
+            grid_points.double() @ true_residual[:, :3, :3].transpose(1, 2)
+            + true_residual[:, None, :3, 3]
+        )
+        err = functional.smooth_l1_loss(
+            coords[..., :3].double() / 10.0, truth / 10.0, reduction="none"
+        )
+        aux = (err.mean(-1).mean(-1) * within).sum() / within.sum().clamp(min=1)
+        total = total + config.coords_weight * aux
+        parts["coords"] = float(aux.detach())
+    return total, parts
+
+
+def train_stack_pose(
+    volumes: list[CanonicalVolume],
+    trajectories: list[Trajectory] | None,
+    model_config: StackPoseConfig,
+    config: StackPoseTrainingConfig,
+    folder: str | Path | None = None,
+    progress: bool = False,
+    time_limit_s: float | None = None,
+    extra_config: dict | None = None,
+    device: str | torch.device = "cpu",
+) -> StackPoseNet:
+    """Train (or resume training) the stack-pose network.
+
+    Args:
+        volumes: Training brains in canonical space.
+        trajectories: Real motion recordings (``None``: random walks).
+        model_config: The network.
+        config: The training.
+        folder: Where ``step_NNNNNNNNN`` checkpoints go (the newest is resumed); ``None`` for none.
+        progress: Log the losses at every checkpoint.
+        time_limit_s: Stop (after a checkpoint) once this much wall time has passed.
+        extra_config: More JSON fields for the checkpoint's config (e.g. the training data).
+        device: Where the network trains (stacks are simulated on the CPU).
+
+    Returns:
+        The network (eval mode).
+    """
+    if not volumes:
+        raise ValueError("train_stack_pose(): 'volumes' is empty")
+    torch.manual_seed(config.seed)
+    generator = torch.Generator().manual_seed(config.seed)
+    net = StackPoseNet(model_config).to(device)
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimiser,
+        lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(s / config.steps, 1.0))),
+    )
+    start = 0
+    if folder is not None:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        newest = latest_checkpoint(folder)
+        if newest is not None:
+            checkpoint = load_checkpoint(newest, device, with_training_state=True)
+            assert checkpoint.training_state is not None
+            net.load_state_dict(checkpoint.state_dict)
+            optimiser.load_state_dict(checkpoint.training_state["optimizer"])
+            schedule.load_state_dict(checkpoint.training_state["scheduler"])
+            generator.set_state(checkpoint.training_state["generator"])
+            start = int(checkpoint.training_state["step"])
+            log.info("resuming from %s (step %d)", newest, start)
+    cells = getattr(net, "cells", None)
+    net.train()
+    sums: dict[str, float] = {}
+    count = 0
+    began = time.time()
+    for step in range(start, config.steps):
+        batch = []
+        for _ in range(config.stacks_per_step):
+            volume = volumes[int(torch.randint(len(volumes), (1,), generator=generator))]
+            stack = simulate_training_stack(volume, config.stacks, generator, trajectories)
+            blocks, starts, target, labels = draw_samples(stack, model_config, config, generator)
+            batch.append((blocks, starts, target.expand_as(starts), labels))
+        blocks, starts, targets, labels = (
+            torch.cat(parts).to(device) for parts in zip(*batch, strict=False)
+        )
+        residual, score, coords = net(blocks)
+        loss, parts = stack_pose_loss(
+            residual, score, coords, starts, targets, labels, config, cells
+        )
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+        for key, value in parts.items():
+            sums[key] = sums.get(key, 0.0) + value
+        count += 1
+        done = step + 1
+        out_of_time = time_limit_s is not None and time.time() - began > time_limit_s
+        if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
+            if progress:
+                means = " ".join(f"{k} {v / max(count, 1):.4f}" for k, v in sums.items())
+                log.info(
+                    "step %d/%d %s (%.2f steps/s)",
+                    done,
+                    config.steps,
+                    means,
+                    (done - start) / (time.time() - began),
+                )
+            sums, count = {}, 0
+            if folder is not None:
+                state = {
+                    "optimizer": optimiser.state_dict(),
+                    "scheduler": schedule.state_dict(),
+                    "generator": generator.get_state(),
+                    "step": done,
+                }
+                save_checkpoint(
+                    Path(folder) / checkpoint_name(done),
+                    {k: v.cpu() for k, v in net.state_dict().items()},
+                    {
+                        "architecture": "stack_pose",
+                        "model": model_config.to_dict(),
+                        "train": _jsonable(asdict(config)),
+                        **(extra_config or {}),
+                    },
+                    training_state=state,
+                )
+                prune_checkpoints(folder, keep=2)
+            if out_of_time:
+                break
+    return net.eval()
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value

@@ -1,0 +1,137 @@
+"""``svr train-stack-pose``: train the stack-pose network on stacks simulated from atlas volumes."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+import time
+
+from svr.cli.common import CliError, HelpFormatter, add_common_options, positive_int, resolve_device
+
+DESCRIPTION = """\
+Train the stack-pose network (svr.models.stack_pose): each step simulates stacks from the
+training brains at uniformly random orientations, with real fetal motion, thickness 2-5 mm, gaps
+and overlaps, bias field, noise, signal voids and grown or shrunk masks, and teaches a small 3D
+CNN to bring a stack seen in a nearly right canonical frame (within 40 degrees, as the brain
+mask's principal axes give) to the right one, with the SE(3) geodesic loss on the stack's pose,
+and to tell right frames from wrong ones. Checkpoints go to --output-dir every
+--checkpoint-every steps; running the same command again resumes from the newest. --minutes
+stops a run after a checkpoint once that much time has passed (the default recipe: 110 minutes
+on one CPU core). Use the result with `svr reconstruct --registration cnn --model OUTPUT_DIR`.
+
+Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
+srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
+trajectories that SVoRT published (svort_fetal_motion_trajectories.npz).
+
+examples:
+  svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
+      --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose --minutes 110
+"""
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``svr train-stack-pose``."""
+    from svr.models.stack_pose import StackPoseConfig
+    from svr.models.stack_pose_train import StackPoseTrainingConfig
+
+    m, t = StackPoseConfig(), StackPoseTrainingConfig()
+    p = subparsers.add_parser(
+        "train-stack-pose",
+        help="train the stack-pose CNN (canonical pose of a whole stack)",
+        description=DESCRIPTION,
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument("--output-dir", required=True, help="folder for the run's checkpoints")
+    p.add_argument(
+        "--atlas-dir", required=True, help="folder of GA*/srr.nii.gz + GA*/mask.nii.gz volumes"
+    )
+    p.add_argument(
+        "--hold-out",
+        type=float,
+        nargs="*",
+        default=[],
+        help="gestational ages (weeks) to leave out",
+    )
+    p.add_argument(
+        "--motion-path",
+        help="fetal motion trajectories (.npz); without it, random walks of a few degrees",
+    )
+    p.add_argument(
+        "--volume-downsample",
+        type=positive_int,
+        default=2,
+        help="average the training volumes over blocks of this many voxels per side (faster "
+        "simulation; the blocks are 4 mm)",
+    )
+    p.add_argument("--head", choices=("regress", "coords"), default=m.head, help="pose head")
+    p.add_argument("--width", type=positive_int, default=m.width, help="first-stage channels")
+    p.add_argument("--steps", type=positive_int, default=t.steps, help="optimiser steps")
+    p.add_argument(
+        "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
+    )
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="stop after a checkpoint once this much time passed",
+    )
+    add_common_options(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``svr train-stack-pose``."""
+    import torch
+
+    from svr.models.stack_pose import StackPoseConfig
+    from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
+    from svr.sampling.motion import load_trajectories
+    from svr.sampling.volume import (
+        VolumeSourceError,
+        atlas_volume_paths,
+        downsample_volume,
+        load_canonical_volume,
+    )
+
+    if args.minutes is not None and not args.minutes > 0:
+        raise CliError(f"--minutes must be > 0, got {args.minutes}")
+    device = resolve_device(args.device)
+    try:
+        pairs = atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)
+    except VolumeSourceError as err:
+        raise CliError(f"--atlas-dir: {err}") from err
+    volumes = [
+        downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
+    ]
+    trajectories = load_trajectories(args.motion_path) if args.motion_path else None
+    model = StackPoseConfig(head=args.head, width=args.width)
+    training = StackPoseTrainingConfig(
+        steps=args.steps, checkpoint_every=args.checkpoint_every, seed=args.seed
+    )
+    if torch.device(device).type == "cpu":
+        torch.set_num_threads(1)  # one process per core trains fastest (measured)
+    began = time.time()
+    train_stack_pose(
+        volumes,
+        trajectories,
+        model,
+        training,
+        folder=args.output_dir,
+        progress=not args.quiet,
+        time_limit_s=None if args.minutes is None else args.minutes * 60,
+        extra_config={
+            "data": {
+                "volumes": [str(v) for v, _ in pairs],
+                "hold_out_weeks": list(args.hold_out),
+                "motion": args.motion_path,
+                "volume_downsample": args.volume_downsample,
+            },
+            "command": shlex.join(["svr", *sys.argv[1:]]),
+        },
+        device=device,
+    )
+    print(f"trained in {time.time() - began:.0f} s; checkpoints in {args.output_dir}")
+    return 0

@@ -1,0 +1,377 @@
+"""Stack frames, blocks, mask-axis hypotheses and the stack-pose network (fast, synthetic)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+from synthetic import ellipsoid_brain
+
+from svr.geometry import se3_compose, se3_inverse, so3_exp
+from svr.image import sample_world, stack_slice_poses, voxel_to_world
+from svr.models.checkpoint import CheckpointError, save_checkpoint
+from svr.models.stack_pose import (
+    StackPoseConfig,
+    StackPoseNet,
+    estimate_stack_pose,
+    load_stack_pose_model,
+    mask_axis_hypotheses,
+)
+from svr.models.stack_pose_train import (
+    StackPoseTrainingConfig,
+    draw_samples,
+    stack_pose_loss,
+    train_stack_pose,
+)
+from svr.sampling.blocks import (
+    BlockGrid,
+    TrainingStackConfig,
+    block_inputs,
+    coarsen_stack,
+    simulate_training_stack,
+    stack_frame,
+    stack_pose_from_slices,
+)
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import canonicalize, downsample_volume
+
+
+def _volume(semi_axes=(30.0, 40.0, 24.0)):
+    image, mask = ellipsoid_brain(48, 2.0, semi_axes, seed=1, origin_mm=(-47.0, -47.0, -47.0))
+    return canonicalize(image, mask)
+
+
+def _rotation(seed: int) -> torch.Tensor:
+    return torch.from_numpy(Rotation.random(random_state=seed).as_matrix())
+
+
+def test_stack_frame_is_the_centre_slice_pose_for_an_odd_stack() -> None:
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1,
+            orientations="random",
+            motion="none",
+            in_plane_mm=2.0,
+            thickness_mm=3.0,
+            seed=3,
+        ),
+    )
+    stack = case.stacks[0].image
+    poses = stack_slice_poses(stack)
+    frame = stack_frame(stack)
+    assert torch.allclose(frame[:3, :3], poses[0, :3, :3])
+    assert torch.allclose(frame[:3, 3], poses[:, :3, 3].mean(0))
+    # slices sit along the frame's z axis
+    local = se3_compose(se3_inverse(frame)[None], poses)
+    assert torch.allclose(
+        local[:, :3, :3], torch.eye(3, dtype=torch.float64).expand(len(poses), 3, 3), atol=1e-12
+    )
+    assert torch.allclose(
+        local[:, :2, 3], torch.zeros(len(poses), 2, dtype=torch.float64), atol=1e-9
+    )
+
+
+def test_stack_pose_from_slices_agrees_with_the_slice_sampler_without_motion() -> None:
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=4
+        ),
+    )
+    stack = case.stacks[0]
+    to_canonical = torch.eye(4, dtype=torch.float64)
+    to_canonical[:3, 3] = -volume.centre_mm
+    slice_poses = se3_compose(to_canonical[None], stack.atlas_poses)
+    pose = stack_pose_from_slices(slice_poses, stack.image)
+    # Without motion every slice is the stack pose moved along its normal by its offset.
+    local = se3_compose(se3_inverse(stack_frame(stack.image))[None], stack_slice_poses(stack.image))
+    assert torch.allclose(se3_compose(pose[None], local), slice_poses, atol=1e-6)
+    with pytest.raises(ValueError, match="one pose per slice"):
+        stack_pose_from_slices(slice_poses[:-1], stack.image)
+
+
+def test_block_at_the_true_frame_shows_the_canonical_brain() -> None:
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1,
+            orientations="random",
+            motion="none",
+            in_plane_mm=2.0,
+            thickness_mm=2.0,
+            noise=0.0,
+            seed=5,
+        ),
+    )
+    stack = case.stacks[0]
+    to_canonical = torch.eye(4, dtype=torch.float64)
+    to_canonical[:3, 3] = -volume.centre_mm
+    pose = stack_pose_from_slices(se3_compose(to_canonical[None], stack.atlas_poses), stack.image)
+    true_frame = se3_compose(pose, se3_inverse(stack_frame(stack.image)))
+    grid = BlockGrid(size=24, spacing_mm=4.0)
+    wrong = true_frame.clone()
+    wrong[:3, :3] = (
+        so3_exp(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64)) @ wrong[:3, :3]
+    )
+    blocks = block_inputs(stack.image, stack.mask.data, torch.stack([true_frame, wrong]), grid)
+    assert blocks.shape == (2, 3, 24, 24, 24)
+    truth = sample_world(volume.image, grid.points().float())
+
+    def ncc(a, b):
+        a, b = a.flatten() - a.mean(), b.flatten() - b.mean()
+        return float((a * b).sum() / (a.norm() * b.norm()))
+
+    assert ncc(blocks[0, 0], truth) > 0.9
+    assert ncc(blocks[1, 0], truth) < ncc(blocks[0, 0], truth) - 0.1
+    assert blocks[:, 2].max() <= 1.0 + 1e-6
+
+
+def test_block_of_a_subset_is_not_darker() -> None:
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1,
+            orientations="orthogonal",
+            random_placement=False,
+            motion="none",
+            in_plane_mm=2.0,
+            thickness_mm=4.0,
+            noise=0.0,
+            seed=6,
+        ),
+    )
+    stack = case.stacks[0]
+    frame = torch.eye(4, dtype=torch.float64)
+    present = torch.zeros(stack.image.shape[2], dtype=torch.bool)
+    present[::2] = True
+    grid = BlockGrid(size=16, spacing_mm=4.0)
+    full = block_inputs(stack.image, stack.mask.data, frame[None], grid)
+    half = block_inputs(stack.image, stack.mask.data, frame[None], grid, present, scale=1.0)
+    full1 = block_inputs(stack.image, stack.mask.data, frame[None], grid, scale=1.0)
+    seen = half[0, 2] > 0.5
+    assert 0.3 < float(half[0, 2].mean()) / float(full[0, 2].mean()) < 0.8
+    assert torch.allclose(half[0, 0][seen].mean(), full1[0, 0][seen].mean(), rtol=0.15)
+
+
+def test_coarsen_stack_keeps_world_positions() -> None:
+    image, mask = ellipsoid_brain(24, 1.0, (8.0, 6.0, 5.0), seed=2, origin_mm=(3.0, -2.0, 1.0))
+    coarse, _fractions = coarsen_stack(image, mask.data, 2.0)
+    assert coarse.shape == (12, 12, 24)
+    centre_fine = voxel_to_world(image.affine, torch.tensor([[0.5, 0.5, 3.0]], dtype=torch.float64))
+    centre_coarse = voxel_to_world(
+        coarse.affine, torch.tensor([[0.0, 0.0, 3.0]], dtype=torch.float64)
+    )
+    assert torch.allclose(centre_fine, centre_coarse)
+    assert torch.allclose(coarse.data[0, 0, 3], image.data[:2, :2, 3].mean())
+    same, _ = coarsen_stack(image, mask.data, 1.0)
+    assert same is image
+
+
+def test_mask_axis_hypotheses_contain_the_true_frame() -> None:
+    # An ellipsoid with semi-axes LR 30, AP 40, SI 24 mm placed at a known rotation and shift.
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-1, 1, size=(20000, 3))
+    points = points[(points**2).sum(1) < 1] * np.array([30.0, 40.0, 24.0])
+    rotation, shift = _rotation(11), torch.tensor([5.0, -3.0, 8.0], dtype=torch.float64)
+    scanner = torch.from_numpy(points) @ rotation.T + shift
+    frames = mask_axis_hypotheses(scanner)
+    assert frames.shape == (8, 4, 4)
+    assert torch.allclose(torch.linalg.det(frames[:, :3, :3]), torch.ones(8, dtype=torch.float64))
+    truth = torch.eye(4, dtype=torch.float64)
+    truth[:3, :3], truth[:3, 3] = rotation.T, -rotation.T @ shift
+    angles = [
+        math.degrees(float(Rotation.from_matrix((f[:3, :3].T @ truth[:3, :3]).numpy()).magnitude()))
+        for f in frames
+    ]
+    best = int(np.argmin(angles))
+    assert angles[best] < 2.0
+    assert best < 4  # the default axis order (x = middle, z = shortest)
+    assert torch.allclose(frames[best, :3, 3], truth[:3, 3], atol=0.5)
+    assert sorted(angles)[1] > 85  # the other hypotheses are far off (x-z swaps: 90 deg)
+    with pytest.raises(ValueError, match="'points'"):
+        mask_axis_hypotheses(torch.zeros(3, 3))
+
+
+def _tiny_training():
+    model = StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=6.0)
+    training = StackPoseTrainingConfig(
+        steps=60,
+        stacks_per_step=1,
+        samples_per_stack=4,
+        learning_rate=3e-3,
+        checkpoint_every=30,
+        stacks=TrainingStackConfig(thickness_mm=(3.0, 4.0), in_plane_mm=3.0),
+    )
+    return model, training
+
+
+@pytest.mark.parametrize("head", ["regress", "coords"])
+def test_draws_and_loss_are_consistent(head: str) -> None:
+    model_config, training = _tiny_training()
+    model_config = StackPoseConfig(**{**model_config.to_dict(), "head": head})
+    volume = downsample_volume(_volume(), 1)
+    stack = simulate_training_stack(volume, training.stacks, torch.Generator().manual_seed(0), None)
+    blocks, starts, target, labels = draw_samples(
+        stack, model_config, training, torch.Generator().manual_seed(1)
+    )
+    assert blocks.shape == (4, 3, 16, 16, 16)
+    net = StackPoseNet(model_config)
+    residual, score, coords = net(blocks)
+    # The true residual gives a zero pose loss; the start's own error gives a positive one.
+    true_residual = se3_compose(target.expand(4, 4, 4), torch.linalg.inv(starts)).float()
+    zero, _ = stack_pose_loss(
+        true_residual,
+        score,
+        coords,
+        starts,
+        target.expand(4, 4, 4),
+        labels.clamp(min=1),
+        training,
+        getattr(net, "cells", None),
+    )
+    ident, parts = stack_pose_loss(
+        torch.eye(4).expand(4, 4, 4),
+        score,
+        None,
+        starts,
+        target.expand(4, 4, 4),
+        labels.clamp(min=1),
+        training,
+    )
+    assert parts["pose"] > 0.005
+    assert float(zero) < float(ident)
+    loss, _ = stack_pose_loss(
+        residual,
+        score,
+        coords,
+        starts,
+        target.expand(4, 4, 4),
+        labels,
+        training,
+        getattr(net, "cells", None),
+    )
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+def test_a_tiny_model_learns_and_resumes(tmp_path) -> None:
+    model_config, training = _tiny_training()
+    volume = _volume()
+    net = train_stack_pose([volume], None, model_config, training, folder=tmp_path / "run")
+    assert (tmp_path / "run" / "step_000000060").is_dir()
+    loaded = load_stack_pose_model(tmp_path / "run")
+    for a, b in zip(net.state_dict().values(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    # Resuming a finished run changes nothing.
+    again = train_stack_pose([volume], None, model_config, training, folder=tmp_path / "run")
+    for a, b in zip(net.state_dict().values(), again.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
+    model_config, _ = _tiny_training()
+    net = StackPoseNet(model_config)
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=7
+        ),
+    )
+    estimate = estimate_stack_pose(
+        net, case.stacks[0].image, case.stacks[0].mask.data, iterations=1
+    )
+    assert estimate.hypotheses.shape == (8, 4, 4)
+    assert estimate.scores.shape == (8,)
+    assert torch.allclose(
+        torch.linalg.det(estimate.pose[:3, :3]), torch.tensor(1.0, dtype=torch.float64)
+    )
+    assert torch.allclose(
+        estimate.pose, se3_compose(estimate.frame, stack_frame(case.stacks[0].image))
+    )
+    with pytest.raises(ValueError, match="fewer than 4"):
+        estimate_stack_pose(net, case.stacks[0].image, torch.zeros(case.stacks[0].image.shape))
+
+
+def test_loading_a_model_of_another_kind_fails_cleanly(tmp_path) -> None:
+    save_checkpoint(tmp_path / "m", {"w": torch.zeros(2)}, {"architecture": "brain_unet"})
+    with pytest.raises(CheckpointError, match="not a stack-pose model"):
+        load_stack_pose_model(tmp_path / "m")
+    save_checkpoint(
+        tmp_path / "n",
+        {"w": torch.zeros(2)},
+        {"architecture": "stack_pose", "model": {"head": "x"}},
+    )
+    with pytest.raises(CheckpointError, match="bad 'model'"):
+        load_stack_pose_model(tmp_path / "n")
+
+
+def test_config_errors_name_the_field() -> None:
+    with pytest.raises(ValueError, match="'head'"):
+        StackPoseConfig(head="mlp")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="'grid_size'"):
+        StackPoseConfig(grid_size=20)
+    with pytest.raises(ValueError, match="'steps'"):
+        StackPoseTrainingConfig(steps=0)
+    with pytest.raises(ValueError, match="'size'"):
+        BlockGrid(size=True)  # type: ignore[arg-type]
+
+
+def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
+    from svr.cli import main
+    from svr.image import save_nifti
+    from svr.models.stack_pose import load_stack_pose_model
+    from svr.sampling.volume import load_canonical_volume
+
+    image, mask = ellipsoid_brain(40, 2.0, (24.0, 30.0, 20.0), seed=4, origin_mm=(-39.0,) * 3)
+    folder = tmp_path / "atlas" / "GA30"
+    folder.mkdir(parents=True)
+    save_nifti(image, folder / "srr.nii.gz")
+    save_nifti(mask, folder / "mask.nii.gz")
+    threads = torch.get_num_threads()
+    code = main(
+        [
+            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+            str(tmp_path / "run"), "--steps", "2", "--checkpoint-every", "1", "--width", "4",
+            "--volume-downsample", "1", "--quiet",
+        ]
+    )  # fmt: skip
+    assert code == 0
+    trained = load_stack_pose_model(tmp_path / "run")
+    volume = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
+    torch.set_num_threads(1)
+    library = train_stack_pose(
+        [volume],
+        None,
+        StackPoseConfig(width=4),
+        StackPoseTrainingConfig(steps=2, checkpoint_every=1),
+    )
+    torch.set_num_threads(threads)
+    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_simulated_fetus_turns_between_stacks_within_the_range() -> None:
+    volume = _volume()
+    config = SimulationConfig(
+        num_stacks=3, motion="none", in_plane_mm=3.0, thickness_mm=4.0, stack_turn_deg=(60.0, 90.0)
+    )
+    case = simulate_case(volume, config)
+    still = simulate_case(
+        volume, SimulationConfig(num_stacks=3, motion="none", in_plane_mm=3.0, thickness_mm=4.0)
+    )
+    assert torch.equal(case.stacks[0].true_poses, still.stacks[0].true_poses)
+    for moved, fixed in zip(case.stacks[1:], still.stacks[1:], strict=True):
+        relative = moved.atlas_poses[0, :3, :3] @ fixed.atlas_poses[0, :3, :3].T
+        angle = math.degrees(math.acos((float(relative.trace()) - 1) / 2))
+        assert 60.0 - 1e-6 <= angle <= 90.0 + 1e-6
+    with pytest.raises(ValueError, match="'stack_turn_deg'"):
+        SimulationConfig(stack_turn_deg=(90.0, 30.0))
