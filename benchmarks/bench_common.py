@@ -214,3 +214,37 @@ def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
     relabelled = nib.Nifti1Image(np.asarray(image.dataobj), frame.numpy() @ image.affine)
     nib.save(relabelled, out)
     return out
+
+
+def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
+    """How far a canonical-frame output is from the true atlas frame: degrees and mm.
+
+    The robust mean over the transforms table's slices of ``T_i o P_i^-1``, with ``T_i`` the
+    slice's true canonical pose (``truth_slices.json``, atlas frame minus the atlas centre) and
+    ``P_i`` its final pose; its rotation angle and its translation (at the canonical origin, the
+    brain's centre).
+    """
+    import math
+
+    from svr.geometry import se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry.averaging import robust_mean_pose
+    from svr.pose_io import read_pose_table
+
+    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+    centre = torch.tensor(info["atlas_centre_mm"], dtype=torch.float64)
+    truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
+    by_name = {Path(s["file"]).name: s["slices"] for s in truth}
+    table = read_pose_table(transforms)
+    per_file = {
+        name: true_slice_poses(by_name[Path(name).name], "atlas", centre)
+        for name in dict.fromkeys(table.files)
+    }
+    true = torch.stack(
+        [
+            per_file[f][int(k)]
+            for f, k in zip(table.files, table.slice_indices.tolist(), strict=True)
+        ]
+    )
+    mean = robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
+    cos = (float(mean[:3, :3].trace()) - 1) / 2
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos)))), float(mean[:3, 3].norm())

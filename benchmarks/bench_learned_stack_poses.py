@@ -6,6 +6,8 @@ Stacks measured (each on its own; no stack helps another):
   ``--stacks-per-case`` stacks each, simulated here at uniformly random orientations (so a fetus
   that turned between stacks is the rule), real fetal motion at 0.3-1.0 of its recorded size,
   thickness 2.5-4.5 mm, in-plane 1 mm, bias field and noise; the simulator's slice masks;
+* **the procedural phantom** (``--phantom-ages``, default GA 28), simulated alike: a brain the
+  model never saw and the atlas does not match;
 * **the bench cases** (``sb24-large``, ``sb28-moderate``) with their own masks.
 
 Methods, each giving one scanner -> canonical frame per stack:
@@ -56,8 +58,14 @@ from svr.models.stack_pose import (
 )
 from svr.sampling.blocks import coarsen_stack, stack_frame, stack_pose_from_slices
 from svr.sampling.motion import load_trajectories
+from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case
-from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
+from svr.sampling.volume import (
+    CanonicalVolume,
+    atlas_volume_paths,
+    canonicalize,
+    load_canonical_volume,
+)
 
 
 def rotation_deg(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -67,12 +75,17 @@ def rotation_deg(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def held_out_stacks(args, trajectories) -> list[dict]:
-    """Simulated stacks from the held-out ages, with their true poses."""
+    """Simulated stacks from the held-out ages (and the phantom), with their true poses."""
     rng = np.random.default_rng(args.seed)
     out = []
+    sources = []
     for age in args.ages:
         (vol_path, mask_path), *_ = atlas_volume_paths(args.atlas, only=(age,))
-        volume = load_canonical_volume(vol_path, mask_path)
+        sources.append((age, "held-out", load_canonical_volume(vol_path, mask_path)))
+    for age in args.phantom_ages:
+        image, mask = make_phantom(gestational_age_config(age))
+        sources.append((age, "phantom", canonicalize(image, mask)))
+    for age, kind, volume in sources:
         for c in range(args.cases_per_age):
             thickness = float(rng.uniform(2.5, 4.5))
             config = SimulationConfig(
@@ -96,8 +109,12 @@ def held_out_stacks(args, trajectories) -> list[dict]:
                 truth = se3_compose(to_canonical[None], stack.atlas_poses)
                 out.append(
                     {
-                        "name": f"GA{age:g}-case{c}-stack{s}",
-                        "group": f"held-out GA {', '.join(f'{a:g}' for a in args.ages)}",
+                        "name": f"{kind}-GA{age:g}-case{c}-stack{s}",
+                        "group": (
+                            f"held-out GA {', '.join(f'{a:g}' for a in args.ages)}"
+                            if kind == "held-out"
+                            else f"phantom GA {', '.join(f'{a:g}' for a in args.phantom_ages)}"
+                        ),
                         "age": age,
                         "image": stack.image,
                         "mask": stack.mask.data > 0.5,
@@ -158,6 +175,7 @@ def main() -> int:
     parser.add_argument("--motion", type=Path, default=MOTION)
     parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
     parser.add_argument("--ages", type=float, nargs="*", default=[24.0, 28.0, 32.0])
+    parser.add_argument("--phantom-ages", type=float, nargs="*", default=[28.0])
     parser.add_argument("--bench", nargs="*", default=["sb24-large", "sb28-moderate"])
     parser.add_argument("--cases-per-age", type=int, default=4)
     parser.add_argument("--stacks-per-case", type=int, default=3)

@@ -44,6 +44,7 @@ from bench_common import (
     SHARED,
     case_age,
     neighbour_atlas,
+    output_frame_error,
     run_scorer,
     scanner_frame_copy,
     simulate_cases,
@@ -142,6 +143,21 @@ def phase_times(log: Path) -> dict[str, float]:
     return phases
 
 
+def kept_per_stack(log: Path) -> str:
+    """The start each stack kept (``initialisation per stack`` of an ``--output-log``)."""
+    lines = log.read_text(encoding="utf-8").splitlines()
+    try:
+        at = lines.index("initialisation per stack:")
+    except ValueError:
+        return ""
+    kept = []
+    for line in lines[at + 1 :]:
+        if not line.startswith("  "):
+            break
+        kept.append(line.rsplit(":", 1)[-1].strip())
+    return ",".join(kept)
+
+
 def rounds_run(log: Path) -> str:
     """The ``rounds:`` line of a ``--output-log`` summary (``"?"`` if absent)."""
     for line in log.read_text().splitlines():
@@ -227,8 +243,9 @@ def main() -> int:
             score = run_scorer(args.scorer, Path(f"{stem}.nii.gz"), folder)
             # A cnn volume (canonical frame) is also scored relabelled into the scanner frame:
             # the yardstick's score depends on the orientation a volume comes in (bench_common).
-            scanner_score = None
+            scanner_score, frame_error = None, None
             if registration == "cnn":
+                frame_error = output_frame_error(folder, Path(f"{stem}.csv"))
                 copy = scanner_frame_copy(
                     Path(f"{stem}.nii.gz"), Path(f"{stem}.csv"), Path(f"{stem}-scanner.nii.gz")
                 )
@@ -238,6 +255,7 @@ def main() -> int:
             rows.append(
                 {"case": case, "method": method, "registration": registration, "masks": kind,
                  "schedule": schedule, "score": score, "scanner_frame_score": scanner_score,
+                 "frame_error": frame_error, "kept": kept_per_stack(Path(f"{stem}.log")),
                  "wall_s": wall, "cpu_s": cpu,
                  "peak_mb": rss, "phases_s": phases, "rounds": rounds}
             )  # fmt: skip
@@ -275,6 +293,21 @@ def main() -> int:
         say("Ratios ours / peer (PSNR difference in dB):")
         for line in ratios:
             say(line)
+    framed = [r for r in rows if r["frame_error"] is not None]
+    if framed:
+        say()
+        say("cnn: output frame against the true atlas frame, the start each stack kept, and the")
+        say("gain over stack registration (same case and schedule; PSNR as written):")
+        for row in framed:
+            deg, mm = row["frame_error"]
+            ref = next(
+                (r for r in rows if r["case"] == row["case"] and r["registration"] == "stack"
+                 and r["masks"] == row["masks"] and r["schedule"] == row["schedule"]),
+                None,
+            )  # fmt: skip
+            gain = "" if ref is None else f", {row['score']['psnr'] - ref['score']['psnr']:+.2f} dB"
+            say(f"  {row['case']} {row['method']}: frame {deg:.1f} deg / {mm:.1f} mm; "
+                f"kept {row['kept']}{gain}")  # fmt: skip
     relabelled = [r for r in rows if r["scanner_frame_score"] is not None]
     if relabelled:
         say()

@@ -24,6 +24,7 @@ mm, a *stack pose* ``P = E o F`` maps the stack frame ``F`` to canonical mm.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -383,7 +384,8 @@ class StackPoseEstimate(NamedTuple):
         score: What chose it: the model's logit, or the atlas NCC where an atlas chose.
         hypotheses: (H, 4, 4) frames of every hypothesis (refined by the model if given).
         scores: (H,) their scores (model logits, or atlas NCCs where an atlas chose).
-        method: How it was made: ``"learned"``, ``"learned+atlas"`` or ``"axes+atlas"``.
+        method: How it was made: ``"learned"``, ``"learned+atlas"`` (the model's choice, fitted
+            to the atlas), ``"axes+atlas"`` (no model), or ``"learned (atlas fit rejected: ...)"``.
     """
 
     pose: Tensor
@@ -437,12 +439,18 @@ def estimate_stack_pose(
     atlas: CanonicalVolume | None = None,
     fit: AtlasFitConfig | None = None,
     in_plane_mm: float = 2.0,
+    max_fit_turn_deg: float = 15.0,
 ) -> StackPoseEstimate:
     """A stack's canonical pose from its own data: mask-axis hypotheses, refined, one chosen.
 
-    With a model, every hypothesis is refined by it. With an atlas, the hypothesis that agrees
-    best with it (NCC, :func:`atlas_agreement`) is chosen and then rigidly fitted to it
-    (:func:`fit_to_atlas`); without one, the model's score chooses.
+    With a model, every hypothesis is refined by it and its score chooses one; with an atlas as
+    well, the chosen frame is then rigidly fitted to the atlas (:func:`fit_to_atlas`, more
+    precise where it converges) unless the fit turns it by more than ``max_fit_turn_deg`` (a
+    fit gone to another optimum; the model's frame is kept). Without a model, the hypothesis
+    that agrees best with the atlas (NCC, :func:`atlas_agreement`) is chosen and fitted. The
+    model's score is the more robust choice: on young brains (GA 21-24), whose atlas has little
+    contrast, the atlas's NCC picked a hypothesis 88 degrees off where the model's score picked
+    the right one (``benchmarks/results/learned-stack-poses.md``).
 
     Args:
         model: The trained network, or ``None`` (then ``atlas`` is required).
@@ -453,6 +461,7 @@ def estimate_stack_pose(
         fit: The atlas fit's settings (default :class:`AtlasFitConfig`).
         in_plane_mm: In-plane spacing the stack is averaged to without a model (with one, the
             model's).
+        max_fit_turn_deg: With a model and an atlas, the largest turn the atlas fit may make.
 
     Returns:
         The estimate.
@@ -475,16 +484,20 @@ def estimate_stack_pose(
     if model is not None:
         frames, scores = refine_frames(model, image, fractions, frames, iterations)
         method = "learned"
-    if atlas is not None:
+    if model is None:
+        assert atlas is not None
         with torch.no_grad():
             scores = atlas_agreement(image, fractions, frames, atlas).float()
-        best = int(torch.argmax(scores))
-        frame, ncc = fit_to_atlas(image, fractions, frames[best], atlas, fit)
-        method += "+atlas"
-        score = ncc
-    else:
-        best = int(torch.argmax(scores))
-        frame, score = frames[best], float(scores[best])
+    best = int(torch.argmax(scores))
+    frame, score = frames[best], float(scores[best])
+    if atlas is not None:
+        fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit)
+        turn = _turn_deg(fitted, frame)
+        if model is None or turn <= max_fit_turn_deg:
+            frame, method = fitted, method + "+atlas"
+            score = ncc if model is None else score
+        else:
+            method += f" (atlas fit rejected: {turn:.0f} deg away)"
     return StackPoseEstimate(
         pose=se3_compose(frame, stack_frame(stack)),
         frame=frame,
@@ -493,6 +506,12 @@ def estimate_stack_pose(
         scores=scores,
         method=method,
     )
+
+
+def _turn_deg(a: Tensor, b: Tensor) -> float:
+    """Angle between the rotations of two (4, 4) transforms, degrees."""
+    cos = (float((a[:3, :3].T @ b[:3, :3]).trace()) - 1) / 2
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def pose_of_frame(frame: Tensor, stack: Image) -> Tensor:

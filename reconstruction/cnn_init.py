@@ -600,11 +600,15 @@ def stack_pose_initialisation(
        slices and mask (:func:`svr.models.stack_pose.estimate_stack_pose`: mask-axis hypotheses,
        refined by the stack-pose model, chosen by its score or, with an atlas, by agreement with
        the atlas and fitted to it). No template stack: a fetus that turned between stacks is
-       placed stack by stack. A slice's start is ``E_s o S_i`` (``S_i`` its scanner pose).
-    2. **Canonical frame of the fallback.** Stack registration moves stack ``s`` by ``M_s`` in the
-       template's frame; ``G``, the robust mean of ``E_s o M_s^-1`` over the stacks (weighted by
-       their slices), brings it into canonical space, so the output is in atlas orientation
-       whichever start each stack keeps.
+       placed stack by stack. A slice's placed pose is ``E_s o S_i`` (``S_i`` its scanner pose).
+    2. **Two candidates, both refined by stack registration.** ``"cnn"``: stack registration
+       started from the placed poses, which are within a few degrees of each other even where
+       the fetus turned between stacks, so that the same-subject registration only refines how
+       the stacks sit together; ``"stack"``: stack registration from the scanner poses, as
+       ``--registration stack``. Registration moves stack ``s`` by ``M_s`` in the template's
+       frame; each candidate is brought into canonical space by ``G``, the robust mean of
+       ``E_s o M_s^-1`` over the stacks (weighted by their slices), so the output is in atlas
+       orientation whichever start each stack keeps, and no single stack's estimate sets it.
     3. **Safe choice.** Per stack by NCC, then the joint check (as
        :func:`learned_initialisation`).
 
@@ -621,21 +625,24 @@ def stack_pose_initialisation(
     scanner = slices.poses.to(torch.float64).cpu()
     ids = slices.stack_ids.cpu()
     frames, heads = [], []
-    for _sid, stack in enumerate(stacks):
+    for stack in stacks:
         estimate = estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, atlas=atlas)
         frames.append(estimate.frame)
         heads.append(f"{estimate.method}, score {estimate.score:.2f}")
         log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
     frame_of = torch.stack(frames)  # (S, 4, 4) scanner -> canonical
-    cnn = se3_compose(frame_of[ids], scanner)
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
-    registered = registered.to(torch.float64).cpu()
-    # M_s o S_i = X_i for every slice of stack s: E_s o M_s^-1 = E_s o S_i o X_i^-1.
-    implied = se3_compose(cnn, se3_inverse(registered))
-    to_canonical = robust_mean_pose(implied)
-    candidates = {
-        "cnn": cnn.to(slices.poses),
-        "stack": se3_compose(to_canonical[None], registered).to(slices.poses),
-    }
+    placed = se3_compose(frame_of[ids], scanner)
+
+    def in_canonical(start: Tensor) -> Tensor:
+        """Stack registration from ``start``, moved by the mean of the stacks' own frames."""
+        registered, _ = stack_registration(
+            slices.with_poses(start.to(slices.poses)), config.output_resolution_mm, config.template
+        )
+        registered = registered.to(torch.float64).cpu()
+        # Stack s moved by M_s: E_s o M_s^-1 = placed_i o registered_i^-1 for its slices.
+        to_canonical = robust_mean_pose(se3_compose(placed, se3_inverse(registered)))
+        return se3_compose(to_canonical[None], registered).to(slices.poses)
+
+    candidates = {"cnn": in_canonical(placed), "stack": in_canonical(scanner)}
     trusted = torch.ones(len(stacks), dtype=torch.bool, device=slices.device)
     return _choose_per_stack(slices, candidates, trusted, heads, config)

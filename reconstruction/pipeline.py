@@ -237,7 +237,9 @@ def reconstruct(
             result = dataclasses.replace(result, initialisation_notes=notes)
         if atlas is not None and config.registration == "cnn":
             with timer.phase("atlas frame"):
-                result = align_to_atlas(result, atlas)
+                result = align_to_atlas(
+                    result, atlas, model=model if isinstance(model, StackPoseNet) else None
+                )
         return result
     finally:
         torch.random.set_rng_state(generator_state)

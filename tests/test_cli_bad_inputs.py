@@ -278,6 +278,10 @@ def env(tmp_path_factory) -> dict[str, str]:
         )
         shutil.copy(f["mask"], root / name / srr / "mask.nii.gz")
         f[name] = str(root / name)
+    (root / "atlas_good" / "GA30").mkdir(parents=True)
+    shutil.copy(f["brain"], root / "atlas_good" / "GA30" / "srr.nii.gz")
+    shutil.copy(f["mask"], root / "atlas_good" / "GA30" / "mask.nii.gz")
+    f["atlas_good"] = str(root / "atlas_good")
     return f
 
 
@@ -291,6 +295,8 @@ BASE = {
     "train": "train --output-dir {out}/run --input-volumes {brain} --input-masks {mask} "
     "--steps 1 --size 32 --spacing 2 --width 8 --depth 1 --batch-size 2 --checkpoint-every 1 "
     "--device cpu",
+    "train-stack-pose": "train-stack-pose --output-dir {out}/run --atlas-dir {atlas_good} "
+    "--steps 1 --width 4 --checkpoint-every 1 --volume-downsample 4 --device cpu",
     "predict": "predict --model {model} --input-stacks {stack} --stack-masks {stack_mask} "
     "--output-poses {out}/poses.csv --device cpu",
     "evaluate": "evaluate --checkpoints {model} --input-volumes {brain} --input-masks {mask} "
@@ -369,6 +375,7 @@ EXISTING = {
     "simulate": ("case/", "--output-dir"),
     "sample": ("preview.png", "--output-preview"),
     "train": None,  # resuming is the default; see the --no-resume case
+    "train-stack-pose": None,  # resuming is the default
     "predict": ("poses.csv", "--output-poses"),
     "evaluate": ("report/", "--output-dir"),
     "register": ("t.csv", "--output-transforms"),
@@ -382,6 +389,7 @@ OUTPUT_OPTION = {
     "simulate": ("--output-dir", "case"),
     "sample": ("--output-dataset", "dataset"),
     "train": ("--output-dir", "run"),
+    "train-stack-pose": ("--output-dir", "run"),
     "predict": ("--output-poses", "poses.csv"),
     "evaluate": ("--output-dir", "report"),
     "register": ("--output-transforms", "t.csv"),
@@ -736,6 +744,74 @@ def _cases() -> list[Case]:
                 )
             )
 
+    for bad, message in (
+        ("missing", "is not a folder"),
+        ("brain", "is not a folder"),
+        ("atlas_empty", "no GA*/srr.nii.gz volumes"),
+        ("atlas_bad_name", "GAxx"),
+        ("atlas_bad_srr", "cannot read as NIfTI"),
+    ):
+        add(
+            Case(
+                f"train-stack-pose-atlas-dir-{bad}",
+                "train-stack-pose",
+                ["--atlas-dir", ref(bad)],
+                ["--atlas-dir" if bad != "atlas_bad_srr" else "srr.nii.gz", message],
+            )
+        )
+    for bad in ("motion_missing", "motion_junk", "motion_pickle"):
+        add(
+            Case(
+                f"train-stack-pose-{bad.replace('_', '-')}",
+                "train-stack-pose",
+                ["--motion-path", ref(bad)],
+                [ref(bad), "not a fetal motion trajectory file"],
+            )
+        )
+    add(
+        Case(
+            "train-stack-pose-minutes-zero",
+            "train-stack-pose",
+            ["--minutes", "0"],
+            ["--minutes must be > 0, got 0"],
+        )
+    )
+    add(
+        Case(
+            "train-stack-pose-output-dir-is-a-file",
+            "train-stack-pose",
+            [],
+            ["{out}/run", "not a folder"],
+            setup="existing:run",
+        )
+    )
+    for option in ("--atlas-volume", "--output-stack-poses"):
+        add(
+            Case(
+                f"predict-slice-model-{option[2:]}",
+                "predict",
+                [option, "{out}/x.json" if option == "--output-stack-poses" else "{brain}"]
+                + (["--atlas-mask", "{mask}"] if option == "--atlas-volume" else []),
+                ["need a stack-pose model"],
+            )
+        )
+    add(
+        Case(
+            "reconstruct-model-none-without-atlas",
+            "reconstruct",
+            ["--registration", "cnn", "--model", "none"],
+            ["--model none needs --atlas-volume and --atlas-mask"],
+        )
+    )
+    add(
+        Case(
+            "reconstruct-atlas-volume-without-mask",
+            "reconstruct",
+            ["--registration", "cnn", "--atlas-volume", "{brain}"],
+            ["--atlas-volume and --atlas-mask go together"],
+        )
+    )
+
     # Numbers: argparse refuses values of the wrong sign (status 2); the library the rest.
     argparse_values = {
         "simulate": [
@@ -877,7 +953,7 @@ def _cases() -> list[Case]:
                 setup="unwritable",
             )
         )
-        if command != "train":  # train creates the folders of its run, as mkdir -p does
+        if command not in ("train", "train-stack-pose"):  # runs' folders are made as mkdir -p
             add(
                 Case(
                     f"{command}-output-folder-missing",

@@ -8,7 +8,14 @@ import shlex
 import sys
 import time
 
-from svr.cli.common import CliError, HelpFormatter, add_common_options, positive_int, resolve_device
+from svr.cli.common import (
+    CliError,
+    HelpFormatter,
+    add_common_options,
+    check_run_folder,
+    positive_int,
+    resolve_device,
+)
 
 DESCRIPTION = """\
 Train the stack-pose network (svr.models.stack_pose): each step simulates stacks from the
@@ -97,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     )
 
     if args.minutes is not None and not args.minutes > 0:
-        raise CliError(f"--minutes must be > 0, got {args.minutes}")
+        raise CliError(f"--minutes must be > 0, got {args.minutes:g}")
+    check_run_folder(args.output_dir)
     device = resolve_device(args.device)
     try:
         pairs = atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)

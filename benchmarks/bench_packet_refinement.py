@@ -1,0 +1,178 @@
+"""Slices and packets follow their stack: learned packet refinement vs classical SVR, same start.
+
+For each case, every stack is first placed in canonical space on its own
+(:func:`svr.models.stack_pose.estimate_stack_pose`, with the neighbouring-age atlas), so every
+slice starts at its stack's pose. Then:
+
+* ``learned packets``: each interleaved packet of each stack (slices ``k = j, j + m, ...`` of the
+  file, ``m = --packets``) is refined on its own by the stack-pose network from its stack's pose
+  (:func:`svr.models.stack_pose.refine_frames` on the packet's slices only), and its slices take
+  the packet's pose;
+* ``classical``: nothing more before reconstruction: the slice-to-volume registration rounds of
+  ``reconstruct`` (adaptive schedule) start from the stacks' poses.
+
+Measured: the slices' pose errors against the truth (up to one global rigid transform, the
+robust mean of ``T_i o P_i^-1``, so that only how the slices sit relative to each other counts)
+at the start and after the learned packet step, and the reconstruction from each start
+(``initial_poses``, adaptive schedule) scored by ``../shared/tools/score_recon.py`` with its
+final pose errors.
+
+Run from the repository root::
+
+    python benchmarks/bench_packet_refinement.py --model MODEL [--cases sb24-large]
+        [--simulated ga21-traj1.0-obl ...] [--threads 2] [--results PATH.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_common import (
+    SHARED,
+    case_age,
+    load_case_stacks,
+    neighbour_atlas,
+    run_scorer,
+    true_slice_poses,
+)
+
+from svr.geometry import se3_compose, se3_inverse
+from svr.geometry.averaging import robust_mean_pose
+from svr.image import save_nifti
+from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.slices import SliceSet, array_poses, extract_slices
+from svr.sampling.blocks import coarsen_stack
+from svr.sampling.volume import load_canonical_volume
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def true_canonical(case: Path, slices: SliceSet) -> torch.Tensor:
+    """(N, 4, 4) true canonical poses of the slices' arrays."""
+    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+    centre = torch.tensor(info["atlas_centre_mm"], dtype=torch.float64)
+    truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
+    by_name = {Path(s["file"]).name: s["slices"] for s in truth}
+    per_stack = [
+        true_slice_poses(by_name[Path(n).name], "atlas", centre) for n in slices.stack_names
+    ]
+    planes = torch.stack(
+        [
+            per_stack[int(s)][int(k)]
+            for s, k in zip(slices.stack_ids, slices.slice_indices, strict=True)
+        ]
+    )
+    return array_poses(slices, planes)
+
+
+def relative_errors(truth: torch.Tensor, poses: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Per-slice rotation (deg) and centre (mm) errors after the best global rigid transform."""
+    poses = poses.double().cpu()
+    frame = robust_mean_pose(se3_compose(truth, se3_inverse(poses)))
+    moved = se3_compose(frame[None], poses)
+    rel = se3_compose(se3_inverse(truth), moved)
+    cos = ((rel[:, :3, :3].diagonal(dim1=1, dim2=2).sum(1) - 1) / 2).clamp(-1, 1)
+    return np.degrees(np.arccos(cos.numpy())), (moved[:, :3, 3] - truth[:, :3, 3]).norm(
+        dim=1
+    ).numpy()
+
+
+def describe(rot: np.ndarray, cen: np.ndarray) -> str:
+    return (
+        f"median {np.median(rot):.1f} deg (p90 {np.percentile(rot, 90):.1f}), "
+        f"centre median {np.median(cen):.1f} mm"
+    )
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True)
+    parser.add_argument("--cases", nargs="*", default=["sb24-large"])
+    parser.add_argument("--simulated", nargs="*", default=[])
+    parser.add_argument("--cases-dir", type=Path, default=ROOT / "runs" / "simulated-cases")
+    parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
+    parser.add_argument("--scorer", type=Path, default=SHARED / "tools" / "score_recon.py")
+    parser.add_argument("--packets", type=int, default=2)
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-packets")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--results", type=Path, default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    model = load_stack_pose_model(args.model)
+    folders = [args.data / c for c in args.cases] + [args.cases_dir / c for c in args.simulated]
+    lines = []
+    for case in folders:
+        stacks = load_case_stacks(case)
+        slices = extract_slices(stacks)
+        truth = true_canonical(case, slices)
+        atlas = load_canonical_volume(*neighbour_atlas(case_age(case)))
+        scanner = slices.poses.double().cpu()
+        ids = slices.stack_ids.cpu()
+        start = torch.empty_like(scanner)
+        learned = torch.empty_like(scanner)
+        began = time.perf_counter()
+        for sid, stack in enumerate(stacks):
+            mask = stack.mask.data > 0.5
+            estimate = estimate_stack_pose(model, stack.image, mask, atlas=atlas)
+            members = ids == sid
+            start[members] = se3_compose(estimate.frame[None], scanner[members])
+            image, fractions = coarsen_stack(stack.image, mask, model.config.in_plane_mm)
+            file_k = stack.k_indices.cpu()
+            slice_k = slices.slice_indices.cpu()
+            for j in range(args.packets):
+                present = file_k % args.packets == j
+                frames, _ = refine_frames(
+                    model, image, fractions, estimate.frame[None], args.iterations, present
+                )
+                chosen = members & (slice_k % args.packets == j)
+                learned[chosen] = se3_compose(frames[0][None], scanner[chosen])
+        packet_s = time.perf_counter() - began
+        row = [f"### {case.name}", ""]
+        for label, poses in (("stack poses (start)", start), ("learned packets", learned)):
+            rot, cen = relative_errors(truth, poses)
+            row.append(f"- {label}: {describe(rot, cen)}")
+        row.append(f"- stack poses and packet refinement took {packet_s:.1f} s")
+        for label, poses in (("classical SVR from the stack poses", start),
+                             ("SVR from the learned packets", learned)):  # fmt: skip
+            began = time.perf_counter()
+            result = reconstruct(
+                stacks,
+                ReconstructionConfig(),
+                initial_poses=poses,
+                frame="canonical",
+                progress=False,
+            )
+            seconds = time.perf_counter() - began
+            path = args.out / f"{case.name}-{label.split()[0]}.nii.gz"
+            save_nifti(result.volume, path, overwrite=True)
+            score = run_scorer(args.scorer, path, case)
+            rot, cen = relative_errors(truth, result.slices.poses)
+            row.append(
+                f"- {label}: PSNR {score['psnr']:.2f} dB, SSIM {score['ssim']:.4f}; final poses "
+                f"{describe(rot, cen)}; {seconds:.0f} s"
+            )
+        row.append("")
+        print("\n".join(row), flush=True)
+        lines += row
+    if args.results is not None:
+        command = "python benchmarks/bench_packet_refinement.py " + " ".join(sys.argv[1:])
+        args.results.write_text(
+            "# Packets follow their stack: learned refinement vs classical SVR\n\n"
+            f"Command: `{command}`\n\n" + "\n".join(lines) + "\n",
+            encoding="utf-8",
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
