@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from synthetic import ellipsoid_brain
 
 from svr.geometry import se3_compose, se3_inverse, so3_exp
-from svr.image import sample_world, stack_slice_poses, voxel_to_world
+from svr.image import Image, sample_world, stack_slice_poses, voxel_to_world
 from svr.models.checkpoint import CheckpointError, save_checkpoint
 from svr.models.stack_pose import (
     StackPoseConfig,
@@ -422,3 +422,22 @@ def test_a_tiny_network_learns_a_known_rotation_of_a_synthetic_brain() -> None:
             float(Rotation.from_matrix((pose[:3, :3].T @ truth[:3, :3]).numpy()).magnitude())
         )
         assert angle < 5.0  # from 20 degrees
+
+
+def test_stack_pose_from_slices_undoes_each_slice_offset_under_motion() -> None:
+    # Slices that turned about the stack's own centre line by angles symmetric in their offset:
+    # the stack pose is the unturned one, whatever the offsets (each slice's own offset undone).
+    image, _ = ellipsoid_brain(16, 2.0, (8.0, 8.0, 8.0), seed=1)
+    stack = Image(image.data[:, :, :9].contiguous(), image.affine.clone())
+    local = se3_compose(se3_inverse(stack_frame(stack))[None], stack_slice_poses(stack))
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3], pose[:3, 3] = _rotation(3), torch.tensor([4.0, -2.0, 7.0], dtype=torch.float64)
+    offsets = torch.arange(9, dtype=torch.float64) - 4
+    turns = torch.eye(4, dtype=torch.float64).repeat(9, 1, 1)
+    turns[:, :3, :3] = so3_exp(
+        torch.stack([0.05 * offsets, torch.zeros(9), torch.zeros(9)], -1).double()
+    )
+    # slice k sits at the stack pose, turned about the frame's origin, then moved to its offset
+    slices = se3_compose(se3_compose(pose[None], turns), local)
+    found = stack_pose_from_slices(slices, stack)
+    assert torch.allclose(found, pose, atol=1e-6)
