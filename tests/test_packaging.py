@@ -94,7 +94,7 @@ def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
     installed = sorted(p.name for p in Path(site).iterdir())
     for name in ("models", "sampling", "reconstruction"):
         assert name not in installed
-    for model in ("default", "brain_mask"):
+    for model in ("default", "brain_mask", "stack_pose"):
         for name in ("config.json", "model.safetensors", "README.md"):
             assert (Path(site) / "svr" / "models" / "pretrained" / model / name).is_file()
     assert (Path(site) / "svr" / "py.typed").is_file()

@@ -247,7 +247,7 @@ def test_draws_and_loss_are_consistent(head: str) -> None:
         training,
     )
     assert parts["pose"] > 0.005
-    assert float(zero) < float(ident)
+    assert float(zero.detach()) < float(ident.detach())
     loss, _ = stack_pose_loss(
         residual,
         score,
@@ -441,3 +441,22 @@ def test_stack_pose_from_slices_undoes_each_slice_offset_under_motion() -> None:
     slices = se3_compose(se3_compose(pose[None], turns), local)
     found = stack_pose_from_slices(slices, stack)
     assert torch.allclose(found, pose, atol=1e-6)
+
+
+def test_the_shipped_model_loads_and_estimates() -> None:
+    from svr.models.pretrained import MAX_MODEL_BYTES, stack_pose_model_path
+    from svr.models.stack_pose import STACK_POSE_MODEL
+
+    folder = stack_pose_model_path()
+    assert sum(f.stat().st_size for f in folder.iterdir()) <= MAX_MODEL_BYTES
+    assert (folder / "README.md").is_file()
+    model = load_stack_pose_model(STACK_POSE_MODEL)
+    assert not model.training
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0),
+    )
+    estimate = estimate_stack_pose(model, case.stacks[0].image, case.stacks[0].mask.data)
+    assert estimate.method == "learned"
+    assert torch.isfinite(estimate.pose).all()

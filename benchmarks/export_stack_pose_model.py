@@ -1,0 +1,99 @@
+"""Write the shipped stack-pose model (``models/pretrained/stack_pose``) from a training run.
+
+Run from the repository root::
+
+    python benchmarks/export_stack_pose_model.py --checkpoint RUN_OR_STEP_FOLDER \
+        --out models/pretrained/stack_pose [--overwrite]
+
+The model folder gets the float16 weights, a config with the provenance (the training command and
+data, read from the checkpoint) and a ``README.md`` model card pointing to the evaluation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from svr.models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint, load_checkpoint
+from svr.models.pretrained.export import export_stack_pose_model
+
+CARD = """# Shipped stack-pose model (`--registration cnn --model stack-pose`)
+
+A small 3D CNN (`svr.models.stack_pose.StackPoseNet`, head `{head}`, width {width}, blocks of
+{grid}³ voxels at {spacing:g} mm; float16 safetensors and a JSON config, loaded by
+`svr.models.stack_pose.load_stack_pose_model("stack-pose")` without running code). It reads a
+stack resampled in a candidate canonical frame and predicts the residual rigid transform to the
+atlas frame and a score for the frame (`svr.models.stack_pose.estimate_stack_pose`: 8 hypotheses
+from the brain mask's principal axes, each refined 3 times, the best-scored kept).
+
+**Training data.** Simulated only: stacks cut on the fly from 12 ages of the sb-fidon2021 atlas
+(Fidon et al. 2021, CC0; GA 24, 28 and 32 held out), with real fetal head motion (SVoRT's
+trajectories, Apache-2.0) and the artefacts listed in `svr.models.stack_pose_train`.
+Steps: {step} ({minutes} on one CPU core). Loss: the SE(3) geodesic loss on the stack pose, plus
+the score's cross-entropy.
+
+**Reproduce** (from the repository root; the run resumes from its newest checkpoint):
+
+    svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 \\
+        --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose --minutes 110
+    python benchmarks/export_stack_pose_model.py --checkpoint runs/stack-pose \\
+        --out models/pretrained/stack_pose --overwrite
+
+**Evaluation.** `benchmarks/bench_learned_stack_poses.py` (per-stack accuracy) and
+`benchmarks/bench_reconstruct.py --registrations stack cnn --model stack-pose` (reconstruction);
+figures in `benchmarks/results/learned-stack-poses.md`.
+"""
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--out", type=Path, default=Path("models/pretrained/stack_pose"))
+    parser.add_argument("--minutes", default="110 minutes", help="training time, for the card")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args()
+    source = args.checkpoint
+    if not (source / CHECKPOINT_CONFIG).exists():
+        newest = latest_checkpoint(source)
+        if newest is None:
+            parser.error(f"{source}: no checkpoint")
+        source = newest
+    checkpoint = load_checkpoint(source, with_training_state=True)
+    config = checkpoint.config
+    assert checkpoint.training_state is not None
+    step = int(checkpoint.training_state["step"])
+    provenance = {
+        "training_command": config.get(
+            "command",
+            "svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 --motion-path "
+            "svort_fetal_motion_trajectories.npz --output-dir RUN --minutes 110",
+        ),
+        "data": {
+            "atlas": "sb-fidon2021 (Fidon et al. 2021, zenodo.org/record/5524312, CC0 1.0)",
+            "hold_out_weeks": [24, 28, 32],
+            "motion": "SVoRT fetal head-motion trajectories (Apache-2.0)",
+            **({"run": config["data"]} if "data" in config else {}),
+        },
+        "step": step,
+        "train": config.get("train"),
+    }
+    out = export_stack_pose_model(source, args.out, provenance=provenance, overwrite=args.overwrite)
+    model = config["model"]
+    card = CARD.format(
+        head=model["head"],
+        width=model["width"],
+        grid=model["grid_size"],
+        spacing=model["grid_spacing_mm"],
+        step=step,
+        minutes=args.minutes,
+    )
+    (out / "README.md").write_text(card, encoding="utf-8")
+    size = sum(f.stat().st_size for f in out.iterdir())
+    print(f"wrote {out} ({size / 1e6:.2f} MB) from {source} (step {step})")
+    print(json.dumps(provenance, indent=1)[:400])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
