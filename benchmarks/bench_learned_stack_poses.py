@@ -20,7 +20,9 @@ Methods, each giving one scanner -> canonical frame per stack:
 * ``axes+atlas+fit``: that hypothesis refined by rigid registration of the stack's masked voxels
   to the atlas (:func:`svr.models.stack_pose.fit_to_atlas`): the classical estimate in full;
 * ``learned+atlas``: the refined hypotheses, chosen by atlas agreement;
-* ``learned+atlas+fit``: the refined hypotheses chosen by atlas agreement, then the atlas fit.
+* ``learned+atlas+fit``: what ``--registration cnn`` does with a model and an atlas: the model's
+  choice, then the atlas fit where it stays within 15 degrees of it
+  (``estimate_stack_pose(model, ..., atlas=...)``).
 
 Errors: the rotation angle between the estimated and the true stack pose (the robust mean of the
 slices' true canonical poses, :func:`svr.sampling.blocks.stack_pose_from_slices`) and the distance

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 
 from svr.cli.common import (
     MASK_MODEL_HELP,
-    MODEL_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -38,11 +37,13 @@ if TYPE_CHECKING:
 
 DESCRIPTION = """\
 Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
-its own rigid body: its pose is initialised (--registration: `cnn` predicts every slice's pose in
-canonical atlas space with a slice-pose model, replaces predictions that disagree with their
-stack's consensus by the consensus pose, and keeps, per stack, whichever of these and the stack
-registration fits better; `stack` registers every stack rigidly to the
-template stack; `none` keeps the scanner's poses), then outer rounds alternate slice-to-volume
+its own rigid body: its pose is initialised (--registration: `cnn` places every stack in
+canonical atlas space from its own data with the stack-pose model (the brain mask's principal
+axes give candidate frames, a 3D CNN refines and scores them; with --atlas-volume each is fitted
+to the atlas), refines how the stacks sit together by stack registration, and keeps, per stack,
+whichever of this and plain stack registration fits better (a slice-pose model given with
+--model predicts every slice instead); `stack` registers every stack rigidly to the template
+stack; `none` keeps the scanner's poses), then outer rounds alternate slice-to-volume
 registration (skipped in the first round), EM outlier weighting, exclusion of slices whose NCC
 with their simulation is below --ncc-threshold, and edge-preserving super-resolution.
 
@@ -64,7 +65,8 @@ examples:
       --stack-masks ax_mask.nii.gz cor_mask.nii.gz sag_mask.nii.gz --thicknesses 3 \\
       --output-volume srr.nii.gz --output-qa srr_qa.png
   svr reconstruct --input-stacks case1/stacks/stack*.nii.gz --stack-masks case1/masks/*.nii.gz \\
-      --registration cnn --model default --output-volume srr_atlas.nii.gz \\
+      --registration cnn --atlas-volume atlas/GA28/srr.nii.gz --atlas-mask atlas/GA28/mask.nii.gz \\
+      --output-volume srr_atlas.nii.gz \\
       --output-transforms slices.csv --output-slices slices/ --output-log srr.log --device cuda
 """
 
@@ -187,11 +189,13 @@ def add_options(
     )
     settings.add_argument(
         "--model",
-        default="default",
+        default="stack-pose",
         metavar="CHECKPOINT_DIR",
-        help=f"pose model for --registration cnn: {MODEL_HELP}; a stack-pose model (svr "
-        "train-stack-pose) places each stack from its own data; 'none' uses no model (needs "
-        "--atlas-volume)",
+        help="pose model for --registration cnn: 'stack-pose' (the shipped stack-pose model: "
+        "every stack placed in atlas space from its own data), 'default' (the shipped "
+        "slice-pose model: every slice predicted, made rigid per stack), 'none' (no model: the "
+        "classical chain, needs --atlas-volume), or a checkpoint or training-run folder of either "
+        "kind (svr train-stack-pose, svr train)",
     )
     settings.add_argument(
         "--atlas-volume",
@@ -285,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
     stack_config, config = _configs(args)
     _check_outputs(args)
     device = resolve_device(args.device)
-    if config.registration != "cnn" and args.model != "default":
+    if config.registration != "cnn" and args.model != "stack-pose":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
     if (args.atlas_volume is None) != (args.atlas_mask is None):
         raise CliError("--atlas-volume and --atlas-mask go together")
