@@ -24,7 +24,6 @@ and resuming, and ``benchmarks/train_brain_masker.py`` runs both stages and writ
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -42,13 +41,7 @@ from svr.models.brain_mask import (
     normalise_stack,
     slices_to_canvas,
 )
-from svr.models.checkpoint import (
-    checkpoint_name,
-    latest_checkpoint,
-    load_checkpoint,
-    prune_checkpoints,
-    save_checkpoint,
-)
+from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
 from svr.models.segmentation import BrainUNet, SegmentationConfig
 from svr.sampling.scenes import SceneConfig, make_scene
 from svr.sampling.simulate import SimulationConfig, simulate_case
@@ -475,23 +468,8 @@ def train_network(
     generator = torch.Generator().manual_seed(config.seed)
     net = BrainUNet(net_config)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimiser,
-        lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(s / config.steps, 1.0))),
-    )
-    start = 0
-    if folder is not None:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-        newest = latest_checkpoint(folder)
-        if newest is not None:
-            checkpoint = load_checkpoint(newest, with_training_state=True)
-            assert checkpoint.training_state is not None
-            net.load_state_dict(checkpoint.state_dict)
-            optimiser.load_state_dict(checkpoint.training_state["optimizer"])
-            schedule.load_state_dict(checkpoint.training_state["scheduler"])
-            generator.set_state(checkpoint.training_state["generator"])
-            start = int(checkpoint.training_state["step"])
-            log.info("resuming from %s (step %d)", newest, start)
+    schedule = cosine_schedule(optimiser, config.steps)
+    start = resume_training(folder, net, optimiser, schedule, generator)
     net.train()
     n = examples.inputs.shape[0]
     running, began = 0.0, time.time()
@@ -526,21 +504,17 @@ def train_network(
                 )
             running = 0.0
             if folder is not None:
-                state = {
-                    "optimizer": optimiser.state_dict(),
-                    "scheduler": schedule.state_dict(),
-                    "generator": generator.get_state(),
-                    "step": done,
-                }
-                save_checkpoint(
-                    Path(folder) / checkpoint_name(done),
-                    net.state_dict(),
+                save_training_checkpoint(
+                    folder,
+                    done,
+                    net,
+                    optimiser,
+                    schedule,
+                    generator,
                     {
                         "architecture": "brain_unet",
                         "net": asdict(net_config),
                         "train": asdict(config),
                     },
-                    training_state=state,
                 )
-                prune_checkpoints(folder, keep=2)
     return net.eval()

@@ -32,13 +32,7 @@ from torch.nn import functional
 
 from svr.geometry import se3_compose, se3_to_vector, so3_exp, vector_to_se3
 from svr.losses.se3 import se3_geodesic_loss
-from svr.models.checkpoint import (
-    checkpoint_name,
-    latest_checkpoint,
-    load_checkpoint,
-    prune_checkpoints,
-    save_checkpoint,
-)
+from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet
 from svr.sampling.blocks import (
     TrainingStack,
@@ -285,23 +279,8 @@ def train_stack_pose(
     generator = torch.Generator().manual_seed(config.seed)
     net = StackPoseNet(model_config).to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimiser,
-        lambda s: 0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * min(s / config.steps, 1.0))),
-    )
-    start = 0
-    if folder is not None:
-        Path(folder).mkdir(parents=True, exist_ok=True)
-        newest = latest_checkpoint(folder)
-        if newest is not None:
-            checkpoint = load_checkpoint(newest, device, with_training_state=True)
-            assert checkpoint.training_state is not None
-            net.load_state_dict(checkpoint.state_dict)
-            optimiser.load_state_dict(checkpoint.training_state["optimizer"])
-            schedule.load_state_dict(checkpoint.training_state["scheduler"])
-            generator.set_state(checkpoint.training_state["generator"])
-            start = int(checkpoint.training_state["step"])
-            log.info("resuming from %s (step %d)", newest, start)
+    schedule = cosine_schedule(optimiser, config.steps)
+    start = resume_training(folder, net, optimiser, schedule, generator, device)
     cells = getattr(net, "cells", None)
     net.train()
     sums: dict[str, float] = {}
@@ -342,24 +321,20 @@ def train_stack_pose(
                 )
             sums, count = {}, 0
             if folder is not None:
-                state = {
-                    "optimizer": optimiser.state_dict(),
-                    "scheduler": schedule.state_dict(),
-                    "generator": generator.get_state(),
-                    "step": done,
-                }
-                save_checkpoint(
-                    Path(folder) / checkpoint_name(done),
-                    {k: v.cpu() for k, v in net.state_dict().items()},
+                save_training_checkpoint(
+                    folder,
+                    done,
+                    net,
+                    optimiser,
+                    schedule,
+                    generator,
                     {
                         "architecture": "stack_pose",
                         "model": model_config.to_dict(),
                         "train": _jsonable(asdict(config)),
                         **(extra_config or {}),
                     },
-                    training_state=state,
                 )
-                prune_checkpoints(folder, keep=2)
             if out_of_time:
                 break
     return net.eval()
