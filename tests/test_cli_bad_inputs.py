@@ -726,7 +726,7 @@ def _cases() -> list[Case]:
                 drop=["--input-stacks", "--stack-masks"],
             )
         )
-    for command in ("train", "evaluate"):
+    for command in ("train", "evaluate", "train-stack-pose"):
         for bad, message in (
             ("missing", "is not a folder"),
             ("brain", "is not a folder"),
@@ -740,25 +740,12 @@ def _cases() -> list[Case]:
                     command,
                     ["--atlas-dir", ref(bad)],
                     ["--atlas-dir" if bad != "atlas_bad_srr" else "srr.nii.gz", message],
-                    drop=["--input-volumes", "--input-masks"],
+                    drop=[]
+                    if command == "train-stack-pose"
+                    else ["--input-volumes", "--input-masks"],
                 )
             )
 
-    for bad, message in (
-        ("missing", "is not a folder"),
-        ("brain", "is not a folder"),
-        ("atlas_empty", "no GA*/srr.nii.gz volumes"),
-        ("atlas_bad_name", "GAxx"),
-        ("atlas_bad_srr", "cannot read as NIfTI"),
-    ):
-        add(
-            Case(
-                f"train-stack-pose-atlas-dir-{bad}",
-                "train-stack-pose",
-                ["--atlas-dir", ref(bad)],
-                ["--atlas-dir" if bad != "atlas_bad_srr" else "srr.nii.gz", message],
-            )
-        )
     for bad in ("motion_missing", "motion_junk", "motion_pickle"):
         add(
             Case(
