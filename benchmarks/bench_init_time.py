@@ -1,0 +1,66 @@
+"""Time of the learned initialisation against stack registration alone, on the bench cases.
+
+``stack_pose_initialisation`` (each stack placed by the stack-pose model, with or without the
+atlas fit; stack registration from both starts; the per-stack NCC choice) against
+``stack_registration`` alone, and the per-stack estimates by themselves; the figure the issue
+bounds is the time added per stack.
+
+Run from the repository root::
+
+    python benchmarks/bench_init_time.py [--threads 2] [--model stack-pose]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from bench_common import SHARED, case_age, load_case_stacks, neighbour_atlas
+
+from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model
+from svr.reconstruction.cnn_init import stack_pose_initialisation
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.registration import stack_registration
+from svr.reconstruction.slices import extract_slices
+from svr.sampling.volume import load_canonical_volume
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", default="stack-pose")
+    parser.add_argument("--cases", nargs="*", default=["sb24-large", "sb28-moderate"])
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    model = load_stack_pose_model(args.model)
+    for name in args.cases:
+        case = SHARED / "data" / "bench" / name
+        stacks = load_case_stacks(case)
+        slices = extract_slices(stacks)
+        atlas = load_canonical_volume(*neighbour_atlas(case_age(case)))
+        config = ReconstructionConfig(registration="cnn")
+        began = time.perf_counter()
+        stack_registration(slices, config.output_resolution_mm)
+        registration = time.perf_counter() - began
+        for label, with_atlas in (("model", None), ("model + atlas", atlas)):
+            began = time.perf_counter()
+            stack_pose_initialisation(slices, stacks, model, config, with_atlas)
+            full = time.perf_counter() - began
+            began = time.perf_counter()
+            for stack in stacks:
+                estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, atlas=with_atlas)
+            alone = (time.perf_counter() - began) / len(stacks)
+            added = (full - registration) / len(stacks)
+            print(
+                f"{name}, {label} ({args.threads} threads): "
+                f"stack registration {registration:.1f} s, "
+                f"learned initialisation {full:.1f} s (x{full / registration:.2f}); "
+                f"estimate {alone:.2f} s per stack; added {added:.2f} s per stack",
+                flush=True,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
