@@ -244,7 +244,6 @@ def main() -> int:
         record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
         both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
         record("learned+atlas+fit", both.frame)
-        row["chosen_ok"] = row["learned"]["rot_deg"] <= 30
         rows.append(row)
         print(
             f"{item['name']:28s} oracle {row['axes+oracle']['rot_deg']:6.1f}  atlas "

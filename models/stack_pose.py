@@ -34,7 +34,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 from torch import Tensor, nn
 
-from svr.geometry import se3_compose, se3_inverse, so3_exp, weighted_rigid_fit
+from svr.geometry import se3_compose, so3_exp, weighted_rigid_fit
 from svr.image import Image, sample_world, voxel_to_world
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
@@ -150,9 +150,7 @@ class StackPoseNet(nn.Module):
             nn.init.zeros_(self.pose.weight)
             nn.init.zeros_(self.pose.bias)
         else:
-            self.decode = nn.Sequential(
-                nn.Upsample(scale_factor=2, mode="trilinear", align_corners=False),
-            )
+            self.decode = nn.Upsample(scale_factor=2, mode="trilinear", align_corners=False)
             last = nn.Conv3d(2 * w, 4, 1)
             assert last.bias is not None
             nn.init.zeros_(last.weight)
@@ -228,12 +226,10 @@ def mask_axis_hypotheses(points: Tensor, weights: Tensor | None = None) -> Tenso
     _, vectors = torch.linalg.eigh((w[:, None] * d).T @ d)  # ascending: shortest first
     short, middle, longest = vectors[:, 0], vectors[:, 1], vectors[:, 2]
     frames = []
-    for x_axis, z_axis in ((middle, short), (short, middle)):
+    for x_axis in (middle, short):
         for sx, sy in ((1.0, 1.0), (-1.0, 1.0), (1.0, -1.0), (-1.0, -1.0)):
             x, y = sx * x_axis, sy * longest
             rows = torch.stack([x, y, torch.linalg.cross(x, y)])
-            if float(rows[2] @ z_axis) == 0.0:  # pragma: no cover - eigh gives orthonormal axes
-                raise ValueError("mask_axis_hypotheses(): degenerate axes")
             frame = torch.eye(4, dtype=torch.float64)
             frame[:3, :3] = rows
             frame[:3, 3] = -rows @ centre
@@ -512,16 +508,6 @@ def _turn_deg(a: Tensor, b: Tensor) -> float:
     """Angle between the rotations of two (4, 4) transforms, degrees."""
     cos = (float((a[:3, :3].T @ b[:3, :3]).trace()) - 1) / 2
     return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-
-
-def pose_of_frame(frame: Tensor, stack: Image) -> Tensor:
-    """The stack pose ``E o F`` of frames ``E`` (..., 4, 4) for ``stack``."""
-    return se3_compose(frame, stack_frame(stack).to(frame))
-
-
-def frame_of_pose(pose: Tensor, stack: Image) -> Tensor:
-    """The frame ``P o F^-1`` of stack poses ``P`` (..., 4, 4) for ``stack``."""
-    return se3_compose(pose, se3_inverse(stack_frame(stack).to(pose)))
 
 
 def load_stack_pose_model(

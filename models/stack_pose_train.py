@@ -331,18 +331,10 @@ def train_stack_pose(
                     {
                         "architecture": "stack_pose",
                         "model": model_config.to_dict(),
-                        "train": _jsonable(asdict(config)),
+                        "train": asdict(config),
                         **(extra_config or {}),
                     },
                 )
             if out_of_time:
                 break
     return net.eval()
-
-
-def _jsonable(value: object) -> object:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    return value
