@@ -28,6 +28,7 @@ share one intensity scale and are indexed by their file numbers.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -48,18 +49,21 @@ from svr.image import (
     voxel_to_world,
 )
 from svr.models.checkpoint import (
+    CHECKPOINT_CONFIG,
     Checkpoint,
     CheckpointError,
     load_checkpoint,
     resolve_model_path,
 )
 from svr.models.network import ModelConfig, SlicePoseNet, build_model
+from svr.models.stack_pose import STACK_POSE_MODEL, StackPoseNet, load_stack_pose_model
 from svr.pose_io import PoseTable
 from svr.sampling.slicer import SliceConfig, sample_slices
 
 __all__ = [
     "PlanePredictions",
     "SliceFile",
+    "load_any_pose_model",
     "load_pose_model",
     "load_slice_folder",
     "pose_model_from_checkpoint",
@@ -387,3 +391,32 @@ def predict_slice_folder(
     )
     poses = _predict(model, prepared, batch_size)
     return PoseTable([name] * len(poses), prepared.indices, se3_to_vector(poses), "canonical")
+
+
+def load_any_pose_model(
+    path_or_name: str | os.PathLike[str], device: torch.device | str = "cpu"
+) -> SlicePoseNet | StackPoseNet:
+    """The pose model a ``--model`` argument names: a stack-pose or a slice-pose network.
+
+    Args:
+        path_or_name: ``"default"`` (the shipped slice-pose model), ``"stack-pose"`` (the shipped
+            stack-pose model) or a checkpoint / training-run folder of either kind.
+        device: Where the network runs.
+
+    Returns:
+        A :class:`~svr.models.stack_pose.StackPoseNet` or a
+        :class:`~svr.models.network.SlicePoseNet`, in eval mode.
+
+    Raises:
+        CheckpointError: If the folder holds neither kind of model (nothing in it is executed).
+    """
+    if str(path_or_name) == STACK_POSE_MODEL:
+        return load_stack_pose_model(STACK_POSE_MODEL, device)
+    folder = resolve_model_path(path_or_name)
+    try:
+        architecture = json.loads((folder / CHECKPOINT_CONFIG).read_text()).get("architecture")
+    except (OSError, ValueError, AttributeError):
+        architecture = None
+    if architecture == "stack_pose":
+        return load_stack_pose_model(folder, device)
+    return load_pose_model(path_or_name, device)

@@ -14,6 +14,9 @@ The global part of a stack's orientation comes from structure, the local part is
 Two heads share the encoder, both trained with the SE(3) geodesic loss on the final stack pose:
 
 * ``"regress"``: a rotation vector and a translation, regressed from the flattened features;
+  for the baselines of the loss comparison, the residual in another registered representation
+  (``representation``: PoseNet's quaternion, Anchor Points, 6D), trained with that
+  representation's loss on the residual;
 * ``"coords"``: per-cell canonical coordinates with confidences on a coarse grid, turned into
   the residual by a differentiable weighted rigid fit (:func:`svr.geometry.weighted_rigid_fit`),
   with an auxiliary loss on the coordinates.
@@ -34,7 +37,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 from torch import Tensor, nn
 
-from svr.geometry import se3_compose, so3_exp, weighted_rigid_fit
+from svr.geometry import se3_compose, so3_exp, vector_to_se3, weighted_rigid_fit
 from svr.image import Image, sample_world, voxel_to_world
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
@@ -42,7 +45,9 @@ from svr.models.checkpoint import (
     latest_checkpoint,
     load_checkpoint,
 )
+from svr.models.heads import PoseHead
 from svr.models.pretrained import stack_pose_model_path
+from svr.representations import Representation, get_representation
 from svr.sampling.blocks import BlockGrid, block_inputs, coarsen_stack, stack_frame
 from svr.sampling.volume import CanonicalVolume
 
@@ -52,6 +57,7 @@ __all__ = [
     "StackPoseConfig",
     "StackPoseEstimate",
     "StackPoseNet",
+    "StackPoseOutput",
     "atlas_agreement",
     "estimate_stack_pose",
     "fit_to_atlas",
@@ -76,6 +82,10 @@ class StackPoseConfig:
         grid_spacing_mm: Block voxel spacing (mm).
         in_plane_mm: Stacks are averaged in-plane to about this spacing first (mm).
         translation_scale_mm: The network's translation outputs are in units of this (mm).
+        representation: What the ``"regress"`` head outputs, a registered name
+            (:data:`svr.representations.REPRESENTATIONS`): ``"se3"`` (the rotation vector and
+            translation, trained with the SE(3) geodesic loss on the final pose: the shipped
+            model) or a baseline trained with its own loss on the residual.
     """
 
     head: Head = "regress"
@@ -84,11 +94,18 @@ class StackPoseConfig:
     grid_spacing_mm: float = 4.0
     in_plane_mm: float = 2.0
     translation_scale_mm: float = 10.0
+    representation: Representation = "se3"
 
     def __post_init__(self) -> None:
         if self.head not in ("regress", "coords"):
             raise ValueError(
                 f"StackPoseConfig: 'head' must be regress or coords, got {self.head!r}"
+            )
+        get_representation(self.representation, "StackPoseConfig")
+        if self.head == "coords" and self.representation != "se3":
+            raise ValueError(
+                "StackPoseConfig: 'representation' must be se3 with the coords head, "
+                f"got {self.representation!r}"
             )
         for name, low in (("width", 4), ("grid_size", 16)):
             value = getattr(self, name)
@@ -127,6 +144,25 @@ def _stage(c_in: int, c_out: int) -> nn.Sequential:
     )
 
 
+class StackPoseOutput(NamedTuple):
+    """What :class:`StackPoseNet` predicts for a batch of B blocks.
+
+    Attributes:
+        residual: (B, 4, 4) residual transforms (the block's canonical frame -> the true
+            canonical frame, mm).
+        score: (B,) logits that the frame is within the refinement's reach.
+        coords: (B, N, 4) per-cell predicted canonical coordinates (mm) and confidence logits for
+            the ``"coords"`` head, else ``None``.
+        raw: (B, D) the ``"regress"`` head's outputs in its representation's label units (the
+            residual's labels, :class:`svr.models.heads.PoseHead`), else ``None``.
+    """
+
+    residual: Tensor
+    score: Tensor
+    coords: Tensor | None
+    raw: Tensor | None
+
+
 class StackPoseNet(nn.Module):
     """Block -> residual transform to the canonical frame, and a score for the frame.
 
@@ -146,9 +182,8 @@ class StackPoseNet(nn.Module):
         self.fc = nn.Sequential(nn.Flatten(), nn.Linear(flat, 8 * w), nn.ReLU(inplace=True))
         self.score = nn.Linear(8 * w, 1)
         if config.head == "regress":
-            self.pose = nn.Linear(8 * w, 6)
-            nn.init.zeros_(self.pose.weight)
-            nn.init.zeros_(self.pose.bias)
+            self.pose = PoseHead(8 * w, config.representation, config.translation_scale_mm)
+            self._register_load_state_dict_pre_hook(_rename_legacy_pose_keys)
         else:
             self.decode = nn.Upsample(scale_factor=2, mode="trilinear", align_corners=False)
             last = nn.Conv3d(2 * w, 4, 1)
@@ -162,17 +197,14 @@ class StackPoseNet(nn.Module):
             cells = BlockGrid(s // 4, g.spacing_mm * 4, g.in_plane_mm).points(torch.float32)
             self.register_buffer("cells", cells.reshape(-1, 3), persistent=False)
 
-    def forward(self, blocks: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+    def forward(self, blocks: Tensor) -> StackPoseOutput:
         """Predict.
 
         Args:
             blocks: (B, 3, S, S, S) float blocks.
 
         Returns:
-            ``(residual, score, coords)``: (B, 4, 4) residual transforms (the block's canonical
-            frame -> the true canonical frame, mm), (B,) logits that the frame is within the
-            refinement's reach, and for the ``"coords"`` head (B, N, 4) per-cell predicted
-            canonical coordinates (mm) and confidence logits (else ``None``).
+            The residuals, scores and the head's own outputs.
         """
         features = []
         x = blocks
@@ -183,19 +215,23 @@ class StackPoseNet(nn.Module):
         score = self.score(hidden)[:, 0]
         scale = self.config.translation_scale_mm
         if self.config.head == "regress":
-            out = self.pose(hidden)
-            residual = torch.zeros(blocks.shape[0], 4, 4, dtype=out.dtype, device=out.device)
-            residual[:, :3, :3] = so3_exp(out[:, :3])
-            residual[:, :3, 3] = out[:, 3:] * scale
-            residual[:, 3, 3] = 1.0
-            return residual, score, None
+            raw = self.pose(hidden)
+            return StackPoseOutput(vector_to_se3(self.pose.to_pose(raw)), score, None, raw)
         up = torch.cat([self.decode(features[2]), features[1]], dim=1)
         raw = self.coords(up).flatten(2).transpose(1, 2)  # (B, N, 4)
         cells = self.cells.to(raw)
         coords = torch.cat([cells + raw[..., :3] * scale, raw[..., 3:]], dim=-1)
         weights = torch.sigmoid(raw[..., 3]) + 1e-4
         residual = weighted_rigid_fit(cells.expand_as(coords[..., :3]), coords[..., :3], weights)
-        return residual, score, coords
+        return StackPoseOutput(residual, score, coords, None)
+
+
+def _rename_legacy_pose_keys(state_dict: dict, prefix: str, *args: object) -> None:
+    """Load checkpoints written before the head was a :class:`PoseHead` (``pose.weight``)."""
+    for name in ("weight", "bias"):
+        old = f"{prefix}pose.{name}"
+        if old in state_dict:
+            state_dict[f"{prefix}pose.linear.{name}"] = state_dict.pop(old)
 
 
 def mask_axis_hypotheses(points: Tensor, weights: Tensor | None = None) -> Tensor:
@@ -420,7 +456,7 @@ def refine_frames(
     score = torch.zeros(frames.shape[0])
     for step in range(iterations + 1):
         blocks = block_inputs(stack, mask, frames, grid, present).to(device)
-        residual, logits, _ = model(blocks)
+        residual, logits, _, _ = model(blocks)
         score = logits.float().cpu()
         if step < iterations:
             frames = se3_compose(residual.double().cpu(), frames)

@@ -30,10 +30,17 @@ import torch
 from torch import Tensor
 from torch.nn import functional
 
-from svr.geometry import se3_compose, se3_to_vector, so3_exp, vector_to_se3
+from svr.geometry import (
+    ANCHOR_HALF_SIZE_MM,
+    se3_compose,
+    se3_to_vector,
+    so3_exp,
+    vector_to_se3,
+)
 from svr.losses.se3 import se3_geodesic_loss
 from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
-from svr.models.stack_pose import StackPoseConfig, StackPoseNet
+from svr.models.stack_pose import StackPoseConfig, StackPoseNet, StackPoseOutput
+from svr.representations import Representation, get_representation
 from svr.sampling.blocks import (
     TrainingStack,
     TrainingStackConfig,
@@ -198,47 +205,60 @@ def draw_samples(
 
 
 def stack_pose_loss(
-    residual: Tensor,
-    score: Tensor,
-    coords: Tensor | None,
+    output: StackPoseOutput,
     starts: Tensor,
     targets: Tensor,
     labels: Tensor,
     config: StackPoseTrainingConfig,
     grid_points: Tensor | None = None,
+    representation: Representation = "se3",
 ) -> tuple[Tensor, dict[str, float]]:
-    """SE(3) geodesic loss on the refined stack poses, plus the score's and coordinates' losses.
+    """The pose loss on the blocks within reach, plus the score's and coordinates' losses.
+
+    The pose loss is the SE(3) geodesic loss on the refined stack poses (``"se3"``), or a
+    baseline's own loss (:data:`svr.representations.REPRESENTATIONS`) between the head's raw
+    outputs and the true residual's labels.
 
     Args:
-        residual: (B, 4, 4) predicted residuals (block frame -> canonical).
-        score: (B,) logits.
-        coords: (B, N, 4) predicted cell coordinates and confidences, or ``None``.
+        output: The network's prediction for B blocks.
         starts: (B, 4, 4) start stack poses.
         targets: (B, 4, 4) true stack poses.
         labels: (B,) 1 where the start is within reach (only these get the pose loss).
         config: The weights.
         grid_points: (N, 3) the coordinate cells in the block frame (``"coords"`` head).
+        representation: The regress head's representation (the network config's).
 
     Returns:
         The scalar loss and its parts (floats, for the log).
+
+    Raises:
+        ValueError: If a baseline representation is asked for without the head's raw outputs.
     """
-    pred = se3_to_vector(se3_compose(residual.double(), starts))
-    target = se3_to_vector(targets.double())
-    per = se3_geodesic_loss(pred, target, reduction="none")
+    # The true residual (block frame -> canonical): target o start^-1.
+    true_residual = se3_compose(targets.double(), torch.linalg.inv(starts.double()))
+    if representation == "se3":
+        pred = se3_to_vector(se3_compose(output.residual.double(), starts))
+        per = se3_geodesic_loss(pred, se3_to_vector(targets.double()), reduction="none")
+    else:
+        if output.raw is None:
+            raise ValueError(
+                f"stack_pose_loss(): the {representation!r} loss needs the regress head's outputs"
+            )
+        entry = get_representation(representation, "stack_pose_loss()")
+        truth = entry.encode(se3_to_vector(true_residual), ANCHOR_HALF_SIZE_MM)
+        per = entry.loss(None, ANCHOR_HALF_SIZE_MM)(output.raw.double(), truth, reduction="none")
     within = labels > 0.5
     pose = (per * within).sum() / within.sum().clamp(min=1)
-    bce = functional.binary_cross_entropy_with_logits(score, labels)
+    bce = functional.binary_cross_entropy_with_logits(output.score, labels)
     total = pose + config.score_weight * bce.double()
     parts = {"pose": float(pose.detach()), "score": float(bce.detach())}
-    if coords is not None and grid_points is not None:
-        # The cells' true canonical positions: true residual = target o start^-1.
-        true_residual = se3_compose(targets.double(), torch.linalg.inv(starts.double()))
+    if output.coords is not None and grid_points is not None:
         truth = (
             grid_points.double() @ true_residual[:, :3, :3].transpose(1, 2)
             + true_residual[:, None, :3, 3]
         )
         err = functional.smooth_l1_loss(
-            coords[..., :3].double() / 10.0, truth / 10.0, reduction="none"
+            output.coords[..., :3].double() / 10.0, truth / 10.0, reduction="none"
         )
         aux = (err.mean(-1).mean(-1) * within).sum() / within.sum().clamp(min=1)
         total = total + config.coords_weight * aux
@@ -256,6 +276,7 @@ def train_stack_pose(
     time_limit_s: float | None = None,
     extra_config: dict | None = None,
     device: str | torch.device = "cpu",
+    init: dict[str, Tensor] | None = None,
 ) -> StackPoseNet:
     """Train (or resume training) the stack-pose network.
 
@@ -269,6 +290,8 @@ def train_stack_pose(
         time_limit_s: Stop (after a checkpoint) once this much wall time has passed.
         extra_config: More JSON fields for the checkpoint's config (e.g. the training data).
         device: Where the network trains (stacks are simulated on the CPU).
+        init: Weights to start from (fine-tuning a trained network with a new schedule), used
+            when ``folder`` holds no checkpoint yet; ``None`` starts from random weights.
 
     Returns:
         The network (eval mode).
@@ -277,7 +300,10 @@ def train_stack_pose(
         raise ValueError("train_stack_pose(): 'volumes' is empty")
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
-    net = StackPoseNet(model_config).to(device)
+    net = StackPoseNet(model_config)
+    if init is not None:
+        net.load_state_dict(init)
+    net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     schedule = cosine_schedule(optimiser, config.steps)
     start = resume_training(folder, net, optimiser, schedule, generator, device)
@@ -296,9 +322,8 @@ def train_stack_pose(
         blocks, starts, targets, labels = (
             torch.cat(parts).to(device) for parts in zip(*batch, strict=False)
         )
-        residual, score, coords = net(blocks)
         loss, parts = stack_pose_loss(
-            residual, score, coords, starts, targets, labels, config, cells
+            net(blocks), starts, targets, labels, config, cells, model_config.representation
         )
         optimiser.zero_grad()
         loss.backward()

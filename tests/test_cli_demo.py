@@ -29,7 +29,8 @@ from svr.image import Image, load_nifti
 from svr.reconstruction.slices import SliceSet
 
 F64 = torch.float64
-QUICK = ["--quick", "--phantom-ga", "20", "--train-steps", "5", "--device", "cpu", "-q"]
+QUICK = ["--quick", "--phantom-ga", "20", "--device", "cpu", "-q"]
+TRAIN = ["--model", "train", "--train-steps", "5"]
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,7 @@ def quick_run(tmp_path_factory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("demo") / "run"
     buffer = io.StringIO()
     with redirect_stdout(buffer):
-        code = svr.cli.main(["demo", "--output-dir", str(out), *QUICK])
+        code = svr.cli.main(["demo", "--output-dir", str(out), *QUICK, *TRAIN])
     assert code == 0
     return out, buffer.getvalue()
 
@@ -125,6 +126,19 @@ def test_quick_demo_volumes_are_in_their_frames(quick_run):
         assert volume.data.dtype == torch.float32 and float(volume.data.abs().sum()) > 0
 
 
+def test_quick_demo_with_the_shipped_stack_pose_model(tmp_path):
+    """The default --model: the shipped stack-pose model places each stack; nothing is trained."""
+    out = tmp_path / "run"
+    with redirect_stdout(io.StringIO()):
+        assert svr.cli.main(["demo", "--output-dir", str(out), *QUICK]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["model"] == "stack-pose" and metrics["config"]["train"] is None
+    assert not (out / "model").exists()
+    cnn = {r["registration"]: r for r in metrics["results"]}["cnn"]
+    assert cnn["frame"] == "canonical"
+    assert cnn["slice_rotation_error_deg"] < 10 and cnn["slice_translation_error_mm"] < 5
+
+
 def test_existing_output_dir_is_refused_before_any_work(tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()
@@ -203,7 +217,7 @@ def test_default_output_dir_and_model(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert svr.cli.main(["demo", "--quick", "--phantom-ga", "20", "-q"]) == 0
     config, output_dir, kwargs = calls[0]
-    assert output_dir == "svr-demo" and kwargs["model"] == "train"
+    assert output_dir == "svr-demo" and kwargs["model"] == "stack-pose"
     assert config.registrations == ("stack", "cnn") and config.train.steps == 10
 
 

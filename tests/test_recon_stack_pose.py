@@ -78,8 +78,8 @@ def test_a_wrong_model_falls_back_to_stack_registration(turned_scene) -> None:
     net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
     with torch.no_grad():
         # Residuals of about 70 degrees about a different axis for every stack's block.
-        net.pose.weight.normal_(0.0, 0.5)
-        net.pose.bias.copy_(torch.tensor([1.2, -0.6, 0.3, 0.5, 0.0, 0.0]))
+        net.pose.linear.weight.normal_(0.0, 0.5)
+        net.pose.linear.bias.copy_(torch.tensor([1.2, -0.6, 0.3, 0.5, 0.0, 0.0]))
     config = ReconstructionConfig(output_resolution_mm=2.5)
     start, kept, _ = stack_pose_initialisation(slices, stacks, net, config)
     assert kept == ("stack", "stack", "stack")

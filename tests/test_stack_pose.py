@@ -10,12 +10,13 @@ import torch
 from scipy.spatial.transform import Rotation
 from synthetic import ellipsoid_brain
 
-from svr.geometry import se3_compose, se3_inverse, so3_exp
+from svr.geometry import ANCHOR_HALF_SIZE_MM, se3_compose, se3_inverse, se3_to_vector, so3_exp
 from svr.image import Image, sample_world, stack_slice_poses, voxel_to_world
 from svr.models.checkpoint import CheckpointError, save_checkpoint
 from svr.models.stack_pose import (
     StackPoseConfig,
     StackPoseNet,
+    StackPoseOutput,
     estimate_stack_pose,
     load_stack_pose_model,
     mask_axis_hypotheses,
@@ -26,6 +27,7 @@ from svr.models.stack_pose_train import (
     stack_pose_loss,
     train_stack_pose,
 )
+from svr.representations import REPRESENTATIONS
 from svr.sampling.blocks import (
     BlockGrid,
     TrainingStackConfig,
@@ -213,10 +215,21 @@ def _tiny_training():
     return model, training
 
 
-@pytest.mark.parametrize("head", ["regress", "coords"])
-def test_draws_and_loss_are_consistent(head: str) -> None:
+@pytest.mark.parametrize(
+    ("head", "representation"),
+    [
+        ("regress", "se3"),
+        ("coords", "se3"),
+        ("regress", "quat_translation"),
+        ("regress", "anchor_points"),
+        ("regress", "rotation6d_translation"),
+    ],
+)
+def test_draws_and_loss_are_consistent(head: str, representation: str) -> None:
     model_config, training = _tiny_training()
-    model_config = StackPoseConfig(**{**model_config.to_dict(), "head": head})
+    model_config = StackPoseConfig(
+        **{**model_config.to_dict(), "head": head, "representation": representation}
+    )
     volume = downsample_volume(_volume(), 1)
     stack = simulate_training_stack(volume, training.stacks, torch.Generator().manual_seed(0), None)
     blocks, starts, target, labels = draw_samples(
@@ -224,42 +237,77 @@ def test_draws_and_loss_are_consistent(head: str) -> None:
     )
     assert blocks.shape == (4, 3, 16, 16, 16)
     net = StackPoseNet(model_config)
-    residual, score, coords = net(blocks)
+    output = net(blocks)
+    assert output.residual.shape == (4, 4, 4) and output.score.shape == (4,)
+    entry = REPRESENTATIONS[representation]
+
+    def as_output(residual: torch.Tensor) -> StackPoseOutput:
+        raw = None
+        if head == "regress":
+            raw = entry.encode(se3_to_vector(residual.double()), ANCHOR_HALF_SIZE_MM).float()
+        return output._replace(residual=residual.float(), raw=raw)
+
+    # An untrained network predicts the identity residual.
+    assert torch.allclose(output.residual, torch.eye(4).expand(4, 4, 4), atol=1e-5)
     # The true residual gives a zero pose loss; the start's own error gives a positive one.
-    true_residual = se3_compose(target.expand(4, 4, 4), torch.linalg.inv(starts)).float()
-    zero, _ = stack_pose_loss(
-        true_residual,
-        score,
-        coords,
+    true_residual = se3_compose(target.expand(4, 4, 4), torch.linalg.inv(starts))
+    cells = getattr(net, "cells", None)
+    within = labels.clamp(min=1)
+    zero, zero_parts = stack_pose_loss(
+        as_output(true_residual),
         starts,
         target.expand(4, 4, 4),
-        labels.clamp(min=1),
+        within,
         training,
-        getattr(net, "cells", None),
+        cells,
+        representation,
     )
     ident, parts = stack_pose_loss(
-        torch.eye(4).expand(4, 4, 4),
-        score,
-        None,
+        as_output(torch.eye(4, dtype=torch.float64).expand(4, 4, 4))._replace(coords=None),
         starts,
         target.expand(4, 4, 4),
-        labels.clamp(min=1),
+        within,
         training,
+        None,
+        representation,
     )
+    assert zero_parts["pose"] < 1e-6
     assert parts["pose"] > 0.005
     assert float(zero.detach()) < float(ident.detach())
     loss, _ = stack_pose_loss(
-        residual,
-        score,
-        coords,
-        starts,
-        target.expand(4, 4, 4),
-        labels,
-        training,
-        getattr(net, "cells", None),
+        output, starts, target.expand(4, 4, 4), labels, training, cells, representation
     )
     loss.backward()
     assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+    if representation != "se3":
+        with pytest.raises(ValueError, match="regress head"):
+            stack_pose_loss(
+                output._replace(raw=None),
+                starts,
+                target.expand(4, 4, 4),
+                labels,
+                training,
+                None,
+                representation,
+            )
+
+
+def test_a_baseline_representation_is_rejected_with_the_coords_head() -> None:
+    with pytest.raises(ValueError, match="'representation' must be se3"):
+        StackPoseConfig(head="coords", representation="anchor_points")
+    with pytest.raises(ValueError, match="representation"):
+        StackPoseConfig(representation="euler")
+
+
+def test_checkpoints_from_before_the_pose_head_load() -> None:
+    net = StackPoseNet(StackPoseConfig(width=4, grid_size=16))
+    state = net.state_dict()
+    expected = state.pop("pose.linear.weight") + 1.0
+    state["pose.weight"] = expected.clone()
+    state["pose.bias"] = state.pop("pose.linear.bias")
+    fresh = StackPoseNet(StackPoseConfig(width=4, grid_size=16))
+    fresh.load_state_dict(state)
+    assert torch.equal(fresh.pose.linear.weight, expected)
 
 
 def test_a_tiny_model_learns_and_resumes(tmp_path) -> None:
@@ -359,6 +407,60 @@ def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
         assert torch.equal(a, b)
 
 
+def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, capsys) -> None:
+    from svr.cli import main
+    from svr.image import save_nifti
+    from svr.models.stack_pose import load_stack_pose_model
+    from svr.sampling.volume import load_canonical_volume
+
+    image, mask = ellipsoid_brain(40, 2.0, (24.0, 30.0, 20.0), seed=4, origin_mm=(-39.0,) * 3)
+    folder = tmp_path / "atlas" / "GA30"
+    folder.mkdir(parents=True)
+    save_nifti(image, folder / "srr.nii.gz")
+    save_nifti(mask, folder / "mask.nii.gz")
+    common = [
+        "--atlas-dir", str(tmp_path / "atlas"), "--steps", "2", "--checkpoint-every", "1",
+        "--volume-downsample", "1", "--quiet",
+    ]  # fmt: skip
+    threads = torch.get_num_threads()
+    assert main(["train-stack-pose", "--output-dir", str(tmp_path / "a"), "--loss", "anchor",
+                 "--width", "4", *common]) == 0  # fmt: skip
+    baseline = load_stack_pose_model(tmp_path / "a")
+    assert baseline.config.representation == "anchor_points"
+    tune = [
+        "train-stack-pose", "--output-dir", str(tmp_path / "ft"),
+        "--init-from", str(tmp_path / "a"), "--learning-rate", "1e-4", "--seed", "1",
+    ]  # fmt: skip
+    assert main([*tune, *common]) == 0
+    tuned = load_stack_pose_model(tmp_path / "ft")
+    volume = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
+    torch.set_num_threads(1)
+    library = train_stack_pose(
+        [volume],
+        None,
+        baseline.config,
+        StackPoseTrainingConfig(steps=2, checkpoint_every=1, learning_rate=1e-4, seed=1),
+        init=baseline.state_dict(),
+    )
+    torch.set_num_threads(threads)
+    for a, b in zip(tuned.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    assert not all(
+        torch.equal(a, b)
+        for a, b in zip(tuned.state_dict().values(), baseline.state_dict().values(), strict=True)
+    )
+    capsys.readouterr()
+    # A network setting that contradicts the starting weights is refused in one line.
+    code = main(["train-stack-pose", "--output-dir", str(tmp_path / "bad"), "--init-from",
+                 str(tmp_path / "a"), "--loss", "se3", *common])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1
+    assert "--loss se3 differs from the --init-from model's anchor_points" in err
+    code = main(["train-stack-pose", "--output-dir", str(tmp_path / "bad2"), "--init-from",
+                 str(tmp_path / "missing"), *common])  # fmt: skip
+    assert code != 0 and "--init-from" in capsys.readouterr().err
+
+
 def test_simulated_fetus_turns_between_stacks_within_the_range() -> None:
     volume = _volume()
     config = SimulationConfig(
@@ -406,16 +508,13 @@ def test_a_tiny_network_learns_a_known_rotation_of_a_synthetic_brain() -> None:
     optimiser = torch.optim.Adam(net.parameters(), lr=3e-3)
     training = StackPoseTrainingConfig()
     for _ in range(150):
-        residual, score, coords = net(blocks)
-        loss, _parts = stack_pose_loss(
-            residual, score, coords, starts, targets, torch.ones(2), training
-        )
+        loss, _parts = stack_pose_loss(net(blocks), starts, targets, torch.ones(2), training)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
     net.eval()
     with torch.no_grad():
-        residual, _, _ = net(blocks)
+        residual = net(blocks).residual
     refined = se3_compose(residual.double(), starts)
     for pose in refined:
         angle = math.degrees(

@@ -2,9 +2,11 @@
 
 :func:`run_demo` runs the whole toolkit on one case whose truth is known:
 
-1. **Slice-pose model** (``"cnn"`` only): train a small SE(3) model on the volume
-   (:func:`svr.models.train.train`) or load a given one. A model trained here has seen the very
-   anatomy it is tested on (in-distribution): this shows the pipeline at work, not how a model
+1. **Pose model** (``"cnn"`` only): by default the shipped stack-pose model
+   (:mod:`svr.models.stack_pose`: each stack placed in canonical space from its own data, never
+   trained on the volume); or a given model; or (:data:`TRAIN_MODEL`) a small SE(3) slice-pose
+   model trained here on the volume (:func:`svr.models.train.train`), which has seen the very
+   anatomy it is tested on (in-distribution): that shows the pipeline at work, not how a model
    generalises to new brains.
 2. **Simulate** motion-corrupted thick-slice stacks from the volume
    (:func:`svr.sampling.simulate.simulate_case`; ``svr demo`` uses the built-in phantom by
@@ -80,7 +82,8 @@ from svr.image_metrics import ncc, psnr, ssim
 from svr.metrics import pose_errors
 from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, SlicePoseNet
-from svr.models.predict import load_pose_model
+from svr.models.predict import load_any_pose_model, load_pose_model
+from svr.models.stack_pose import STACK_POSE_MODEL, StackPoseNet
 from svr.models.train import OptimConfig, TrainConfig, train
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.outputs import write_transforms, write_volume
@@ -426,11 +429,11 @@ def _figure(
 
 def _obtain_model(
     model: str, config: TrainConfig, volume: CanonicalVolume, folder: Path, progress: bool
-) -> tuple[SlicePoseNet, str]:
+) -> tuple[SlicePoseNet | StackPoseNet, str]:
     """Train a model in ``folder / "model"`` or load the given one; returns it and its name."""
     if model != TRAIN_MODEL:
-        log.info("loading the slice-pose model %s", model)
-        return load_pose_model(model, config.device), model
+        log.info("loading the pose model %s", model)
+        return load_any_pose_model(model, config.device), model
     run = replace(config, output_dir=str(folder / "model"))
     if not run.model.symmetry_planes:
         planes, report = resolve_symmetry("auto", [volume], ["demo volume"])
@@ -505,7 +508,7 @@ def run_demo(
     config: DemoConfig,
     output_dir: str | os.PathLike[str],
     *,
-    model: str = TRAIN_MODEL,
+    model: str = STACK_POSE_MODEL,
     source: str = "volume",
     device: str = "cpu",
     overwrite: bool = False,
@@ -518,8 +521,9 @@ def run_demo(
             :func:`svr.sampling.volume.load_canonical_volume`.
         config: The settings (:func:`demo_config`).
         output_dir: The folder to create.
-        model: For ``"cnn"``: :data:`TRAIN_MODEL` (``"train"``) to train a model on ``volume``,
-            ``"default"`` for the shipped model, or a checkpoint folder.
+        model: For ``"cnn"``: ``"stack-pose"`` (the shipped stack-pose model, the default),
+            ``"default"`` (the shipped slice-pose model), a checkpoint folder of either kind, or
+            :data:`TRAIN_MODEL` (``"train"``) to train a slice-pose model on ``volume``.
         source: The volume's name for the outputs.
         device: Torch device of every step.
         overwrite: Replace an existing ``output_dir``.
@@ -538,7 +542,7 @@ def run_demo(
     with atomic_directory(output_dir, overwrite) as tmp:
         pose_model, model_name = None, None
         if use_cnn:
-            with steps.step("model", "slice-pose model"):
+            with steps.step("model", "pose model"):
                 pose_model, model_name = _obtain_model(model, train_config, volume, tmp, progress)
         with steps.step("simulation", "simulating stacks from %s", source):
             case = simulate_case(volume, config.simulation, progress=progress, device=device)

@@ -248,33 +248,3 @@ def load_input_volume(args: argparse.Namespace) -> tuple[CanonicalVolume, str]:
     if args.input_volume is None:
         return volumes[0], f"phantom (GA {args.phantom_ga:g} weeks)"
     return volumes[0], names[0]
-
-
-def load_any_pose_model(path_or_name: str, device: torch.device | str = "cpu"):
-    """The pose model a ``--model`` argument names: a stack-pose or a slice-pose network.
-
-    Args:
-        path_or_name: ``"default"`` (the shipped slice-pose model), ``"stack-pose"`` (the shipped
-            stack-pose model) or a checkpoint / training-run folder of either kind.
-        device: Where the network runs.
-
-    Returns:
-        A :class:`~svr.models.stack_pose.StackPoseNet` or a
-        :class:`~svr.models.network.SlicePoseNet`, in eval mode.
-    """
-    import json
-
-    from svr.models.checkpoint import CHECKPOINT_CONFIG, resolve_model_path
-    from svr.models.predict import load_pose_model
-    from svr.models.stack_pose import STACK_POSE_MODEL, load_stack_pose_model
-
-    if path_or_name == STACK_POSE_MODEL:
-        return load_stack_pose_model(path_or_name, device)
-    folder = resolve_model_path(path_or_name)
-    try:
-        architecture = json.loads((folder / CHECKPOINT_CONFIG).read_text()).get("architecture")
-    except (OSError, ValueError, AttributeError):
-        architecture = None
-    if architecture == "stack_pose":
-        return load_stack_pose_model(folder, device)
-    return load_pose_model(path_or_name, device)

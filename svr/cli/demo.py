@@ -31,8 +31,10 @@ DEFAULT_OUTPUT_DIR = "svr-demo"
 
 DESCRIPTION = f"""\
 Run the toolkit end to end on a case whose truth is known, and score it:
-  1. a slice-pose model (--registration cnn): trained for a few minutes on the brain volume
-     (--model train; in-distribution: it sees the anatomy it is tested on), or a given one;
+  1. a pose model (--registration cnn): the shipped stack-pose model (--model stack-pose, the
+     default: each stack placed in canonical space from its own data), a given one, or a
+     slice-pose model trained for a few minutes on the brain volume (--model train;
+     in-distribution: it sees the anatomy it is tested on);
   2. three 3 mm stacks simulated from the volume (the built-in phantom unless --input-volume),
      planned along the brain's axes, with random-walk fetal motion and noise;
   3. reconstruction with stack registration (scanner frame) and, with --registration cnn, with
@@ -52,7 +54,7 @@ examples:
   svr demo
   svr demo --output-dir demo-stack --registration stack
   svr demo --output-dir demo-atlas --input-volume GA28/srr.nii.gz --input-mask GA28/mask.nii.gz
-  svr demo --output-dir demo-default --model default --device cuda
+  svr demo --output-dir demo-train --model train --device cuda
   svr demo --loss-only --num-poses 512 --steps 200 --output losses.json
 
 default output folder: {DEFAULT_OUTPUT_DIR}
@@ -80,9 +82,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument(
         "--model",
-        metavar="train|default|CHECKPOINT_DIR",
-        help="slice-pose model for --registration cnn: 'train' one on the volume (default), "
-        f"or {MODEL_HELP}",
+        metavar="stack-pose|train|default|CHECKPOINT_DIR",
+        help="pose model for --registration cnn: 'stack-pose' (the shipped stack-pose model, "
+        f"the default), 'train' a slice-pose model on the volume, or {MODEL_HELP}",
     )
     parser.add_argument(
         "--registration",
@@ -220,12 +222,13 @@ def run(args: argparse.Namespace) -> int:
     if args.loss_only:
         return _run_loss_demo(args)
     from svr.apps.demo import TRAIN_MODEL, demo_config, quick_phantom, run_demo
+    from svr.models.stack_pose import STACK_POSE_MODEL
 
     output_dir = args.output_dir or DEFAULT_OUTPUT_DIR
     check_output_path(output_dir, args.overwrite)
     device = resolve_device(args.device)
     registration = args.registration or "cnn"
-    model = args.model or TRAIN_MODEL
+    model = args.model or STACK_POSE_MODEL
     if registration == "stack" and args.model is not None:
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
     if model != TRAIN_MODEL and args.train_steps is not None:

@@ -13,11 +13,11 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
-    load_any_pose_model,
     positive_int,
     resolve_device,
 )
 from svr.files import check_output_path
+from svr.models.predict import load_any_pose_model
 
 DESCRIPTION = """\
 Predict the pose of every slice of thick-slice stacks in canonical (atlas) space with a model

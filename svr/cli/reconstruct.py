@@ -22,7 +22,6 @@ from svr.cli.common import (
     check_fusion_count,
     check_outputs,
     check_thickness_count,
-    load_any_pose_model,
     non_negative_float,
     positive_float,
     positive_int,
@@ -282,6 +281,7 @@ def run(args: argparse.Namespace) -> int:
         CliError: For inconsistent options or output paths.
         ValueError, OSError: From the library (bad or missing files, checkpoints), naming the file.
     """
+    from svr.models.predict import load_any_pose_model
     from svr.reconstruction.pipeline import reconstruct
     from svr.reconstruction.stacks import load_stacks
     from svr.sampling.volume import load_canonical_volume

@@ -13,6 +13,7 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     check_run_folder,
+    positive_float,
     positive_int,
     resolve_device,
 )
@@ -32,9 +33,17 @@ Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA3
 srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
 trajectories that SVoRT published (svort_fetal_motion_trajectories.npz).
 
+--loss picks the pose output and its loss (the SE(3) geodesic loss, or the PoseNet, Anchor
+Points and 6D baselines, for comparisons). --init-from starts a new run from trained weights
+(fine-tuning with a new schedule, e.g. a lower --learning-rate); the network's settings are then
+the checkpoint's.
+
 examples:
   svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
       --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose --minutes 110
+  svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
+      --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose-ft \\
+      --init-from runs/stack-pose --steps 10000 --learning-rate 3e-4 --seed 1
 """
 
 log = logging.getLogger(__name__)
@@ -44,6 +53,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train-stack-pose``."""
     from svr.models.stack_pose import StackPoseConfig
     from svr.models.stack_pose_train import StackPoseTrainingConfig
+    from svr.representations import representations_by_cli_name
 
     m, t = StackPoseConfig(), StackPoseTrainingConfig()
     p = subparsers.add_parser(
@@ -74,9 +84,27 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="average the training volumes over blocks of this many voxels per side (faster "
         "simulation; the blocks are 4 mm)",
     )
-    p.add_argument("--head", choices=("regress", "coords"), default=m.head, help="pose head")
-    p.add_argument("--width", type=positive_int, default=m.width, help="first-stage channels")
+    p.add_argument("--head", choices=("regress", "coords"), help=f"pose head (default: {m.head})")
+    p.add_argument("--width", type=positive_int, help=f"first-stage channels (default: {m.width})")
+    p.add_argument(
+        "--loss",
+        choices=list(representations_by_cli_name()),
+        help="pose output and loss: se3 (the SE(3) geodesic loss, default), or the posenet, "
+        "anchor and rot6d baselines (regress head only)",
+    )
+    p.add_argument(
+        "--init-from",
+        metavar="MODEL",
+        help="start from these weights: 'stack-pose' (the shipped model), a checkpoint or a run "
+        "folder (used when --output-dir holds no checkpoint yet)",
+    )
     p.add_argument("--steps", type=positive_int, default=t.steps, help="optimiser steps")
+    p.add_argument(
+        "--learning-rate",
+        type=positive_float,
+        default=t.learning_rate,
+        help="Adam's initial rate (cosine decay to 5 %% of it)",
+    )
     p.add_argument(
         "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
     )
@@ -93,8 +121,10 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
 
-    from svr.models.stack_pose import StackPoseConfig
+    from svr.models.checkpoint import CheckpointError
+    from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
+    from svr.representations import representations_by_cli_name
     from svr.sampling.motion import load_trajectories
     from svr.sampling.volume import (
         VolumeSourceError,
@@ -115,9 +145,38 @@ def run(args: argparse.Namespace) -> int:
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
-    model = StackPoseConfig(head=args.head, width=args.width)
+    asked = {
+        "head": args.head,
+        "width": args.width,
+        "representation": None
+        if args.loss is None
+        else representations_by_cli_name()[args.loss].name,
+    }
+    asked = {key: value for key, value in asked.items() if value is not None}
+    init = None
+    if args.init_from is not None:
+        try:
+            start = load_stack_pose_model(args.init_from)
+        except (CheckpointError, OSError) as err:
+            raise CliError(f"--init-from {args.init_from}: {err}") from err
+        model = start.config
+        for key, value in asked.items():
+            if getattr(model, key) != value:
+                raise CliError(
+                    f"--{'loss' if key == 'representation' else key} {value} differs from the "
+                    f"--init-from model's {getattr(model, key)}; leave it out"
+                )
+        init = start.state_dict()
+    else:
+        try:
+            model = StackPoseConfig(**asked)
+        except ValueError as err:
+            raise CliError(str(err)) from err
     training = StackPoseTrainingConfig(
-        steps=args.steps, checkpoint_every=args.checkpoint_every, seed=args.seed
+        steps=args.steps,
+        learning_rate=args.learning_rate,
+        checkpoint_every=args.checkpoint_every,
+        seed=args.seed,
     )
     if torch.device(device).type == "cpu":
         torch.set_num_threads(1)  # one process per core trains fastest (measured)
@@ -138,8 +197,10 @@ def run(args: argparse.Namespace) -> int:
                 "volume_downsample": args.volume_downsample,
             },
             "command": shlex.join(["svr", *sys.argv[1:]]),
+            "init_from": args.init_from,
         },
         device=device,
+        init=init,
     )
     print(f"trained in {time.time() - began:.0f} s; checkpoints in {args.output_dir}")
     return 0
