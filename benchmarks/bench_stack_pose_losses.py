@@ -20,6 +20,11 @@ trained on) and the bench cases, two ways:
 * ``local``: three refinements from the true frame turned by 20 degrees about a random axis and
   shifted 5 mm (the part that the pose loss trains).
 
+Beside them, the single-slice route (``--slice-model``, default the shipped slice-pose model):
+every slice's canonical pose predicted on its own, then the stack's robust consensus with the
+mirror-twin disambiguation (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`), as
+``estimate`` only.
+
 Paired comparison per stack against ``se3``: the Wilcoxon signed-rank test on the rotation errors
 (two-sided p) and the share of stacks where the baseline is worse.
 
@@ -45,6 +50,8 @@ from bench_learned_stack_poses import bench_stacks, held_out_stacks, rotation_de
 from scipy.stats import wilcoxon
 
 from svr.geometry import se3_compose, se3_inverse, so3_exp
+from svr.image import Image
+from svr.models.predict import load_pose_model
 from svr.models.stack_pose import (
     StackPoseConfig,
     estimate_stack_pose,
@@ -52,6 +59,9 @@ from svr.models.stack_pose import (
     refine_frames,
 )
 from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
+from svr.reconstruction.cnn_init import cnn_slice_poses
+from svr.reconstruction.slices import extract_slices
+from svr.reconstruction.stacks import prepare_stacks
 from svr.representations import representations_by_cli_name
 from svr.sampling.blocks import coarsen_stack, stack_frame
 from svr.sampling.motion import load_trajectories
@@ -103,6 +113,7 @@ def main() -> int:
     parser.add_argument("--cases-per-age", type=int, default=3)
     parser.add_argument("--stacks-per-case", type=int, default=3)
     parser.add_argument("--turn-deg", type=float, default=20.0)
+    parser.add_argument("--slice-model", default="default", help="'' to leave it out")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--results", type=Path, default=None)
@@ -119,6 +130,9 @@ def main() -> int:
         loss: {"estimate": [], "local": [], "estimate_mm": [], "local_mm": []}
         for loss in args.losses
     }
+    slice_model = load_pose_model(args.slice_model) if args.slice_model else None
+    if slice_model is not None:
+        errors["slice model"] = {"estimate": [], "estimate_mm": []}
     gen = torch.Generator().manual_seed(args.seed)
     for item in stacks:
         frame_of = stack_frame(item["image"])
@@ -134,6 +148,17 @@ def main() -> int:
                 errors[loss][kind].append(rotation_deg(pose, item["pose"]))
                 errors[loss][f"{kind}_mm"].append(float((pose[:3, 3] - item["pose"][:3, 3]).norm()))
             line += f"  {loss} {errors[loss]['estimate'][-1]:6.1f}/{errors[loss]['local'][-1]:5.1f}"
+        if slice_model is not None:
+            prepared = prepare_stacks(
+                [item["image"]], [Image(item["mask"].float(), item["image"].affine)]
+            )
+            learned = cnn_slice_poses(slice_model, prepared, extract_slices(prepared))
+            pose = se3_compose(learned.stack_transforms[0].double().cpu(), frame_of)
+            errors["slice model"]["estimate"].append(rotation_deg(pose, item["pose"]))
+            errors["slice model"]["estimate_mm"].append(
+                float((pose[:3, 3] - item["pose"][:3, 3]).norm())
+            )
+            line += f"  slice model {errors['slice model']['estimate'][-1]:6.1f}"
         print(line, flush=True)
 
     lines = [
@@ -149,7 +174,7 @@ def main() -> int:
     summary = {}
     for kind in ("estimate", "local"):
         ref = np.array(errors["se3"][kind])
-        for loss in args.losses:
+        for loss in [name for name in errors if kind in errors[name]]:
             rot = np.array(errors[loss][kind])
             mm = np.array(errors[loss][f"{kind}_mm"])
             if loss == "se3":

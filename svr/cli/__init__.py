@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 from svr import __version__
 from svr.cli import (
+    bids,
     demo,
     evaluate,
     predict,
@@ -40,6 +41,7 @@ SUBCOMMANDS = {
     "segment-stack": segment_stack,
     "register": register,
     "reconstruct": reconstruct,
+    "bids": bids,
     "demo": demo,
 }
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import io
 import logging
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict
 from typing import TYPE_CHECKING
@@ -32,7 +32,7 @@ from svr.files import atomic_write_text
 
 if TYPE_CHECKING:
     from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
-    from svr.reconstruction.stacks import StackConfig
+    from svr.reconstruction.stacks import Stack, StackConfig
 
 DESCRIPTION = """\
 Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
@@ -96,15 +96,6 @@ def add_options(
         volume_required: Whether ``--output-volume`` is required.
         iterations: Default of ``--iterations``; ``None`` for the library's default.
     """
-    from svr.reconstruction.config import (
-        ADAPTIVE_MAX_ROUNDS,
-        FIXED_ROUNDS,
-        REGISTRATIONS,
-        SCHEDULES,
-        ReconstructionConfig,
-    )
-
-    d = ReconstructionConfig()
     inputs = parser.add_argument_group("inputs")
     inputs.add_argument(
         "--input-stacks", nargs="+", required=True, metavar="STACK", help="stacks (NIfTI)"
@@ -116,30 +107,7 @@ def add_options(
         help="brain masks (NIfTI, any grid that overlaps the stack), one per stack in order "
         "(default: automatic masks, see --auto-masks)",
     )
-    inputs.add_argument(
-        "--auto-masks",
-        choices=["network", "otsu"],
-        default="network",
-        help="masks of stacks given without --stack-masks: network (the shipped brain-mask "
-        "networks of svr segment-stack; reliable on cropped stacks, looser than manual masks on "
-        "whole-uterus ones) or otsu (the largest bright region all stacks see; stacks cropped "
-        "around the brain only)",
-    )
-    inputs.add_argument(
-        "--mask-model",
-        default="default",
-        metavar="CHECKPOINT_DIR",
-        help=f"{MASK_MODEL_HELP} (for --auto-masks network)",
-    )
-    inputs.add_argument(
-        "--fuse-masks",
-        action="store_true",
-        help="make the automatic masks (--auto-masks network, 3 or more stacks) agree in 3D: "
-        "the stacks are registered rigidly on their own masks and each stack's mask becomes the "
-        "vote of all of them, as `svr segment-stack --fuse-masks` does (with large motion between "
-        "the stacks the rigid registration misaligns the vote: measured up to 3.2 dB worse on "
-        "simulated cases, benchmarks/results/reconstruction-masks.md)",
-    )
+    add_mask_options(inputs)
     inputs.add_argument(
         "--thicknesses",
         nargs="+",
@@ -171,6 +139,58 @@ def add_options(
         "--output-log", metavar="FILE", help="text log: messages, settings, timings per phase"
     )
     outputs.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    add_settings_options(parser, iterations)
+    add_common_options(parser)
+
+
+def add_mask_options(group: argparse._ArgumentGroup) -> None:
+    """Add the automatic brain-mask options (``svr reconstruct``, ``svr register``, ``svr bids``).
+
+    Args:
+        group: The argument group to add them to.
+    """
+    group.add_argument(
+        "--auto-masks",
+        choices=["network", "otsu"],
+        default="network",
+        help="masks of stacks given without --stack-masks: network (the shipped brain-mask "
+        "networks of svr segment-stack; reliable on cropped stacks, looser than manual masks on "
+        "whole-uterus ones) or otsu (the largest bright region all stacks see; stacks cropped "
+        "around the brain only)",
+    )
+    group.add_argument(
+        "--mask-model",
+        default="default",
+        metavar="CHECKPOINT_DIR",
+        help=f"{MASK_MODEL_HELP} (for --auto-masks network)",
+    )
+    group.add_argument(
+        "--fuse-masks",
+        action="store_true",
+        help="make the automatic masks (--auto-masks network, 3 or more stacks) agree in 3D: "
+        "the stacks are registered rigidly on their own masks and each stack's mask becomes the "
+        "vote of all of them, as `svr segment-stack --fuse-masks` does (with large motion between "
+        "the stacks the rigid registration misaligns the vote: measured up to 3.2 dB worse on "
+        "simulated cases, benchmarks/results/reconstruction-masks.md)",
+    )
+
+
+def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None) -> None:
+    """Add the reconstruction settings (``svr reconstruct``, ``svr register``, ``svr bids``).
+
+    Args:
+        parser: The subcommand's parser.
+        iterations: Default of ``--iterations``; ``None`` for the library's default.
+    """
+    from svr.reconstruction.config import (
+        ADAPTIVE_MAX_ROUNDS,
+        FIXED_ROUNDS,
+        REGISTRATIONS,
+        SCHEDULES,
+        ReconstructionConfig,
+    )
+
+    d = ReconstructionConfig()
     settings = parser.add_argument_group("reconstruction")
     settings.add_argument(
         "--output-resolution",
@@ -271,7 +291,6 @@ def add_options(
         metavar="NCC",
         help="slices whose NCC with their simulation is below this are excluded",
     )
-    add_common_options(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -281,37 +300,25 @@ def run(args: argparse.Namespace) -> int:
         CliError: For inconsistent options or output paths.
         ValueError, OSError: From the library (bad or missing files, checkpoints), naming the file.
     """
-    from svr.models.predict import load_any_pose_model
-    from svr.reconstruction.pipeline import reconstruct
-    from svr.reconstruction.stacks import load_stacks
-    from svr.sampling.volume import load_canonical_volume
-
-    stack_config, config = _configs(args)
+    count = len(args.input_stacks)
+    if args.stack_masks is not None and len(args.stack_masks) != count:
+        raise CliError(
+            f"--stack-masks: got {len(args.stack_masks)} masks for {count} stacks; give none or "
+            "one per stack"
+        )
+    check_thickness_count(args.thicknesses, count)
+    stack_config, config = build_configs(args, count)
     _check_outputs(args)
     device = resolve_device(args.device)
-    if config.registration != "cnn" and args.model != "stack-pose":
-        log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
-    if (args.atlas_volume is None) != (args.atlas_mask is None):
-        raise CliError("--atlas-volume and --atlas-mask go together")
-    if config.registration == "cnn" and args.model == "none" and args.atlas_volume is None:
-        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
     with _captured_log() as captured:
-        model = None
-        if config.registration == "cnn" and args.model != "none":
-            model = load_any_pose_model(args.model, device)
-        atlas = None
-        if config.registration == "cnn" and args.atlas_volume is not None:
-            atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
-        stacks = load_stacks(
+        stacks, result = load_and_reconstruct(
+            args,
             args.input_stacks,
             args.stack_masks,
             args.thicknesses,
             stack_config,
-            args.mask_model,
+            config,
             device,
-        )
-        result = reconstruct(
-            stacks, config, model=model, device=device, progress=not args.quiet, atlas=atlas
         )
         _log_result(result)
         written = _write_outputs(args, result)
@@ -325,6 +332,67 @@ def run(args: argparse.Namespace) -> int:
         f"{excluded} excluded, {result.slices.frame} frame"
     )
     return 0
+
+
+def load_and_reconstruct(
+    args: argparse.Namespace,
+    stack_paths: Sequence[str],
+    mask_paths: Sequence[str] | None,
+    thicknesses: Sequence[float] | None,
+    stack_config: StackConfig,
+    config: ReconstructionConfig,
+    device: str,
+) -> tuple[list[Stack], ReconstructionResult]:
+    """Load the model, atlas and stacks that the options name, and reconstruct.
+
+    The one path from options to a result, shared by ``svr reconstruct``, ``svr register`` and
+    each participant of ``svr bids``, so that they give identical volumes for the same stacks.
+
+    Args:
+        args: The parsed settings (``--model``, ``--atlas-volume``, ``--atlas-mask``,
+            ``--mask-model``, ``--quiet``).
+        stack_paths: The stacks (NIfTI).
+        mask_paths: One brain mask per stack, or ``None`` for automatic masks.
+        thicknesses: Slice thickness (mm): one for all stacks, one per stack, or ``None``.
+        stack_config: Stack preparation (:func:`build_configs`).
+        config: The reconstruction (:func:`build_configs`).
+        device: Torch device.
+
+    Returns:
+        The prepared stacks and the reconstruction.
+
+    Raises:
+        CliError: For inconsistent model and atlas options.
+    """
+    from svr.models.predict import load_any_pose_model
+    from svr.reconstruction.pipeline import reconstruct
+    from svr.reconstruction.stacks import load_stacks
+    from svr.sampling.volume import load_canonical_volume
+
+    if config.registration != "cnn" and args.model != "stack-pose":
+        log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
+    if (args.atlas_volume is None) != (args.atlas_mask is None):
+        raise CliError("--atlas-volume and --atlas-mask go together")
+    if config.registration == "cnn" and args.model == "none" and args.atlas_volume is None:
+        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
+    model = None
+    if config.registration == "cnn" and args.model != "none":
+        model = load_any_pose_model(args.model, device)
+    atlas = None
+    if config.registration == "cnn" and args.atlas_volume is not None:
+        atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
+    stacks = load_stacks(
+        list(stack_paths),
+        None if mask_paths is None else list(mask_paths),
+        None if thicknesses is None else list(thicknesses),
+        stack_config,
+        args.mask_model,
+        device,
+    )
+    result = reconstruct(
+        stacks, config, model=model, device=device, progress=not args.quiet, atlas=atlas
+    )
+    return stacks, result
 
 
 _OPTIONS = {
@@ -343,21 +411,25 @@ _OPTIONS = {
 """The option behind each ReconstructionConfig field that the command sets."""
 
 
-def _configs(args: argparse.Namespace) -> tuple[StackConfig, ReconstructionConfig]:
-    """The dataclass configs the options describe, after the checks argparse cannot do."""
+def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, ReconstructionConfig]:
+    """The dataclass configs the settings describe, after the checks argparse cannot do.
+
+    Args:
+        args: The parsed settings.
+        count: The number of stacks they apply to (``--template`` and ``--fuse-masks`` checks).
+
+    Returns:
+        The stack preparation and reconstruction configs.
+
+    Raises:
+        CliError: Naming the option, for a value out of range.
+    """
     from svr.reconstruction.config import ReconstructionConfig
     from svr.reconstruction.stacks import StackConfig
 
-    count = len(args.input_stacks)
-    if args.stack_masks is not None and len(args.stack_masks) != count:
-        raise CliError(
-            f"--stack-masks: got {len(args.stack_masks)} masks for {count} stacks; give none or "
-            "one per stack"
-        )
-    check_thickness_count(args.thicknesses, count)
     if args.template is not None and not 0 <= args.template < count:
         raise CliError(f"--template {args.template}: must be a stack index in [0, {count})")
-    if args.fuse_masks and args.stack_masks is not None:
+    if args.fuse_masks and getattr(args, "stack_masks", None) is not None:
         raise CliError("--fuse-masks: only for automatic masks (give no --stack-masks)")
     if args.fuse_masks and args.auto_masks != "network":
         raise CliError("--fuse-masks: needs --auto-masks network")

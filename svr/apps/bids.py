@@ -1,0 +1,506 @@
+"""Cohorts as BIDS datasets: which stacks each participant has, where the derivatives go.
+
+The library side of ``svr bids`` (a BIDS App: ``svr bids BIDS_DIR OUTPUT_DIR participant|group``).
+The dataset is read with pybids (:class:`bids.BIDSLayout`), never by parsing paths by hand:
+
+* :func:`find_participants`: every T2w stack (``anat``, ``.nii``/``.nii.gz``, no ``desc``
+  entity) of each subject and session, with its brain mask from a derivatives folder
+  (``desc-brain_mask``, the same entities as the stack) when one is given and its slice thickness
+  from the JSON sidecar (``SliceThickness``) when it has one. Every problem a user can cause is a
+  :class:`BidsError` with a one-line message, raised before anything is written.
+* :func:`participant_outputs` names the derivatives of one participant (and session):
+  ``sub-XX[/ses-YY]/anat/sub-XX[_ses-YY]_rec-svr_T2w.nii.gz``, its brain mask
+  (``_rec-svr_desc-brain_mask.nii.gz``), the slice transforms (``_rec-svr_transforms.csv``), the
+  quality figure (``_rec-svr_qa.png``) and the JSON sidecar with the provenance
+  (``_rec-svr_T2w.json``). The participant's folder (``sub-XX``, or ``sub-XX/ses-YY``) is built
+  in a temporary sibling and moved into place when complete (:func:`svr.files.atomic_directory`),
+  so a job killed half-way leaves no partial derivative, and a folder that exists is a finished
+  participant.
+* :func:`write_dataset_description` (``dataset_description.json`` with ``GeneratedBy``) and
+  :func:`group_report`: one TSV and one HTML page over every finished participant.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import html
+import json
+import os
+import platform
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from svr import __version__
+from svr.files import atomic_write_text
+
+__all__ = [
+    "GROUP_HTML",
+    "GROUP_TSV",
+    "BidsError",
+    "BidsStack",
+    "Participant",
+    "ParticipantOutputs",
+    "check_output_dir",
+    "file_sha256",
+    "find_participants",
+    "group_report",
+    "participant_outputs",
+    "read_sidecars",
+    "write_dataset_description",
+]
+
+PIPELINE = "fetal-svr"
+"""The ``GeneratedBy`` name of the derivatives."""
+
+GROUP_TSV = "svr_group.tsv"
+"""The group level's table, at the top of the output folder."""
+
+GROUP_HTML = "svr_group.html"
+"""The group level's review page, at the top of the output folder."""
+
+_NIFTI = [".nii", ".nii.gz"]
+_MATCHED = ("session", "acquisition", "run", "reconstruction", "direction")
+"""Entities a stack's brain mask must share with it (absent on the stack: absent on the mask)."""
+
+
+class BidsError(ValueError):
+    """A problem with the BIDS input or the output folder, worded for the command line."""
+
+
+@dataclass(frozen=True)
+class BidsStack:
+    """One T2w stack of a participant.
+
+    Attributes:
+        path: The stack (NIfTI).
+        mask: Its brain mask from the masks folder, or ``None`` (an automatic mask).
+        thickness_mm: ``SliceThickness`` from its JSON sidecar (mm), or ``None``.
+        relative: The stack's path relative to the dataset, for provenance.
+    """
+
+    path: Path
+    mask: Path | None
+    thickness_mm: float | None
+    relative: str
+
+
+@dataclass(frozen=True)
+class Participant:
+    """The stacks of one subject (and session) that are reconstructed together.
+
+    Attributes:
+        subject: The subject label, without ``sub-``.
+        session: The session label without ``ses-``, or ``None``.
+        stacks: The T2w stacks, in the dataset's order (by file name).
+    """
+
+    subject: str
+    session: str | None
+    stacks: tuple[BidsStack, ...] = field(default_factory=tuple)
+
+    @property
+    def label(self) -> str:
+        """``sub-XX`` or ``sub-XX_ses-YY``: the prefix of the derivatives' file names."""
+        return f"sub-{self.subject}" + (f"_ses-{self.session}" if self.session else "")
+
+    @property
+    def folder(self) -> Path:
+        """``sub-XX`` or ``sub-XX/ses-YY``: the unit that is written atomically."""
+        base = Path(f"sub-{self.subject}")
+        return base / f"ses-{self.session}" if self.session else base
+
+
+@dataclass(frozen=True)
+class ParticipantOutputs:
+    """The derivatives of one participant, relative to the participant's folder.
+
+    Attributes:
+        volume: The reconstruction.
+        mask: Its brain mask.
+        transforms: The slices' poses and quality.
+        qa: The quality figure.
+        sidecar: The JSON sidecar (provenance).
+    """
+
+    volume: Path
+    mask: Path
+    transforms: Path
+    qa: Path
+    sidecar: Path
+
+
+def participant_outputs(participant: Participant) -> ParticipantOutputs:
+    """The derivative file names of a participant (relative to :attr:`Participant.folder`)."""
+    stem = f"anat/{participant.label}_rec-svr"
+    return ParticipantOutputs(
+        volume=Path(f"{stem}_T2w.nii.gz"),
+        mask=Path(f"{stem}_desc-brain_mask.nii.gz"),
+        transforms=Path(f"{stem}_transforms.csv"),
+        qa=Path(f"{stem}_qa.png"),
+        sidecar=Path(f"{stem}_T2w.json"),
+    )
+
+
+def _layout(root: Path, validate: bool, derivative: bool = False) -> Any:
+    """A pybids layout of ``root`` (imported here: pybids takes a second to import)."""
+    from bids import BIDSLayout
+    from bids.exceptions import BIDSValidationError
+
+    try:
+        return BIDSLayout(root, validate=validate, is_derivative=derivative)
+    except BIDSValidationError as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise BidsError(
+            f"{root}: not a BIDS dataset ({first.rstrip('.')}); --skip-bids-validation reads it "
+            "anyway"
+        ) from err
+    except ValueError as err:
+        raise BidsError(f"{root}: {err}") from err
+
+
+def check_output_dir(bids_dir: str | os.PathLike[str], output_dir: str | os.PathLike[str]) -> None:
+    """Refuse an output folder inside the input dataset (or the dataset itself).
+
+    Raises:
+        BidsError: If ``output_dir`` is ``bids_dir`` or lies inside it.
+    """
+    source, out = Path(bids_dir).resolve(), Path(output_dir).resolve()
+    if out == source or source in out.parents:
+        raise BidsError(
+            f"OUTPUT_DIR {output_dir}: inside the input dataset {bids_dir}; give a folder outside "
+            "it (e.g. next to it)"
+        )
+
+
+def find_participants(
+    bids_dir: str | os.PathLike[str],
+    participant_labels: Sequence[str] | None = None,
+    session_labels: Sequence[str] | None = None,
+    masks_dir: str | os.PathLike[str] | None = None,
+    validate: bool = True,
+) -> list[Participant]:
+    """The participants (subject and session) to reconstruct, with their stacks and masks.
+
+    Args:
+        bids_dir: The BIDS dataset.
+        participant_labels: Subjects to take (with or without ``sub-``); ``None`` for all.
+        session_labels: Sessions to take (with or without ``ses-``); ``None`` for all.
+        masks_dir: A derivatives folder of brain masks (``desc-brain_mask``), or ``None``.
+        validate: Require a valid dataset (``dataset_description.json``).
+
+    Returns:
+        One :class:`Participant` per subject and session, ordered by label.
+
+    Raises:
+        BidsError: For a folder that is not a BIDS dataset, an unknown participant or session
+            label, a participant with no T2w stack, or masks that do not match the stacks one
+            to one.
+    """
+    root = Path(bids_dir)
+    if not root.is_dir():
+        raise BidsError(f"BIDS_DIR {bids_dir}: no such folder")
+    layout = _layout(root, validate)
+    subjects = sorted(layout.get_subjects())
+    if not subjects:
+        raise BidsError(f"BIDS_DIR {bids_dir}: no sub-* folder; is it a BIDS dataset?")
+    if participant_labels:
+        wanted = [label.removeprefix("sub-") for label in participant_labels]
+        unknown = [label for label in wanted if label not in subjects]
+        if unknown:
+            raise BidsError(
+                f"--participant-label {' '.join(unknown)}: no such participant in {bids_dir} "
+                f"(it has {', '.join(subjects)})"
+            )
+        subjects = list(dict.fromkeys(wanted))
+    sessions_wanted = None
+    if session_labels:
+        sessions_wanted = [label.removeprefix("ses-") for label in session_labels]
+        known = set(layout.get_sessions())
+        unknown = [label for label in sessions_wanted if label not in known]
+        if unknown:
+            raise BidsError(
+                f"--session-label {' '.join(unknown)}: no such session in {bids_dir}"
+                + (f" (it has {', '.join(sorted(known))})" if known else " (it has none)")
+            )
+    masks = None if masks_dir is None else _masks_layout(Path(masks_dir))
+    out = []
+    for subject in subjects:
+        sessions = sorted(layout.get_sessions(subject=subject)) or [None]
+        if sessions_wanted is not None:
+            sessions = [s for s in sessions if s in sessions_wanted]
+            if not sessions:
+                continue
+        for session in sessions:
+            files = layout.get(
+                subject=subject,
+                session=session,
+                datatype="anat",
+                suffix="T2w",
+                extension=_NIFTI,
+                desc=None,
+                invalid_filters="allow",
+            )
+            label = f"sub-{subject}" + (f"_ses-{session}" if session else "")
+            if not files:
+                raise BidsError(f"{label}: no T2w stack (anat/*_T2w.nii[.gz]) in {bids_dir}")
+            files = sorted(files, key=lambda f: f.path)
+            found = [_mask_for(masks, f, label, Path(masks_dir)) for f in files] if masks else []
+            if masks is not None:
+                _check_mask_count(masks, subject, session, label, len(files), Path(masks_dir))
+            stacks = tuple(
+                BidsStack(
+                    path=Path(f.path),
+                    mask=found[i] if found else None,
+                    thickness_mm=_thickness(layout.get_metadata(f.path), f.path),
+                    relative=Path(f.path).relative_to(root.resolve()).as_posix()
+                    if Path(f.path).is_relative_to(root.resolve())
+                    else f.path,
+                )
+                for i, f in enumerate(files)
+            )
+            out.append(Participant(subject, session, stacks))
+    if not out:
+        raise BidsError(f"{bids_dir}: no participant has the sessions asked for")
+    return out
+
+
+def _masks_layout(folder: Path) -> Any:
+    if not folder.is_dir():
+        raise BidsError(f"--masks-dir {folder}: no such folder")
+    return _layout(folder, validate=False, derivative=True)
+
+
+def _mask_query(subject: str, session: str | None) -> dict[str, Any]:
+    return {
+        "subject": subject,
+        "session": session,
+        "desc": "brain",
+        "suffix": "mask",
+        "extension": _NIFTI,
+        "invalid_filters": "allow",
+    }
+
+
+def _mask_for(masks: Any, stack: Any, label: str, folder: Path) -> Path:
+    """The brain mask with the stack's entities, exactly one."""
+    entities = stack.get_entities()
+    query = _mask_query(entities["subject"], entities.get("session"))
+    query.update({key: entities.get(key) for key in _MATCHED if key != "session"})
+    found = masks.get(**query)
+    if len(found) != 1:
+        what = "no brain mask" if not found else f"{len(found)} brain masks"
+        raise BidsError(
+            f"--masks-dir {folder}: {what} (desc-brain_mask) for {Path(stack.path).name} of {label}"
+        )
+    return Path(found[0].path)
+
+
+def _check_mask_count(
+    masks: Any, subject: str, session: str | None, label: str, stacks: int, folder: Path
+) -> None:
+    count = len(masks.get(**_mask_query(subject, session)))
+    if count != stacks:
+        raise BidsError(
+            f"--masks-dir {folder}: {label} has {count} brain masks for {stacks} T2w stacks; "
+            "give one per stack or none"
+        )
+
+
+def _thickness(metadata: dict[str, Any], path: str) -> float | None:
+    value = metadata.get("SliceThickness")
+    if value is None:
+        return None
+    try:
+        thickness = float(value)
+    except (TypeError, ValueError) as err:
+        raise BidsError(f"{path}: sidecar SliceThickness {value!r} is not a number") from err
+    if not thickness > 0:
+        raise BidsError(f"{path}: sidecar SliceThickness must be > 0, got {value!r}")
+    return thickness
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file's content, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def write_dataset_description(
+    output_dir: str | os.PathLike[str], bids_dir: str | os.PathLike[str]
+) -> Path:
+    """Write (or refresh) the derivatives' ``dataset_description.json`` with ``GeneratedBy``."""
+    description = {
+        "Name": "fetal-svr slice-to-volume reconstructions",
+        "BIDSVersion": "1.9.0",
+        "DatasetType": "derivative",
+        "GeneratedBy": [
+            {
+                "Name": PIPELINE,
+                "Version": __version__,
+                "Description": "Fetal MRI slice-to-volume reconstruction (svr bids)",
+            }
+        ],
+        "SourceDatasets": [{"URL": Path(bids_dir).resolve().as_uri()}],
+    }
+    return atomic_write_text(
+        Path(output_dir) / "dataset_description.json",
+        json.dumps(description, indent=2) + "\n",
+        overwrite=True,
+    )
+
+
+def environment() -> dict[str, str]:
+    """The software a derivative was made with (for the provenance)."""
+    import torch
+
+    return {
+        "fetal-svr": __version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+    }
+
+
+def read_sidecars(
+    output_dir: str | os.PathLike[str], participant_labels: Iterable[str] | None = None
+) -> list[dict[str, Any]]:
+    """The provenance sidecars of every finished participant in ``output_dir``, by label.
+
+    Args:
+        output_dir: The derivatives folder.
+        participant_labels: Subjects to keep (with or without ``sub-``); ``None`` for all.
+
+    Returns:
+        The sidecars' contents, each with ``"_path"`` (the sidecar relative to ``output_dir``).
+    """
+    root = Path(output_dir)
+    keep = (
+        None if participant_labels is None else {p.removeprefix("sub-") for p in participant_labels}
+    )
+    out = []
+    for path in sorted(root.glob("sub-*/**/anat/*_rec-svr_T2w.json")):
+        if any(part.startswith(".") for part in path.relative_to(root).parts):
+            continue  # a participant still being written
+        data = json.loads(path.read_text(encoding="utf-8"))
+        svr = data.get("svr", {})
+        if keep is not None and svr.get("subject") not in keep:
+            continue
+        data["_path"] = path.relative_to(root).as_posix()
+        out.append(data)
+    return out
+
+
+_COLUMNS = (
+    "participant_id",
+    "session_id",
+    "stacks",
+    "slices",
+    "slices_excluded",
+    "initialisation",
+    "frame",
+    "rounds",
+    "converged",
+    "seconds",
+    "device",
+    "warnings",
+)
+
+
+def _row(sidecar: dict[str, Any]) -> dict[str, str]:
+    svr = sidecar["svr"]
+    kept = svr.get("initialisation", {})
+    return {
+        "participant_id": f"sub-{svr['subject']}",
+        "session_id": f"ses-{svr['session']}" if svr.get("session") else "n/a",
+        "stacks": str(len(svr.get("inputs", []))),
+        "slices": str(svr.get("slices", "n/a")),
+        "slices_excluded": str(svr.get("slices_excluded", "n/a")),
+        "initialisation": ", ".join(f"{v}" for v in kept.values()) or "n/a",
+        "frame": str(svr.get("frame", "n/a")),
+        "rounds": str(svr.get("rounds", "n/a")),
+        "converged": "n/a" if svr.get("converged") is None else str(svr["converged"]).lower(),
+        "seconds": f"{svr.get('total_seconds', float('nan')):.1f}",
+        "device": str(svr.get("device", "n/a")),
+        "warnings": " | ".join(svr.get("warnings", [])) or "",
+    }
+
+
+def group_report(
+    output_dir: str | os.PathLike[str], participant_labels: Iterable[str] | None = None
+) -> tuple[Path, Path, int]:
+    """Write the group level: one TSV and one HTML review page over the finished participants.
+
+    Args:
+        output_dir: The derivatives folder of the participant level.
+        participant_labels: Subjects to include; ``None`` for all.
+
+    Returns:
+        The TSV, the HTML page and the number of participants in them.
+
+    Raises:
+        BidsError: If no participant has finished in ``output_dir``.
+    """
+    root = Path(output_dir)
+    sidecars = read_sidecars(root, participant_labels)
+    if not sidecars:
+        raise BidsError(
+            f"OUTPUT_DIR {output_dir}: no finished participant (run the participant level first)"
+        )
+    rows = [_row(s) for s in sidecars]
+    tsv = "\t".join(_COLUMNS) + "\n"
+    tsv += "".join(
+        "\t".join(r[c].replace("\t", " ").replace("\n", " ") for c in _COLUMNS) + "\n" for r in rows
+    )
+    tsv_path = atomic_write_text(root / GROUP_TSV, tsv, overwrite=True)
+    index, cards = [], []
+    for sidecar, row in zip(sidecars, rows, strict=True):
+        session = "" if row["session_id"] == "n/a" else f" {row['session_id']}"
+        title = html.escape(row["participant_id"] + session)
+        anchor = title.replace(" ", "_")
+        sidecar_path = Path(sidecar["_path"])
+        qa = html.escape(
+            sidecar_path.with_name(sidecar_path.name.replace("_T2w.json", "_qa.png")).as_posix()
+        )
+        warnings = sidecar["svr"].get("warnings", [])
+        flag = " (warnings)" if warnings else ""
+        index.append(f"<li><a href='#{anchor}'>{title}</a>{flag}</li>")
+        notes = (
+            "<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>"
+            if warnings
+            else "<p class='ok'>no warnings</p>"
+        )
+        facts = "".join(
+            f"<tr><th>{html.escape(c.replace('_', ' '))}</th><td>{html.escape(row[c])}</td></tr>"
+            for c in _COLUMNS[2:-1]
+        )
+        cards.append(
+            f"<section id='{anchor}'><h2>{title}</h2>"
+            f"<a href='{qa}'><img src='{qa}' alt='QA figure of {title}' loading='lazy'></a>"
+            f"<table>{facts}</table>{notes}</section>"
+        )
+    flagged = sum(1 for s in sidecars if s["svr"].get("warnings"))
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>fetal-svr: {len(sidecars)} participants</title>
+<style>
+body {{ font-family: sans-serif; margin: 1.5em; }}
+section {{ border-top: 1px solid #ccc; padding: 0.5em 0; }}
+img {{ max-width: 100%; width: 900px; }}
+th {{ text-align: left; padding-right: 1em; font-weight: normal; color: #555; }}
+.warn li {{ color: #a40; }} .ok {{ color: #070; }}
+</style></head><body>
+<h1>fetal-svr reconstructions</h1>
+<p>{len(sidecars)} participants, {flagged} with warnings; the table:
+<a href="{GROUP_TSV}">{GROUP_TSV}</a>. Each figure is the participant's QA page (orthogonal
+views of the volume, slices kept and excluded); click it to enlarge.</p>
+<ul>{"".join(index)}</ul>
+{"".join(cards)}
+</body></html>
+"""
+    html_path = atomic_write_text(root / GROUP_HTML, page, overwrite=True)
+    return tsv_path, html_path, len(sidecars)

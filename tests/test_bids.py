@@ -1,0 +1,258 @@
+"""``svr bids``: a tiny BIDS dataset made here (2 subjects, one with a session), fast settings."""
+
+from __future__ import annotations
+
+import io
+import json
+import shutil
+from contextlib import redirect_stdout
+from pathlib import Path
+
+import pytest
+import torch
+
+import svr.cli
+from svr.apps.bids import (
+    GROUP_HTML,
+    GROUP_TSV,
+    BidsError,
+    find_participants,
+    participant_outputs,
+)
+from svr.image import load_nifti, save_nifti
+from svr.sampling.phantom import gestational_age_config, make_phantom
+from svr.sampling.simulate import SimulationConfig, simulate_case
+from svr.sampling.volume import canonicalize
+
+# As tests/test_cli_reconstruct.py: three 26 x 26 x 13 stacks of a 20-week phantom at 2 mm.
+FAST = [
+    "--output-resolution", "2.5", "--iterations", "2", "--sr-iterations", "5",
+    "--svr-iterations", "3", "--registration", "stack", "--device", "cpu", "-q",
+]  # fmt: skip
+SUBJECTS = (("01", None, 0), ("02", "1", 1))
+"""(subject, session, simulation seed) of the dataset."""
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.write_text(json.dumps(data), encoding="utf-8")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> tuple[Path, Path]:
+    """A BIDS dataset and a derivatives folder of its brain masks."""
+    root = tmp_path_factory.mktemp("bids")
+    bids_dir, masks_dir = root / "study", root / "study-masks"
+    bids_dir.mkdir()
+    _write_json(bids_dir / "dataset_description.json", {"Name": "tiny", "BIDSVersion": "1.9.0"})
+    (bids_dir / "participants.tsv").write_text("participant_id\nsub-01\nsub-02\n")
+    masks_dir.mkdir()
+    _write_json(masks_dir / "dataset_description.json", {
+        "Name": "masks", "BIDSVersion": "1.9.0", "DatasetType": "derivative",
+        "GeneratedBy": [{"Name": "manual"}]})  # fmt: skip
+    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    phantom = canonicalize(volume, mask, name="phantom")
+    for subject, session, seed in SUBJECTS:
+        config = SimulationConfig(
+            thickness_mm=5.0, in_plane_mm=2.5, margin_mm=3.0, random_walk_rotation_deg=3.0,
+            random_walk_translation_mm=1.5, noise=0.01, seed=seed,
+        )  # fmt: skip
+        case = simulate_case(phantom, config)
+        prefix = f"sub-{subject}" + (f"_ses-{session}" if session else "")
+        rel = Path(f"sub-{subject}") / (f"ses-{session}" if session else "") / "anat"
+        (bids_dir / rel).mkdir(parents=True)
+        (masks_dir / rel).mkdir(parents=True)
+        for run, stack in enumerate(case.stacks, start=1):
+            save_nifti(stack.image, bids_dir / rel / f"{prefix}_run-{run}_T2w.nii.gz")
+            _write_json(bids_dir / rel / f"{prefix}_run-{run}_T2w.json", {"SliceThickness": 5.0})
+            save_nifti(stack.mask, masks_dir / rel / f"{prefix}_run-{run}_desc-brain_mask.nii.gz")
+    return bids_dir, masks_dir
+
+
+def _main(argv: list[str]) -> tuple[int, str]:
+    buffer = io.StringIO()
+    with redirect_stdout(buffer):
+        code = svr.cli.main(argv)
+    return code, buffer.getvalue()
+
+
+@pytest.fixture(scope="module")
+def participant_run(dataset, tmp_path_factory) -> Path:
+    """The participant level for sub-01 (given masks)."""
+    bids_dir, masks_dir = dataset
+    out = tmp_path_factory.mktemp("out") / "derivatives"
+    code, _ = _main([
+        "bids", str(bids_dir), str(out), "participant", "--participant-label", "01",
+        "--masks-dir", str(masks_dir), *FAST])  # fmt: skip
+    assert code == 0
+    return out
+
+
+def test_finds_stacks_masks_and_thicknesses_with_pybids(dataset):
+    bids_dir, masks_dir = dataset
+    found = find_participants(bids_dir, masks_dir=masks_dir)
+    assert [p.label for p in found] == ["sub-01", "sub-02_ses-1"]
+    assert [p.folder.as_posix() for p in found] == ["sub-01", "sub-02/ses-1"]
+    for participant in found:
+        assert len(participant.stacks) == 3
+        for stack in participant.stacks:
+            assert stack.thickness_mm == 5.0
+            assert stack.mask is not None
+            assert stack.mask.name == stack.path.name.replace("_T2w", "_desc-brain_mask")
+    # Labels with or without the prefix; a session filter.
+    assert [p.label for p in find_participants(bids_dir, ["sub-02"], ["ses-1"])] == ["sub-02_ses-1"]
+    assert find_participants(bids_dir, ["01"])[0].stacks[0].mask is None
+
+
+def test_participant_level_writes_bids_derivatives(participant_run, dataset):
+    out = participant_run
+    (participant,) = find_participants(dataset[0], ["01"], masks_dir=dataset[1])
+    names = participant_outputs(participant)
+    folder = out / "sub-01"
+    for path in (names.volume, names.mask, names.transforms, names.qa, names.sidecar):
+        assert (folder / path).is_file(), path
+    assert (folder / names.volume).name == "sub-01_rec-svr_T2w.nii.gz"
+    assert not (out / "sub-02").exists()
+    description = json.loads((out / "dataset_description.json").read_text())
+    assert description["DatasetType"] == "derivative"
+    assert description["GeneratedBy"][0]["Name"] == "fetal-svr"
+    sidecar = json.loads((folder / names.sidecar).read_text())
+    svr_info = sidecar["svr"]
+    assert sidecar["Sources"] == [
+        f"bids:raw:sub-01/anat/sub-01_run-{r}_T2w.nii.gz" for r in (1, 2, 3)
+    ]
+    assert svr_info["software"]["fetal-svr"] == svr.__version__
+    assert svr_info["options"]["reconstruction"]["registration"] == "stack"
+    assert svr_info["options"]["masks"] == "given (--masks-dir)"
+    assert [len(i["sha256"]) for i in svr_info["inputs"]] == [64] * 3
+    assert len(svr_info["initialisation"]) == 3 and svr_info["slices"] > 0
+    assert svr_info["device"] == "cpu" and "total_seconds" in svr_info
+    assert set(svr_info["timings_s"]) and svr_info["model"] is None
+    # No temporary folders are left behind.
+    assert not [p for p in out.rglob(".*")]
+    volume = load_nifti(folder / names.volume)
+    mask = load_nifti(folder / names.mask)
+    assert torch.allclose(volume.affine, mask.affine) and float(mask.data.sum()) > 0
+
+
+def test_results_are_those_of_svr_reconstruct(participant_run, dataset, tmp_path):
+    bids_dir, masks_dir = dataset
+    stacks = sorted((bids_dir / "sub-01" / "anat").glob("*_T2w.nii.gz"))
+    masks = [
+        masks_dir / "sub-01" / "anat" / s.name.replace("_T2w", "_desc-brain_mask") for s in stacks
+    ]
+    out = tmp_path / "srr.nii.gz"
+    code, _ = _main([
+        "reconstruct", "--input-stacks", *map(str, stacks), "--stack-masks", *map(str, masks),
+        "--thicknesses", "5", "--output-volume", str(out), *FAST])  # fmt: skip
+    assert code == 0
+    ours = load_nifti(participant_run / "sub-01" / "anat" / "sub-01_rec-svr_T2w.nii.gz")
+    reference = load_nifti(out)
+    assert torch.equal(ours.data, reference.data)
+    assert torch.equal(ours.affine, reference.affine)
+
+
+def test_rerun_skips_and_group_level_reports_every_participant(participant_run, dataset, caplog):
+    bids_dir, masks_dir = dataset
+    out = participant_run
+    before = (out / "sub-01" / "anat" / "sub-01_rec-svr_T2w.json").stat().st_mtime_ns
+    # All participants: sub-01 is done and skipped, sub-02 (its session) is reconstructed.
+    code, stdout = _main(["bids", str(bids_dir), str(out), "participant", "--masks-dir",
+                          str(masks_dir), *FAST])  # fmt: skip
+    assert code == 0 and "1 of 1 participants reconstructed" in stdout
+    assert (out / "sub-01" / "anat" / "sub-01_rec-svr_T2w.json").stat().st_mtime_ns == before
+    assert (out / "sub-02" / "ses-1" / "anat" / "sub-02_ses-1_rec-svr_T2w.nii.gz").is_file()
+    code, stdout = _main(["bids", str(bids_dir), str(out), "participant", *FAST])
+    assert code == 0 and "nothing to do" in stdout
+    code, stdout = _main(["bids", str(bids_dir), str(out), "group"])
+    assert code == 0 and "2 participants" in stdout
+    rows = (out / GROUP_TSV).read_text().splitlines()
+    assert rows[0].split("\t")[:2] == ["participant_id", "session_id"]
+    assert [r.split("\t")[:2] for r in rows[1:]] == [["sub-01", "n/a"], ["sub-02", "ses-1"]]
+    page = (out / GROUP_HTML).read_text()
+    for qa in (
+        "sub-01/anat/sub-01_rec-svr_qa.png",
+        "sub-02/ses-1/anat/sub-02_ses-1_rec-svr_qa.png",
+    ):
+        assert f"src='{qa}'" in page and (out / qa).is_file()
+
+
+def test_a_killed_participant_leaves_no_partial_derivative(dataset, tmp_path, monkeypatch):
+    bids_dir, masks_dir = dataset
+    out = tmp_path / "derivatives"
+
+    def crash(*args, **kwargs):
+        raise KeyboardInterrupt  # as a job killed mid-write
+
+    monkeypatch.setattr("svr.reconstruction.qa.qa_figure", crash)
+    argv = ["bids", str(bids_dir), str(out), "participant", "--participant-label", "01",
+            "--masks-dir", str(masks_dir), *FAST]  # fmt: skip
+    code, _ = _main(argv)
+    assert code == 130
+    assert not (out / "sub-01").exists()
+    assert [p.name for p in out.iterdir()] == ["dataset_description.json"]
+    monkeypatch.undo()
+    # The rerun redoes that participant.
+    code, _ = _main(argv)
+    assert code == 0 and (out / "sub-01" / "anat" / "sub-01_rec-svr_qa.png").is_file()
+
+
+def _bad(argv: list[str], capsys) -> str:
+    code = svr.cli.main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 1, err
+    assert len(err.splitlines()) == 1, err
+    return err
+
+
+def test_bad_inputs_give_one_line_and_write_nothing(dataset, tmp_path, capsys):
+    bids_dir, masks_dir = dataset
+    out = tmp_path / "out"
+    # Not a BIDS folder.
+    plain = tmp_path / "plain"
+    shutil.copytree(bids_dir, plain)
+    (plain / "dataset_description.json").unlink()
+    err = _bad(["bids", str(plain), str(out), "participant", *FAST], capsys)
+    assert "not a BIDS dataset" in err and "--skip-bids-validation" in err
+    # An unknown participant label.
+    err = _bad(["bids", str(bids_dir), str(out), "participant", "--participant-label", "07",
+                *FAST], capsys)  # fmt: skip
+    assert "--participant-label 07: no such participant" in err and "01, 02" in err
+    # A subject with no T2w.
+    empty = tmp_path / "empty"
+    shutil.copytree(bids_dir, empty)
+    (empty / "sub-03" / "anat").mkdir(parents=True)
+    (empty / "sub-03" / "anat" / "sub-03_run-1_T1w.nii.gz").write_bytes(
+        (bids_dir / "sub-01" / "anat" / "sub-01_run-1_T2w.nii.gz").read_bytes()
+    )
+    err = _bad(["bids", str(empty), str(out), "participant", *FAST], capsys)
+    assert "sub-03: no T2w stack" in err
+    # Masks for a different number of stacks.
+    fewer = tmp_path / "fewer-masks"
+    shutil.copytree(masks_dir, fewer)
+    (fewer / "sub-01" / "anat" / "sub-01_run-3_desc-brain_mask.nii.gz").unlink()
+    err = _bad(["bids", str(bids_dir), str(out), "participant", "--masks-dir", str(fewer),
+                *FAST], capsys)  # fmt: skip
+    assert "no brain mask (desc-brain_mask) for sub-01_run-3_T2w.nii.gz of sub-01" in err
+    # An output folder inside the input dataset.
+    err = _bad(["bids", str(bids_dir), str(bids_dir / "derivatives" / "svr"), "participant",
+                *FAST], capsys)  # fmt: skip
+    assert "inside the input dataset" in err
+    assert not out.exists() and not (bids_dir / "derivatives").exists()
+    # Group level before any participant.
+    err = _bad(["bids", str(bids_dir), str(tmp_path), "group"], capsys)
+    assert "no finished participant" in err
+
+
+def test_extra_masks_are_refused(dataset, tmp_path):
+    bids_dir, masks_dir = dataset
+    more = tmp_path / "more-masks"
+    shutil.copytree(masks_dir, more)
+    extra = more / "sub-01" / "anat" / "sub-01_run-4_desc-brain_mask.nii.gz"
+    shutil.copy(more / "sub-01" / "anat" / "sub-01_run-1_desc-brain_mask.nii.gz", extra)
+    with pytest.raises(BidsError, match="sub-01 has 4 brain masks for 3 T2w stacks"):
+        find_participants(bids_dir, ["01"], masks_dir=more)
+
+
+def test_job_arrays_and_n_jobs_are_documented():
+    help_text = svr.cli.build_parser()._subparsers._group_actions[0].choices["bids"].description
+    assert "SLURM_ARRAY_TASK_ID" in help_text and "--n-jobs" in help_text
