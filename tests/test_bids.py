@@ -256,3 +256,15 @@ def test_extra_masks_are_refused(dataset, tmp_path):
 def test_job_arrays_and_n_jobs_are_documented():
     help_text = svr.cli.build_parser()._subparsers._group_actions[0].choices["bids"].description
     assert "SLURM_ARRAY_TASK_ID" in help_text and "--n-jobs" in help_text
+
+
+def test_participants_run_side_by_side_with_n_jobs(dataset, tmp_path):
+    bids_dir, masks_dir = dataset
+    out = tmp_path / "derivatives"
+    fast = [*FAST, "--iterations", "1", "--registration", "none"]
+    code, stdout = _main(["bids", str(bids_dir), str(out), "participant", "--n-jobs", "2",
+                          "--masks-dir", str(masks_dir), *fast])  # fmt: skip
+    assert code == 0 and "2 of 2 participants reconstructed" in stdout
+    for label, folder in (("sub-01", "sub-01"), ("sub-02_ses-1", "sub-02/ses-1")):
+        sidecar = json.loads((out / folder / "anat" / f"{label}_rec-svr_T2w.json").read_text())
+        assert sidecar["svr"]["threads"] >= 1 and sidecar["svr"]["slices"] > 0
