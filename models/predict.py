@@ -15,8 +15,9 @@ The prepared slice ``k`` is cut with :func:`svr.sampling.slicer.sample_slices` a
 ``C_k``: the rotation of the stack's k-plane (``u`` along array axis 0, ``v`` along axis 1,
 normal ``u x v``) and the world position of the crop centre as translation. The model predicts
 the canonical pose ``P_k`` of the prepared slice, i.e. about the crop centre. The poses returned
-here are those of the stack's own slices as ``DESIGN.md`` defines them (origin at the centre of
-the k-plane, voxel ``((I - 1) / 2, (J - 1) / 2, k)``): ``T_k = P_k o C_k^-1 o S_k``, with ``S_k``
+here are those of the stack's own slices as the conventions (``docs/conventions.md``) define
+them (origin at the centre of the k-plane, voxel ``((I - 1) / 2, (J - 1) / 2, k)``):
+``T_k = P_k o C_k^-1 o S_k``, with ``S_k``
 the k-plane's pose in the stack's world frame (:func:`stack_slice_poses`), so a pose table row
 ``(stack file, k)`` needs no knowledge of the crop.
 

@@ -5,8 +5,8 @@ millimetres, or a half turn if a brain looked the same either way). :func:`align
 registers the finished volume rigidly to an atlas of about the same age, from the frame it is in
 and from that frame turned by 180 degrees about each axis, and keeps the best fit (NCC over the
 volume's brain mask) for the orientation. The origin is then put at the centroid of the volume's
-own brain mask, which is what canonical space means (``DESIGN.md``): an atlas of a neighbouring
-age or another cohort differs in shape, and its fit pulled the centre by about 5 mm on
+own brain mask, which is what canonical space means (``docs/conventions.md``): an atlas of a
+neighbouring age or another cohort differs in shape, and its fit pulled the centre by about 5 mm on
 sb28-moderate, where the mask's centroid does not depend on it. Everything is relabelled in that
 frame: the volume's and mask's affines and every slice pose. Nothing is resampled, so the volume's
 values are unchanged.

@@ -18,8 +18,8 @@ slice (:meth:`CnnInitialisation.refined_poses`), each slice keeps its own predic
 with its stack's consensus and takes the consensus pose where it does not, so the learned
 initialisation follows the motion of single slices that a rigid stack pose cannot.
 
-Frames and origins (``DESIGN.md``): :func:`svr.models.predict.predict_plane_poses` returns poses of
-the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
+Frames and origins (``docs/conventions.md``): :func:`svr.models.predict.predict_plane_poses` returns
+poses of the stack's k-planes about the plane centre, voxel ``((I - 1) / 2, (J - 1) / 2, k)`` of the
 stack's (cropped) array, indexed by that array's ``k``. A
 :class:`~svr.reconstruction.slices.SliceSet` slice has its origin at the centre of its zero-padded
 array and is indexed by the file's ``k`` (``Stack.k_indices``). With ``C_k`` the k-plane's scanner

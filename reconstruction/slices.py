@@ -1,7 +1,7 @@
 """Stacks and slices as the reconstruction sees them: every slice its own rigid body.
 
-Conventions (``DESIGN.md``): a slice's pose maps slice-plane mm ``(u, v, 0)`` (``u`` along array
-axis 0, ``v`` along axis 1, origin at the array centre ``((H - 1) / 2, (W - 1) / 2)``) to the
+Conventions (``docs/conventions.md``): a slice's pose maps slice-plane mm ``(u, v, 0)`` (``u`` along
+array axis 0, ``v`` along axis 1, origin at the array centre ``((H - 1) / 2, (W - 1) / 2)``) to the
 target frame (``"scanner"`` or ``"canonical"``). A :class:`SliceSet` holds all slices of all
 stacks zero-padded to one ``(H, W)``; padding moves the array centre, so each slice also keeps
 ``plane_offsets_mm``, the position of its array centre in the coordinates of its stack's k-plane

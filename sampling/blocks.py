@@ -3,9 +3,9 @@
 A *stack frame* is the stack's own rigid frame: origin at the centre voxel of the stack, axes the
 in-plane directions ``u`` (array axis 0), ``v`` (array axis 1) and the slice normal, as in
 :func:`svr.image.stack_slice_poses` (so for a stack without motion the stack pose is the pose of a
-slice through its centre). A *stack pose* ``P`` maps stack-frame mm to canonical mm (``DESIGN.md``
-canonical space). Its estimate as a map of scanner mm to canonical mm is the *frame*
-``E = P o F^-1``, with ``F`` the stack frame in the scanner.
+slice through its centre). A *stack pose* ``P`` maps stack-frame mm to canonical mm (canonical
+space as ``docs/conventions.md`` defines it). Its estimate as a map of scanner mm to canonical mm
+is the *frame* ``E = P o F^-1``, with ``F`` the stack frame in the scanner.
 
 A *block* is the stack (or a subset of its slices: a packet, k neighbouring slices) resampled on a
 cubic grid centred on the canonical origin of a frame ``E``: three channels, the brain-masked

@@ -12,7 +12,7 @@ Grid and frame:
     grid: voxel ``(i, j, k)`` is at ``spacing_mm * ((i, j, k) - (shape - 1) / 2)`` mm (RAS+:
     ``i`` -> x right, ``j`` -> y anterior, ``k`` -> z superior). The anatomy is placed so that
     the centroid of the brain mask is the world origin, i.e. the world frame is already the
-    canonical frame of ``DESIGN.md`` (to within the rasterisation, well under a voxel).
+    canonical frame of ``docs/conventions.md`` (to within the rasterisation, well under a voxel).
 
 Anatomy (all sizes scale with ``brain_length_mm`` = L, the fronto-occipital length of the
 cerebrum):

@@ -1,6 +1,6 @@
 """Slice poses for training and evaluation: the Euler grid, random poses and loss labels.
 
-Conventions (``DESIGN.md``):
+Conventions (``docs/conventions.md``):
     * A slice pose maps slice-plane coordinates ``(u, v, 0)`` in mm (origin at the slice centre) to
       the canonical frame by ``x -> R x + t``; pose vectors (..., 6) are
       ``(r_x, r_y, r_z, t_x, t_y, t_z)``, rotation vector (rad) first, translation (mm) second.

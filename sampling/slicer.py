@@ -1,9 +1,9 @@
 """The slice sampler: 2D slices cut from a 3D volume at given poses, with an optional slice PSF.
 
-Slice geometry (``DESIGN.md``): a slice of ``size = (H, W)`` pixels with in-plane spacing ``s`` mm
-has pixel ``(a, b)`` at slice-plane coordinates ``u = (a - (H - 1) / 2) s`` (array axis 0) and
-``v = (b - (W - 1) / 2) s`` (array axis 1), ``w = 0``; its pose ``(R, t)`` maps ``(u, v, w)`` to the
-volume's world frame (canonical space for a :class:`~svr.sampling.volume.CanonicalVolume`). The
+Slice geometry (``docs/conventions.md``): a slice of ``size = (H, W)`` pixels with in-plane spacing
+``s`` mm has pixel ``(a, b)`` at slice-plane coordinates ``u = (a - (H - 1) / 2) s`` (array axis 0)
+and ``v = (b - (W - 1) / 2) s`` (array axis 1), ``w = 0``; its pose ``(R, t)`` maps ``(u, v, w)`` to
+the volume's world frame (canonical space for a :class:`~svr.sampling.volume.CanonicalVolume`). The
 slice normal is ``R[:, 2]``.
 
 Point-spread function: a slice of thickness ``T`` mm integrates the volume along its normal with a

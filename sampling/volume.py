@@ -1,7 +1,7 @@
 """Brain volumes in canonical space: masked, centred on the mask, intensity-normalised.
 
-Canonical space (``DESIGN.md``) is the volume's own world frame shifted so that the origin is the
-centroid of the brain mask (the mean world position of the mask's voxels; the bench cases'
+Canonical space (``docs/conventions.md``) is the volume's own world frame shifted so that the origin
+is the centroid of the brain mask (the mean world position of the mask's voxels; the bench cases'
 ``atlas_centre_mm`` is the same point). Rotations about the canonical origin rotate the brain about
 its centre, as in the paper.
 

@@ -1,6 +1,6 @@
 """Images in world space: a tensor plus its voxel-to-world affine, NIfTI I/O, world-point sampling.
 
-Conventions (``DESIGN.md``):
+Conventions (the documentation's conventions page, ``docs/conventions.md``):
     * An image is ``data`` (I, J, K) in NIfTI array order and a (4, 4) float64 ``affine`` mapping
       voxel indices ``(i, j, k)`` (voxel centres at integers) to world ``(x, y, z)`` in mm (RAS+).
     * :func:`world_to_grid` is the one place that maps world points to ``grid_sample``
@@ -285,7 +285,7 @@ def voxel_centres(image: Image, dtype: torch.dtype = torch.float64) -> Tensor:
 
 
 def stack_slice_poses(stack: Image) -> Tensor:
-    """Poses of a stack's k-planes in its world frame (``DESIGN.md`` slice convention).
+    """Poses of a stack's k-planes in its world frame (slice convention of ``docs/conventions.md``).
 
     The rotation's columns are the unit in-plane directions ``u`` (array axis 0) and ``v`` (array
     axis 1, orthogonalised against ``u`` if the affine is sheared) and the normal ``u x v``; the

@@ -1,4 +1,4 @@
-"""Slice-pose tables (``DESIGN.md``): one row per slice, as CSV or JSON.
+"""Slice-pose tables (``docs/conventions.md``): one row per slice, as CSV or JSON.
 
 Each row holds the stack (or slice-set) file, the slice index in it, the pose vector
 ``(r_x, r_y, r_z, t_x, t_y, t_z)`` (rad, mm), the 3x4 matrix ``[R | t]`` row by row, and the frame

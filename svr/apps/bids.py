@@ -224,7 +224,8 @@ def find_participants(
                 f"--session-label {' '.join(unknown)}: no such session in {bids_dir}"
                 + (f" (it has {', '.join(sorted(known))})" if known else " (it has none)")
             )
-    masks = None if masks_dir is None else _masks_layout(Path(masks_dir))
+    mask_folder = None if masks_dir is None else Path(masks_dir)
+    masks = None if mask_folder is None else _masks_layout(mask_folder)
     out = []
     for subject in subjects:
         sessions = sorted(layout.get_sessions(subject=subject)) or [None]
@@ -246,9 +247,10 @@ def find_participants(
             if not files:
                 raise BidsError(f"{label}: no T2w stack (anat/*_T2w.nii[.gz]) in {bids_dir}")
             files = sorted(files, key=lambda f: f.path)
-            found = [_mask_for(masks, f, label, Path(masks_dir)) for f in files] if masks else []
-            if masks is not None:
-                _check_mask_count(masks, subject, session, label, len(files), Path(masks_dir))
+            found = []
+            if masks is not None and mask_folder is not None:
+                found = [_mask_for(masks, f, label, mask_folder) for f in files]
+                _check_mask_count(masks, subject, session, label, len(files), mask_folder)
             stacks = tuple(
                 BidsStack(
                     path=Path(f.path),

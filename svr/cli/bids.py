@@ -19,8 +19,19 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from svr.apps.bids import (
+    Participant,
+    ParticipantOutputs,
+    check_output_dir,
+    environment,
+    file_sha256,
+    find_participants,
+    group_report,
+    participant_outputs,
+    write_dataset_description,
+)
 from svr.cli.common import (
     CliError,
     HelpFormatter,
@@ -72,6 +83,9 @@ examples:
   #   label=$(sed -n "$((SLURM_ARRAY_TASK_ID + 1))p" study/participants.tsv | cut -f1)
   #   svr bids study/ study-svr/ participant --participant-label "$label"
 """
+
+if TYPE_CHECKING:
+    from svr.reconstruction.config import ReconstructionResult
 
 log = logging.getLogger(__name__)
 
@@ -158,15 +172,17 @@ class ParticipantJob:
         threads: CPU threads of this process.
         device: Torch device.
         progress: Show progress bars.
+        command: The command line, for the provenance.
     """
 
-    participant: Any
+    participant: Participant
     output_dir: Path
     settings: argparse.Namespace
     thicknesses: tuple[float, ...]
     threads: int
     device: str
     progress: bool
+    command: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -190,8 +206,6 @@ class ParticipantSummary:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr bids``."""
-    from svr.apps.bids import check_output_dir, find_participants, group_report
-
     check_output_dir(args.bids_dir, args.output_dir)
     if args.analysis_level == "group":
         tsv, page, count = group_report(args.output_dir, args.participant_label)
@@ -214,8 +228,6 @@ def run(args: argparse.Namespace) -> int:
     thicknesses = {p.label: _thicknesses(p, args.thickness) for p in participants}
     output = Path(args.output_dir)
     output.mkdir(parents=True, exist_ok=True)
-    from svr.apps.bids import write_dataset_description
-
     write_dataset_description(output, args.bids_dir)
     todo = []
     for participant in participants:
@@ -238,6 +250,7 @@ def run(args: argparse.Namespace) -> int:
             threads=threads,
             device=device,
             progress=jobs == 1 and not args.quiet,
+            command=("svr", *sys.argv[1:]),
         )
         for p in todo
     ]
@@ -295,9 +308,9 @@ def _check_model_options(args: argparse.Namespace) -> None:
         load_any_pose_model(args.model)  # a bad --model fails here, before any work
 
 
-def _thicknesses(participant: Any, default: float | None) -> tuple[float, ...]:
+def _thicknesses(participant: Participant, default: float | None) -> tuple[float, ...]:
     """Per stack: the sidecar's SliceThickness, else ``--thickness``, else the slice spacing."""
-    import nibabel as nib
+    from svr.image import load_nifti
 
     out = []
     for stack in participant.stacks:
@@ -306,7 +319,7 @@ def _thicknesses(participant: Any, default: float | None) -> tuple[float, ...]:
         elif default is not None:
             out.append(default)
         else:
-            spacing = float(nib.load(stack.path).header.get_zooms()[2])
+            spacing = float(load_nifti(stack.path).spacing[2])
             log.warning(
                 "%s: %s has no SliceThickness in its sidecar; using its slice spacing %.2f mm "
                 "(--thickness sets it)",
@@ -335,8 +348,6 @@ def run_participant(job: ParticipantJob) -> ParticipantSummary:
     Errors are returned, not raised, so that the other participants go on.
     """
     import torch
-
-    from svr.apps.bids import participant_outputs
 
     participant = job.participant
     began = time.perf_counter()
@@ -367,9 +378,9 @@ def run_participant(job: ParticipantJob) -> ParticipantSummary:
     )
 
 
-def _reconstruct(job: ParticipantJob, warnings: _Warnings) -> tuple[Any, dict[str, Any]]:
-    from svr.apps.bids import environment, file_sha256
-
+def _reconstruct(
+    job: ParticipantJob, warnings: _Warnings
+) -> tuple[ReconstructionResult, dict[str, Any]]:
     args, participant = job.settings, job.participant
     args = copy.copy(args)
     args.quiet = args.quiet or not job.progress
@@ -401,7 +412,12 @@ def _reconstruct(job: ParticipantJob, warnings: _Warnings) -> tuple[Any, dict[st
         "svr": {
             "subject": participant.subject,
             "session": participant.session,
-            "command": ["svr", *sys.argv[1:]] if sys.argv[1:2] == ["bids"] else None,
+            "command": list(job.command),
+            "arguments": {
+                key: value
+                for key, value in vars(args).items()
+                if isinstance(value, str | int | float | bool | list | type(None))
+            },
             "software": environment(),
             "model": model,
             "atlas": None
@@ -446,7 +462,11 @@ def _reconstruct(job: ParticipantJob, warnings: _Warnings) -> tuple[Any, dict[st
 
 
 def _write(
-    job: ParticipantJob, names: Any, result: Any, sidecar: dict[str, Any], began: float
+    job: ParticipantJob,
+    names: ParticipantOutputs,
+    result: ReconstructionResult,
+    sidecar: dict[str, Any],
+    began: float,
 ) -> None:
     """Write every derivative into a temporary folder, then move it into place."""
     import json
@@ -470,7 +490,6 @@ def _write(
 
 def _model_digest(name: str) -> str | None:
     """SHA-256 of the weights of the model that ``--model`` names (of their digests if several)."""
-    from svr.apps.bids import file_sha256
     from svr.models.checkpoint import latest_checkpoint, resolve_model_path
     from svr.models.pretrained import stack_pose_model_path
     from svr.models.stack_pose import STACK_POSE_MODEL

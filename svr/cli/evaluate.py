@@ -50,11 +50,14 @@ checkpoints, a training --output-dir (the last two give their newest checkpoint)
 the model shipped with the package (write ./default for a folder of that name). NAME=DIR names
 the method in the tables; a plain DIR is named after the folder.
 
+Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
+srr.nii.gz and mask.nii.gz, downloaded to a folder such as atlas/) or any folder laid out alike.
+
 examples:
   svr evaluate --checkpoints runs/phantom --output-dir eval/phantom
   svr evaluate --checkpoints shipped=default mine=runs/se3 --output-dir eval/compare
   svr evaluate --checkpoints se3=runs/se3 posenet=runs/posenet \\
-      --atlas-dir ../shared/data/atlas/sb-fidon2021 --only-ga 24 28 32 \\
+      --atlas-dir atlas/ --only-ga 24 28 32 \\
       --num-slices 500 --thickness 3 --output-dir eval/atlas
 """
 

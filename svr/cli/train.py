@@ -27,11 +27,14 @@ poses or at the paper's Euler grid (--pose-sampling grid), with scanner-like aug
 Checkpoints (safetensors + JSON) are written every --checkpoint-every steps; rerunning the same
 command resumes from the newest one.
 
+Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
+srr.nii.gz and mask.nii.gz, downloaded to a folder such as atlas/) or any folder laid out alike.
+
 examples:
   svr train --output-dir runs/phantom --steps 200
-  svr train --output-dir runs/se3 --atlas-dir ../shared/data/atlas/sb-fidon2021 \\
+  svr train --output-dir runs/se3 --atlas-dir atlas/ \\
       --hold-out 24 28 32 --loss se3 --steps 20000 --thickness-range 1 4 --augment
-  svr train --output-dir runs/grid --atlas-dir ../shared/data/atlas/sb-fidon2021 \\
+  svr train --output-dir runs/grid --atlas-dir atlas/ \\
       --hold-out 24 28 32 --pose-sampling grid --steps 60000 --device cuda
   torchrun --nproc_per_node 2 -m svr train --output-dir runs/ddp --steps 1000
 """

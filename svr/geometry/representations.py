@@ -6,8 +6,8 @@ evaluated the same way.
 * Quaternion + translation (PoseNet) (..., 7): ``(w, x, y, z, t_x, t_y, t_z)``.
 * Anchor points (..., 9): three points of the slice plane in the target frame,
   ``P1 = T(-a, -a, 0)``, ``P2 = T(0, 0, 0) = t`` and ``P3 = T(a, -a, 0)`` for half-size ``a`` mm
-  (Hou et al.; the plane coordinates ``(u, v, 0)`` are those of ``DESIGN.md``: origin at the slice
-  centre).
+  (Hou et al.; the plane coordinates ``(u, v, 0)`` are those of the conventions page,
+  ``docs/conventions.md``: origin at the slice centre).
 * 6D + translation (..., 9): ``(matrix_to_rotation_6d(R), t)`` (Zhou et al. 2019).
 """
 
