@@ -54,7 +54,12 @@ def test_readme_is_short():
 
 
 def _product_files() -> list[Path]:
-    files = [path for folder in PACKAGE_FOLDERS for path in sorted((ROOT / folder).rglob("*.py"))]
+    files = [
+        path
+        for folder in PACKAGE_FOLDERS
+        for pattern in ("*.py", "*.md", "*.json")  # the shipped models' READMEs and configs too
+        for path in sorted((ROOT / folder).rglob(pattern))
+    ]
     files += [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
     return files
 
