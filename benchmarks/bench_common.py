@@ -224,9 +224,7 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
     ``P_i`` its final pose; its rotation angle and its translation (at the canonical origin, the
     brain's centre).
     """
-    import math
-
-    from svr.geometry import se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry import rotation_angle_deg, se3_compose, se3_inverse, vector_to_se3
     from svr.geometry.averaging import robust_mean_pose
     from svr.pose_io import read_pose_table
 
@@ -246,5 +244,5 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
         ]
     )
     mean = robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
-    cos = (float(mean[:3, :3].trace()) - 1) / 2
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos)))), float(mean[:3, 3].norm())
+    turn = float(rotation_angle_deg(mean, torch.eye(4, dtype=mean.dtype)))
+    return turn, float(mean[:3, 3].norm())

@@ -27,7 +27,6 @@ mm, a *stack pose* ``P = E o F`` maps the stack frame ``F`` to canonical mm.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,7 +36,13 @@ import torch
 from scipy.ndimage import gaussian_filter
 from torch import Tensor, nn
 
-from svr.geometry import se3_compose, so3_exp, vector_to_se3, weighted_rigid_fit
+from svr.geometry import (
+    rotation_angle_deg,
+    se3_compose,
+    so3_exp,
+    vector_to_se3,
+    weighted_rigid_fit,
+)
 from svr.image import Image, sample_world, voxel_to_world
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
@@ -524,7 +529,7 @@ def estimate_stack_pose(
     frame, score = frames[best], float(scores[best])
     if atlas is not None:
         fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit)
-        turn = _turn_deg(fitted, frame)
+        turn = float(rotation_angle_deg(fitted, frame))
         if model is None or turn <= max_fit_turn_deg:
             frame, method = fitted, method + "+atlas"
             score = ncc if model is None else score
@@ -538,12 +543,6 @@ def estimate_stack_pose(
         scores=scores,
         method=method,
     )
-
-
-def _turn_deg(a: Tensor, b: Tensor) -> float:
-    """Angle between the rotations of two (4, 4) transforms, degrees."""
-    cos = (float((a[:3, :3].T @ b[:3, :3]).trace()) - 1) / 2
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def load_stack_pose_model(

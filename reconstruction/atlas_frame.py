@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_compose, so3_exp
+from svr.geometry import rotation_angle_deg, se3_compose, so3_exp
 from svr.image import Image, voxel_to_world
 from svr.models.stack_pose import AtlasFitConfig, StackPoseNet, fit_to_atlas, refine_frames
 from svr.reconstruction.config import ReconstructionResult
@@ -89,8 +89,7 @@ def atlas_transform(
         best_flip = FLIPS[int(torch.argmax(scores))]
         start = _flip(best_flip)
         fitted, _ = fit_to_atlas(volume, mask, start, atlas, config)
-        cos = (float((fitted[:3, :3].T @ start[:3, :3]).trace()) - 1) / 2
-        turn = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+        turn = float(rotation_angle_deg(fitted, start))
         best = fitted if turn <= max_fit_turn_deg else start
         if turn > max_fit_turn_deg:
             log.info("atlas frame: the atlas fit turned %.0f deg; kept the stacks' frame", turn)
@@ -122,7 +121,7 @@ def align_to_atlas(
     """
     volume = result.volume
     transform, flip, nccs = atlas_transform(volume, result.mask.data > 0.5, atlas, config, model)
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(transform[:3, :3].trace()) - 1) / 2))))
+    angle = float(rotation_angle_deg(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(
         "atlas frame: turned %.1f deg, shifted %.1f mm (start %s; scores %s)",
         angle,

@@ -1189,3 +1189,25 @@ def test_half_precision_small_angles_are_finite_and_accurate(dtype, theta):
     np.testing.assert_allclose(R.detach().double().numpy(), want, atol=4 * torch.finfo(dtype).eps)
     q = g.rotvec_to_quat(r.detach())
     assert torch.isfinite(q).all() and torch.isfinite(g.so3_left_jacobian(r.detach())).all()
+
+
+def test_rotation_angle_deg_against_scipy() -> None:
+    a = Rotation.random(64, random_state=3)
+    b = Rotation.random(64, random_state=4)
+    expected = np.degrees((a.inv() * b).magnitude())
+    ma = torch.from_numpy(a.as_matrix())
+    mb = torch.from_numpy(b.as_matrix())
+    assert torch.allclose(g.rotation_angle_deg(ma, mb), torch.from_numpy(expected), atol=1e-9)
+    # Rigid transforms: the rotation parts only; the identity and a half turn.
+    ta, tb = (
+        torch.eye(4, dtype=torch.float64).repeat(64, 1, 1),
+        torch.eye(4).double().repeat(64, 1, 1),
+    )
+    ta[:, :3, :3], tb[:, :3, :3] = ma, mb
+    ta[:, :3, 3] = 50.0
+    assert torch.allclose(g.rotation_angle_deg(ta, tb), torch.from_numpy(expected), atol=1e-9)
+    assert float(g.rotation_angle_deg(ma[0], ma[0])) < 1e-6
+    half = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    assert abs(float(g.rotation_angle_deg(torch.eye(3, dtype=torch.float64), half)) - 180) < 1e-9
+    with pytest.raises(ValueError, match="'a'"):
+        g.rotation_angle_deg(torch.eye(2), torch.eye(3))
