@@ -12,6 +12,7 @@ import torch
 from safetensors import safe_open
 from synthetic import ellipsoid_brain
 
+import svr
 import svr.models.pretrained
 import svr.models.pretrained.export
 from svr.cli import main
@@ -234,3 +235,26 @@ def test_cli_predict_and_evaluate_take_default(exported, tmp_path, monkeypatch, 
     assert main([*args, "--output-poses", str(tmp_path / "other.csv")]) == 1
     err = capsys.readouterr().err
     assert "default model is not installed" in err and err.count("\n") == 1
+
+
+def test_stack_pose_export_round_trip_and_size_limit(tmp_path, monkeypatch):
+    from svr.models.pretrained.export import export_stack_pose_model
+    from svr.models.stack_pose import StackPoseConfig, StackPoseNet, load_stack_pose_model
+
+    torch.manual_seed(5)
+    net = StackPoseNet(StackPoseConfig(width=4, grid_size=16))
+    torch.nn.init.normal_(net.pose.linear.weight, std=0.1)
+    config = {"architecture": "stack_pose", "model": net.config.to_dict()}
+    source = save_checkpoint(tmp_path / "step_000000001", net.state_dict(), config)
+    out = export_stack_pose_model(source, tmp_path / "model", provenance=PROVENANCE)
+    exported = json.loads((out / CHECKPOINT_CONFIG).read_text())
+    assert exported["provenance"] == PROVENANCE
+    assert exported["export"]["weights_dtype"] == "float16"
+    assert exported["export"]["versions"]["fetal_svr"] == svr.__version__
+    loaded = load_stack_pose_model(out)
+    for a, b in zip(net.state_dict().values(), loaded.state_dict().values(), strict=True):
+        assert torch.allclose(a.float(), b.float(), atol=2e-3, rtol=1e-3)
+    monkeypatch.setattr(svr.models.pretrained.export, "MAX_MODEL_BYTES", 20_000)
+    with pytest.raises(CheckpointError, match=r"must stay within 0\.02 MB"):
+        export_stack_pose_model(source, tmp_path / "too-big", provenance=PROVENANCE)
+    assert not (tmp_path / "too-big").exists()

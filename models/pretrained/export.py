@@ -61,6 +61,40 @@ def _check_provenance(out: Path, provenance: object) -> dict[str, Any]:
     return provenance
 
 
+def _export_record() -> dict[str, Any]:
+    """The weights' stored type and the versions of what exported them."""
+    return {
+        "weights_dtype": str(_HALF).removeprefix("torch."),
+        "versions": {
+            "fetal_svr": svr_version,
+            "torch": torch.__version__,
+            "safetensors": safetensors.__version__,
+            "numpy": np.__version__,
+            "python": platform.python_version(),
+        },
+    }
+
+
+def _write_export(
+    source: Path,
+    out: Path,
+    state_dict: dict[str, torch.Tensor],
+    config: dict[str, Any],
+    overwrite: bool,
+    hint: str,
+) -> Path:
+    """Save a float16 model folder once its size is known to stay within the limit."""
+    size = _stored_bytes(state_dict) + len(json.dumps(config, indent=2).encode())
+    size += _BYTES_PER_TENSOR_RECORD * len(state_dict)
+    if size > MAX_MODEL_BYTES:
+        raise CheckpointError(
+            source,
+            f"the exported model would take about {size / 1e6:.2f} MB; it must stay within "
+            f"{MAX_MODEL_BYTES / 1e6:g} MB ({hint})",
+        )
+    return save_checkpoint(out, state_dict, config, half_precision=True, overwrite=overwrite)
+
+
 def export_model(
     checkpoint_dir: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
@@ -110,25 +144,12 @@ def export_model(
             "source_checkpoint": str(source),
             "source_step": training.get("step") if isinstance(training, dict) else None,
             "source_weights_sha256": checkpoint.config["checkpoint"]["weights_sha256"],
-            "weights_dtype": str(_HALF).removeprefix("torch."),
-            "versions": {
-                "fetal_svr": svr_version,
-                "torch": torch.__version__,
-                "safetensors": safetensors.__version__,
-                "numpy": np.__version__,
-                "python": platform.python_version(),
-            },
+            **_export_record(),
         },
     }
-    size = _stored_bytes(state_dict) + len(json.dumps(export_config, indent=2).encode())
-    size += _BYTES_PER_TENSOR_RECORD * len(state_dict)
-    if size > MAX_MODEL_BYTES:
-        raise CheckpointError(
-            source,
-            f"the exported model would take about {size / 1e6:.2f} MB; it must stay within "
-            f"{MAX_MODEL_BYTES / 1e6:g} MB (train a smaller model: --width, --depth)",
-        )
-    return save_checkpoint(out, state_dict, export_config, half_precision=True, overwrite=overwrite)
+    return _write_export(
+        source, out, state_dict, export_config, overwrite, "train a smaller model: --width, --depth"
+    )
 
 
 def export_stack_pose_model(
@@ -167,16 +188,9 @@ def export_stack_pose_model(
         "provenance": provenance,
         "export": {
             "source_checkpoint": str(source),
-            "weights_dtype": str(_HALF).removeprefix("torch."),
-            "versions": {
-                "fetal_svr": svr_version,
-                "torch": torch.__version__,
-                "safetensors": safetensors.__version__,
-                "python": platform.python_version(),
-            },
+            **_export_record(),
         },
     }
-    size = _stored_bytes(state_dict) + _BYTES_PER_TENSOR_RECORD * len(state_dict)
-    if size > MAX_MODEL_BYTES:
-        raise CheckpointError(source, f"the model would take about {size / 1e6:.2f} MB (> 10 MB)")
-    return save_checkpoint(out, state_dict, export_config, half_precision=True, overwrite=overwrite)
+    return _write_export(
+        source, out, state_dict, export_config, overwrite, "train a smaller model: --width"
+    )
