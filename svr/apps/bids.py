@@ -432,6 +432,10 @@ def _row(sidecar: dict[str, Any]) -> dict[str, str]:
     }
 
 
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def group_report(
     output_dir: str | os.PathLike[str], participant_labels: Iterable[str] | None = None
 ) -> tuple[Path, Path, int]:
@@ -481,25 +485,28 @@ def group_report(
             for c in _COLUMNS[2:-1]
         )
         cards.append(
-            f"<section id='{anchor}'><h2>{title}</h2>"
-            f"<a href='{qa}'><img src='{qa}' alt='QA figure of {title}' loading='lazy'></a>"
-            f"<table>{facts}</table>{notes}</section>"
+            f"<section id='{anchor}'><a href='{qa}'><img src='{qa}' alt='QA figure of {title}' "
+            f"loading='lazy'></a><div><h2>{title}</h2><table>{facts}</table>{notes}</div>"
+            "</section>"
         )
     flagged = sum(1 for s in sidecars if s["svr"].get("warnings"))
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
-<title>fetal-svr: {len(sidecars)} participants</title>
+<title>fetal-svr: {_count(len(sidecars), "participant")}</title>
 <style>
 body {{ font-family: sans-serif; margin: 1.5em; }}
-section {{ border-top: 1px solid #ccc; padding: 0.5em 0; }}
-img {{ max-width: 100%; width: 900px; }}
+section {{ border-top: 1px solid #ccc; padding: 0.5em 0; display: flex; gap: 1.5em;
+  align-items: flex-start; }}
+section img {{ width: 520px; max-width: 60vw; }}
+h2 {{ margin-top: 0.2em; }}
 th {{ text-align: left; padding-right: 1em; font-weight: normal; color: #555; }}
 .warn li {{ color: #a40; }} .ok {{ color: #070; }}
 </style></head><body>
 <h1>fetal-svr reconstructions</h1>
-<p>{len(sidecars)} participants, {flagged} with warnings; the table:
+<p>{_count(len(sidecars), "participant")}, {flagged} with warnings; the table:
 <a href="{GROUP_TSV}">{GROUP_TSV}</a>. Each figure is the participant's QA page (orthogonal
-views of the volume, slices kept and excluded); click it to enlarge.</p>
+views of the initial and final volume, each slice's agreement with the volume, the rounds); click
+it to enlarge.</p>
 <ul>{"".join(index)}</ul>
 {"".join(cards)}
 </body></html>
