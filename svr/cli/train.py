@@ -282,13 +282,11 @@ def run(args: argparse.Namespace) -> int:
     planes, report = resolve_symmetry(args.symmetry, volumes, sources)
     if not args.quiet:
         print(_symmetry_summary(report), file=sys.stderr)
-    config = TrainConfig(
-        **{
-            **config.__dict__,
-            "model": dataclasses.replace(config.model, symmetry_planes=planes),
-            "data_sources": tuple(sources),
-            "symmetry_report": report,
-        }
+    config = dataclasses.replace(
+        config,
+        model=dataclasses.replace(config.model, symmetry_planes=planes),
+        data_sources=tuple(sources),
+        symmetry_report=report,
     )
     try:
         result = train(
