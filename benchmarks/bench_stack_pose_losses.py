@@ -81,7 +81,9 @@ def train_runs(args, trajectories) -> dict[str, float]:
             volumes,
             trajectories,
             StackPoseConfig(representation=by_cli[loss].name),
-            StackPoseTrainingConfig(steps=args.steps, seed=args.seed),
+            StackPoseTrainingConfig(
+                steps=args.steps, learning_rate=args.learning_rate, seed=args.seed
+            ),
             folder=folder,
             progress=True,
         )
@@ -104,6 +106,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--losses", nargs="+", default=["se3", "posenet", "anchor", "rot6d"])
     parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--learning-rate", type=float, default=1e-3)
     parser.add_argument("--runs-dir", type=Path, default=Path("runs/stack-pose-losses"))
     parser.add_argument("--atlas", type=Path, default=ATLAS)
     parser.add_argument("--motion", type=Path, default=MOTION)
@@ -162,7 +165,8 @@ def main() -> int:
         print(line, flush=True)
 
     lines = [
-        f"Same network, recipe and blocks; {args.steps} steps each (seed {args.seed}); "
+        f"Same network, recipe and blocks; {args.steps} steps each at learning rate "
+        f"{args.learning_rate:g} (seed {args.seed}); "
         f"{len(stacks)} stacks (held-out GA {', '.join(f'{a:g}' for a in args.hold_out)}: "
         f"{args.cases_per_age} cases x {args.stacks_per_case} stacks per age; "
         f"{', '.join(args.bench)}). Paired against se3 on the same stacks.",
