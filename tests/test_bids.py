@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import shutil
+import subprocess
 from contextlib import redirect_stdout
 from pathlib import Path
 
@@ -253,9 +254,49 @@ def test_extra_masks_are_refused(dataset, tmp_path):
         find_participants(bids_dir, ["01"], masks_dir=more)
 
 
-def test_job_arrays_and_n_jobs_are_documented():
+SLURM_SCRIPT = Path(__file__).resolve().parents[1] / "docs" / "slurm" / "svr-bids-array.sh"
+
+
+def test_the_documented_slurm_array_script_runs_one_participant_per_task(tmp_path):
+    """Each task's participant comes from its row of participants.tsv; options pass through."""
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "participants.tsv").write_text("participant_id\tage\nsub-01\t28\nsub-02\t30\n")
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    (fake / "svr").write_text('#!/bin/sh\nprintf "%s\\n" "$@" > "$CALLED"\n')
+    (fake / "svr").chmod(0o755)
+    env = {
+        "PATH": f"{fake}:/usr/bin:/bin",
+        "BIDS_DIR": str(study),
+        "OUTPUT_DIR": str(tmp_path / "out"),
+        "CALLED": str(tmp_path / "called.txt"),
+    }
+    done = subprocess.run(
+        ["bash", str(SLURM_SCRIPT), "--masks-dir", "study-masks"],
+        env={**env, "SLURM_ARRAY_TASK_ID": "2"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "called.txt").read_text().splitlines() == [
+        "bids", str(study), str(tmp_path / "out"), "participant", "--participant-label",
+        "sub-02", "--masks-dir", "study-masks",
+    ]  # fmt: skip
+    # A task beyond the list, and a run outside an array, fail with a message.
+    for extra in ({"SLURM_ARRAY_TASK_ID": "3"}, {}):
+        done = subprocess.run(
+            ["bash", str(SLURM_SCRIPT)], env={**env, **extra}, capture_output=True, text=True,
+            check=False,
+        )  # fmt: skip
+        assert done.returncode != 0 and done.stderr.strip()
+
+
+def test_the_help_points_to_the_job_array_and_n_jobs():
     help_text = svr.cli.build_parser()._subparsers._group_actions[0].choices["bids"].description
     assert "SLURM_ARRAY_TASK_ID" in help_text and "--n-jobs" in help_text
+    assert "docs/slurm/svr-bids-array.sh" in help_text
 
 
 def test_participants_run_side_by_side_with_n_jobs(dataset, tmp_path):

@@ -78,10 +78,9 @@ examples:
   svr bids study/ study-svr/ participant --n-jobs 2
   svr bids study/ study-svr/ group
 
-  # SLURM job array, one participant per task (participants.tsv: a header, then sub-XX rows):
-  #   #SBATCH --array=1-40 --cpus-per-task=4
-  #   label=$(sed -n "$((SLURM_ARRAY_TASK_ID + 1))p" study/participants.tsv | cut -f1)
-  #   svr bids study/ study-svr/ participant --participant-label "$label"
+  # a SLURM job array, one participant per task (the script is in the documentation,
+  # docs/slurm/svr-bids-array.sh: task N takes row N of participants.tsv, SLURM_ARRAY_TASK_ID):
+  BIDS_DIR=study OUTPUT_DIR=study-svr sbatch --array=1-40 svr-bids-array.sh
 """
 
 if TYPE_CHECKING:
