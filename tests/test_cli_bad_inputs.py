@@ -282,6 +282,20 @@ def env(tmp_path_factory) -> dict[str, str]:
     shutil.copy(f["brain"], root / "atlas_good" / "GA30" / "srr.nii.gz")
     shutil.copy(f["mask"], root / "atlas_good" / "GA30" / "mask.nii.gz")
     f["atlas_good"] = str(root / "atlas_good")
+    # A BIDS dataset of one participant (svr bids) and its masks as a derivatives folder.
+    for name in ("bids", "bids_masks"):
+        (root / name / "sub-01" / "anat").mkdir(parents=True)
+        (root / name / "dataset_description.json").write_text(
+            '{"Name": "t", "BIDSVersion": "1.9.0"}'
+        )
+        f[name] = str(root / name)
+    anat = root / "bids" / "sub-01" / "anat"
+    shutil.copy(f["stack"], anat / "sub-01_run-1_T2w.nii.gz")
+    (anat / "sub-01_run-1_T2w.json").write_text('{"SliceThickness": 4}')
+    shutil.copy(
+        f["stack_mask"],
+        root / "bids_masks" / "sub-01" / "anat" / "sub-01_run-1_desc-brain_mask.nii.gz",
+    )
     return f
 
 
@@ -313,6 +327,9 @@ BASE = {
     "demo-loss": "demo --loss-only --num-poses 2 --steps 1 --output {out}/demo.json --device cpu",
     "segment-stack": "segment-stack --input-stacks {stack} --output-stack-masks {out}/mask.nii.gz "
     "--mask-model {masker} --output-qa {out}/masks.png --device cpu",
+    # positional BIDS_DIR OUTPUT_DIR participant (the reconstruction is replaced by a sentinel)
+    "bids": "bids {bids} {out}/derivatives participant --masks-dir {bids_masks} --iterations 1 "
+    "--sr-iterations 1 --output-resolution 4 --device cpu",
 }
 
 # command -> the options that take its image and its mask
@@ -929,6 +946,25 @@ def _cases() -> list[Case]:
             )
         )
 
+    # svr bids: its output folder is positional and made as mkdir -p; a finished participant is
+    # skipped, not an error.
+    add(
+        Case(
+            "bids-output-unwritable",
+            "bids",
+            [],
+            ["OUTPUT_DIR {out}/derivatives", "{out} is not writable"],
+            setup="unwritable",
+        )
+    )
+    add(
+        Case(
+            "bids-masks-dir-missing",
+            "bids",
+            ["--masks-dir", "{out}/no-masks"],
+            ["--masks-dir {out}/no-masks: no such folder"],
+        )
+    )
     # Outputs: missing folder, unwritable folder, existing output without --overwrite.
     for command, (option, name) in OUTPUT_OPTION.items():
         add(
@@ -1211,7 +1247,7 @@ def test_the_base_invocations_are_good(key, env, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(recon_demo, "simulate_case", _never_called)
     monkeypatch.setattr(brain_mask, "segment_stack", _never_called)
     argv = _argv(Case("control", key, [], []), names)
-    if key in ("register", "reconstruct", "demo", "segment-stack"):
+    if key in ("register", "reconstruct", "demo", "segment-stack", "bids"):
         with pytest.raises(AssertionError, match="the computation started"):
             main([*argv, "-q"])
     else:

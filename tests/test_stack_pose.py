@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -373,18 +374,36 @@ def test_config_errors_name_the_field() -> None:
         BlockGrid(size=True)  # type: ignore[arg-type]
 
 
-def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
-    from svr.cli import main
+def _one_age_atlas(tmp_path) -> Path:
+    """An atlas folder of one synthetic brain (``atlas/GA30/srr.nii.gz`` + ``mask.nii.gz``)."""
     from svr.image import save_nifti
-    from svr.models.stack_pose import load_stack_pose_model
-    from svr.sampling.volume import load_canonical_volume
 
     image, mask = ellipsoid_brain(40, 2.0, (24.0, 30.0, 20.0), seed=4, origin_mm=(-39.0,) * 3)
     folder = tmp_path / "atlas" / "GA30"
     folder.mkdir(parents=True)
     save_nifti(image, folder / "srr.nii.gz")
     save_nifti(mask, folder / "mask.nii.gz")
+    return folder
+
+
+def _library_run(folder, model_config, training, init=None):
+    """The library's training on one core (as the command trains), for comparison."""
+    from svr.sampling.volume import load_canonical_volume
+
+    volume = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
     threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return train_stack_pose([volume], None, model_config, training, init=init)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
+    from svr.cli import main
+    from svr.models.stack_pose import load_stack_pose_model
+
+    folder = _one_age_atlas(tmp_path)
     code = main(
         [
             "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
@@ -394,35 +413,22 @@ def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
     )  # fmt: skip
     assert code == 0
     trained = load_stack_pose_model(tmp_path / "run")
-    volume = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
-    torch.set_num_threads(1)
-    library = train_stack_pose(
-        [volume],
-        None,
-        StackPoseConfig(width=4),
-        StackPoseTrainingConfig(steps=2, checkpoint_every=1),
+    library = _library_run(
+        folder, StackPoseConfig(width=4), StackPoseTrainingConfig(steps=2, checkpoint_every=1)
     )
-    torch.set_num_threads(threads)
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
 
 def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, capsys) -> None:
     from svr.cli import main
-    from svr.image import save_nifti
     from svr.models.stack_pose import load_stack_pose_model
-    from svr.sampling.volume import load_canonical_volume
 
-    image, mask = ellipsoid_brain(40, 2.0, (24.0, 30.0, 20.0), seed=4, origin_mm=(-39.0,) * 3)
-    folder = tmp_path / "atlas" / "GA30"
-    folder.mkdir(parents=True)
-    save_nifti(image, folder / "srr.nii.gz")
-    save_nifti(mask, folder / "mask.nii.gz")
+    folder = _one_age_atlas(tmp_path)
     common = [
         "--atlas-dir", str(tmp_path / "atlas"), "--steps", "2", "--checkpoint-every", "1",
         "--volume-downsample", "1", "--quiet",
     ]  # fmt: skip
-    threads = torch.get_num_threads()
     assert main(["train-stack-pose", "--output-dir", str(tmp_path / "a"), "--loss", "anchor",
                  "--width", "4", *common]) == 0  # fmt: skip
     baseline = load_stack_pose_model(tmp_path / "a")
@@ -433,16 +439,12 @@ def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, caps
     ]  # fmt: skip
     assert main([*tune, *common]) == 0
     tuned = load_stack_pose_model(tmp_path / "ft")
-    volume = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
-    torch.set_num_threads(1)
-    library = train_stack_pose(
-        [volume],
-        None,
+    library = _library_run(
+        folder,
         baseline.config,
         StackPoseTrainingConfig(steps=2, checkpoint_every=1, learning_rate=1e-4, seed=1),
         init=baseline.state_dict(),
     )
-    torch.set_num_threads(threads)
     for a, b in zip(tuned.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     assert not all(

@@ -206,6 +206,7 @@ class ParticipantSummary:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr bids``."""
     check_output_dir(args.bids_dir, args.output_dir)
+    _check_writable(Path(args.output_dir))
     if args.analysis_level == "group":
         tsv, page, count = group_report(args.output_dir, args.participant_label)
         print(f"wrote {tsv} and {page}: {count} participants")
@@ -279,6 +280,17 @@ def run(args: argparse.Namespace) -> int:
         + (f"; failed: {', '.join(s.label for s in failed)}" if failed else "")
     )
     return 1 if failed else 0
+
+
+def _check_writable(output: Path) -> None:
+    """Refuse an OUTPUT_DIR that cannot be created or written, before any work."""
+    folder = output
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise CliError(f"OUTPUT_DIR {output}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK):
+        raise CliError(f"OUTPUT_DIR {output}: {folder} is not writable")
 
 
 def _report(summary: ParticipantSummary) -> ParticipantSummary:
