@@ -953,7 +953,7 @@ def _cases() -> list[Case]:
             "bids-output-unwritable",
             "bids",
             [],
-            ["OUTPUT_DIR {out}/derivatives", "{out} is not writable"],
+            ["{out}/derivatives: output folder {out} is not writable"],
             setup="unwritable",
         )
     )

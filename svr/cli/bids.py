@@ -36,6 +36,7 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    check_run_folder,
     positive_float,
     positive_int,
     resolve_device,
@@ -206,7 +207,7 @@ class ParticipantSummary:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr bids``."""
     check_output_dir(args.bids_dir, args.output_dir)
-    _check_writable(Path(args.output_dir))
+    check_run_folder(args.output_dir, "OUTPUT_DIR")
     if args.analysis_level == "group":
         tsv, page, count = group_report(args.output_dir, args.participant_label)
         print(f"wrote {tsv} and {page}: {count} participants")
@@ -280,17 +281,6 @@ def run(args: argparse.Namespace) -> int:
         + (f"; failed: {', '.join(s.label for s in failed)}" if failed else "")
     )
     return 1 if failed else 0
-
-
-def _check_writable(output: Path) -> None:
-    """Refuse an OUTPUT_DIR that cannot be created or written, before any work."""
-    folder = output
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise CliError(f"OUTPUT_DIR {output}: {folder} is not a folder")
-    if not os.access(folder, os.W_OK):
-        raise CliError(f"OUTPUT_DIR {output}: {folder} is not writable")
 
 
 def _report(summary: ParticipantSummary) -> ParticipantSummary:

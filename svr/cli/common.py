@@ -193,11 +193,12 @@ def check_finite(args: argparse.Namespace, *options: str) -> None:
                 raise CliError(f"{option} must be a finite number, got {number}")
 
 
-def check_run_folder(path: str) -> Path:
+def check_run_folder(path: str, option: str = "--output-dir") -> Path:
     """Check that a run folder can be created or added to: a folder, or creatable and writable.
 
     Args:
         path: The folder (it may exist, e.g. to resume a run).
+        option: The option (or argument) that names it, for the messages.
 
     Returns:
         ``path`` as a :class:`~pathlib.Path`.
@@ -208,12 +209,12 @@ def check_run_folder(path: str) -> Path:
     """
     out = Path(path)
     if out.exists() and not out.is_dir():
-        raise CliError(f"--output-dir {out}: exists and is not a folder")
+        raise CliError(f"{option} {out}: exists and is not a folder")
     existing = out
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     if not existing.is_dir():
-        raise CliError(f"--output-dir {out}: {existing} is not a folder")
+        raise CliError(f"{option} {out}: {existing} is not a folder")
     if not os.access(existing, os.W_OK):
         raise PermissionError(f"{out}: output folder {existing} is not writable")
     return out
