@@ -18,7 +18,6 @@ Training runs write ``folder/step_NNNNNNNNN/`` checkpoints (:func:`checkpoint_na
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -36,7 +35,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 
 from svr import __version__ as svr_version
-from svr.files import atomic_directory
+from svr.files import atomic_directory, file_sha256
 
 __all__ = [
     "CHECKPOINT_CONFIG",
@@ -168,7 +167,7 @@ def save_checkpoint(
         state_sha256 = None
         if training_state is not None:
             torch.save(training_state, tmp / TRAINING_STATE)
-            state_sha256 = _sha256(tmp / TRAINING_STATE)
+            state_sha256 = file_sha256(tmp / TRAINING_STATE)
         section = {
             "format_version": FORMAT_VERSION,
             "svr_version": svr_version,
@@ -176,7 +175,7 @@ def save_checkpoint(
             "created_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
             "half_precision": half_precision,
             "dtypes": dtypes,
-            "weights_sha256": _sha256(tmp / CHECKPOINT_WEIGHTS),
+            "weights_sha256": file_sha256(tmp / CHECKPOINT_WEIGHTS),
             "training_state_sha256": state_sha256,
         }
         text = json.dumps({**config, _SECTION: section}, indent=2, allow_nan=False)
@@ -362,15 +361,6 @@ def _check_training_state(out: Path, value: Any, where: str) -> None:
     )
 
 
-def _sha256(file: Path) -> str:
-    """The SHA-256 of a file, read in chunks."""
-    digest = hashlib.sha256()
-    with file.open("rb") as f:
-        while chunk := f.read(1 << 20):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def _device(folder: Path, map_location: str | torch.device) -> torch.device:
     """``map_location`` as a device, checked to be usable here."""
     try:
@@ -429,7 +419,7 @@ def _verify_file(file: Path, sha256: object) -> None:
         raise CheckpointError(file.parent / CHECKPOINT_CONFIG, f"no SHA-256 for {file.name}")
     if not file.is_file():
         raise CheckpointError(file.parent, f"missing {file.name}")
-    if _sha256(file) != sha256:
+    if file_sha256(file) != sha256:
         raise CheckpointError(
             file, f"does not match its SHA-256 in {CHECKPOINT_CONFIG} (modified or corrupted)"
         )

@@ -339,3 +339,12 @@ def test_the_real_scan_as_a_bids_dataset_matches_svr_reconstruct(shared_data, tm
     ours = load_nifti(out / "sub-01" / "anat" / "sub-01_rec-svr_T2w.nii.gz")
     reference = load_nifti(single)
     assert torch.equal(ours.data, reference.data) and torch.equal(ours.affine, reference.affine)
+
+
+def test_the_provenance_names_the_model_by_its_weights_hash():
+    from svr.cli.bids import _model_digest
+    from svr.files import file_sha256
+    from svr.models.pretrained import stack_pose_model_path
+
+    expected = file_sha256(stack_pose_model_path() / "model.safetensors")
+    assert _model_digest("stack-pose") == expected and len(expected) == 64

@@ -22,7 +22,6 @@ The dataset is read with pybids (:class:`bids.BIDSLayout`), never by parsing pat
 
 from __future__ import annotations
 
-import hashlib
 import html
 import json
 import os
@@ -43,7 +42,6 @@ __all__ = [
     "Participant",
     "ParticipantOutputs",
     "check_output_dir",
-    "file_sha256",
     "find_participants",
     "group_report",
     "participant_outputs",
@@ -321,15 +319,6 @@ def _thickness(metadata: dict[str, Any], path: str) -> float | None:
     if not thickness > 0:
         raise BidsError(f"{path}: sidecar SliceThickness must be > 0, got {value!r}")
     return thickness
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """The SHA-256 of a file's content, hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def write_dataset_description(

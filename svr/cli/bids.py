@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import logging
 import os
 import sys
@@ -26,7 +25,6 @@ from svr.apps.bids import (
     ParticipantOutputs,
     check_output_dir,
     environment,
-    file_sha256,
     find_participants,
     group_report,
     participant_outputs,
@@ -45,8 +43,10 @@ from svr.cli.reconstruct import (
     add_mask_options,
     add_settings_options,
     build_configs,
+    excluded_by_stack,
     load_and_reconstruct,
 )
+from svr.files import file_sha256
 
 DESCRIPTION = """\
 Reconstruct a cohort kept as a BIDS dataset (a BIDS App). Participant level: every T2w stack of
@@ -398,11 +398,8 @@ def _reconstruct(
         config,
         job.device,
     )
-    excluded: dict[str, list[int]] = {}
     slices = result.slices
-    for row in result.excluded.nonzero().flatten().tolist():
-        name = Path(slices.stack_names[int(slices.stack_ids[row])]).name
-        excluded.setdefault(name, []).append(int(slices.slice_indices[row]))
+    excluded = {Path(name).name: ks for name, ks in excluded_by_stack(result).items()}
     names = [Path(n).name for n in slices.stack_names]
     model = None
     if config.registration == "cnn" and args.model != "none":
@@ -490,16 +487,13 @@ def _write(
 
 
 def _model_digest(name: str) -> str | None:
-    """SHA-256 of the weights of the model that ``--model`` names (of their digests if several)."""
-    from svr.models.checkpoint import latest_checkpoint, resolve_model_path
+    """SHA-256 of the weights file of the model that ``--model`` names."""
+    from svr.models.checkpoint import CHECKPOINT_WEIGHTS, latest_checkpoint, resolve_model_path
     from svr.models.pretrained import stack_pose_model_path
     from svr.models.stack_pose import STACK_POSE_MODEL
 
     folder = stack_pose_model_path() if name == STACK_POSE_MODEL else resolve_model_path(name)
-    if not any(folder.glob("*.safetensors")):
-        newest = latest_checkpoint(folder)
-        folder = newest if newest is not None else folder
-    digests = [file_sha256(path) for path in sorted(folder.glob("*.safetensors"))]
-    if len(digests) <= 1:
-        return digests[0] if digests else None
-    return hashlib.sha256("".join(digests).encode()).hexdigest()
+    if not (folder / CHECKPOINT_WEIGHTS).is_file():
+        folder = latest_checkpoint(folder) or folder
+    weights = folder / CHECKPOINT_WEIGHTS
+    return file_sha256(weights) if weights.is_file() else None

@@ -490,7 +490,7 @@ def _captured_log() -> Iterator[io.StringIO]:
         root.removeHandler(handler)
 
 
-def _excluded_by_stack(result: ReconstructionResult) -> dict[str, list[int]]:
+def excluded_by_stack(result: ReconstructionResult) -> dict[str, list[int]]:
     """Stack name -> k indices (in its file) of the excluded slices, for stacks that have some."""
     slices = result.slices
     out: dict[str, list[int]] = {}
@@ -508,7 +508,7 @@ def _log_result(result: ReconstructionResult) -> None:
         else "the stacks' world coordinates"
     )
     log.info("the output volume and poses are in the %s frame (%s)", frame, where)
-    for name, ks in _excluded_by_stack(result).items():
+    for name, ks in excluded_by_stack(result).items():
         log.info("%s: excluded slices k = %s", name, ", ".join(map(str, ks)))
 
 
@@ -584,7 +584,7 @@ def _summary(
     lines.append(f"frame: {result.slices.frame}")
     lines.append(f"rounds: {_rounds_line(config, result)}")
     lines += [f"  {record.line()}" for record in result.rounds]
-    excluded = _excluded_by_stack(result)
+    excluded = excluded_by_stack(result)
     lines.append(f"excluded slices: {int(result.excluded.sum())} of {len(result.slices)}")
     lines += [f"  {name}: k = {', '.join(map(str, ks))}" for name, ks in excluded.items()]
     return "\n".join(lines) + "\n"
