@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -224,7 +225,7 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
     ``P_i`` its final pose; its rotation angle and its translation (at the canonical origin, the
     brain's centre).
     """
-    from svr.geometry import rotation_angle_deg, se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry import rotation_angle, se3_compose, se3_inverse, vector_to_se3
     from svr.geometry.averaging import robust_mean_pose
     from svr.pose_io import read_pose_table
 
@@ -244,5 +245,5 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
         ]
     )
     mean = robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
-    turn = float(rotation_angle_deg(mean, torch.eye(4, dtype=mean.dtype)))
+    turn = math.degrees(rotation_angle(mean, torch.eye(4, dtype=mean.dtype)))
     return turn, float(mean[:3, 3].norm())

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 from bench_common import ATLAS, MOTION, SHARED, true_slice_poses
 
-from svr.geometry import rotation_angle_deg, se3_compose, se3_inverse, so3_exp
+from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import load_nifti, voxel_to_world
 from svr.models.stack_pose import (
     atlas_agreement,
@@ -72,7 +72,7 @@ from svr.sampling.volume import (
 
 def rotation_deg(a: torch.Tensor, b: torch.Tensor) -> float:
     """Angle between the rotations of two (4, 4) transforms, degrees."""
-    return float(rotation_angle_deg(a, b))
+    return math.degrees(rotation_angle(a, b))
 
 
 def held_out_stacks(args, trajectories) -> list[dict]:

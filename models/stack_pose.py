@@ -27,6 +27,7 @@ mm, a *stack pose* ``P = E o F`` maps the stack frame ``F`` to canonical mm.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,7 +38,7 @@ from scipy.ndimage import gaussian_filter
 from torch import Tensor, nn
 
 from svr.geometry import (
-    rotation_angle_deg,
+    rotation_angle,
     se3_compose,
     so3_exp,
     vector_to_se3,
@@ -529,7 +530,7 @@ def estimate_stack_pose(
     frame, score = frames[best], float(scores[best])
     if atlas is not None:
         fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit)
-        turn = float(rotation_angle_deg(fitted, frame))
+        turn = math.degrees(rotation_angle(fitted, frame))
         if model is None or turn <= max_fit_turn_deg:
             frame, method = fitted, method + "+atlas"
             score = ncc if model is None else score

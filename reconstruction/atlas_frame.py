@@ -21,7 +21,7 @@ import math
 import torch
 from torch import Tensor
 
-from svr.geometry import rotation_angle_deg, se3_compose, so3_exp
+from svr.geometry import rotation_angle, se3_compose, so3_exp
 from svr.image import Image, voxel_to_world
 from svr.models.stack_pose import AtlasFitConfig, StackPoseNet, fit_to_atlas, refine_frames
 from svr.reconstruction.config import ReconstructionResult
@@ -89,7 +89,7 @@ def atlas_transform(
         best_flip = FLIPS[int(torch.argmax(scores))]
         start = _flip(best_flip)
         fitted, _ = fit_to_atlas(volume, mask, start, atlas, config)
-        turn = float(rotation_angle_deg(fitted, start))
+        turn = math.degrees(rotation_angle(fitted, start))
         best = fitted if turn <= max_fit_turn_deg else start
         if turn > max_fit_turn_deg:
             log.info("atlas frame: the atlas fit turned %.0f deg; kept the stacks' frame", turn)
@@ -121,7 +121,7 @@ def align_to_atlas(
     """
     volume = result.volume
     transform, flip, nccs = atlas_transform(volume, result.mask.data > 0.5, atlas, config, model)
-    angle = float(rotation_angle_deg(transform, torch.eye(4, dtype=transform.dtype)))
+    angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(
         "atlas frame: turned %.1f deg, shifted %.1f mm (start %s; scores %s)",
         angle,

@@ -168,7 +168,7 @@ def so3_log(matrix: Tensor) -> Tensor:
     return quat_to_rotvec(matrix_to_quat(matrix))
 
 
-def rotation_angle_deg(a: Tensor, b: Tensor) -> Tensor:
+def rotation_angle(a: Tensor, b: Tensor) -> Tensor:
     """Angle of the rotation that takes ``a`` to ``b``: of ``A^T B`` for their rotation parts.
 
     Args:
@@ -176,12 +176,12 @@ def rotation_angle_deg(a: Tensor, b: Tensor) -> Tensor:
         b: The same, broadcastable with ``a``.
 
     Returns:
-        (...) angles in degrees, in ``[0, 180]``.
+        (...) angles in radians, in ``[0, pi]``.
     """
     ra, rb = a[..., :3, :3], b[..., :3, :3]
-    check_tensor(ra, "rotation_angle_deg", "a", (3, 3))
-    check_tensor(rb, "rotation_angle_deg", "b", (3, 3))
-    return torch.rad2deg(so3_log(ra.transpose(-1, -2) @ rb).norm(dim=-1))
+    check_tensor(ra, "rotation_angle", "a", (3, 3))
+    check_tensor(rb, "rotation_angle", "b", (3, 3))
+    return so3_log(ra.transpose(-1, -2) @ rb).norm(dim=-1)
 
 
 def regularize_rotvec(rotvec: Tensor) -> Tensor:
