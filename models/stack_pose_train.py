@@ -23,12 +23,14 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 from torch import Tensor
 from torch.nn import functional
+from torch.utils.data import DataLoader, Dataset
 
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
@@ -52,7 +54,14 @@ from svr.sampling.blocks import (
 from svr.sampling.motion import Trajectory
 from svr.sampling.volume import CanonicalVolume
 
-__all__ = ["StackPoseTrainingConfig", "draw_samples", "stack_pose_loss", "train_stack_pose"]
+__all__ = [
+    "StackPoseTrainingConfig",
+    "draw_samples",
+    "simulate_batch",
+    "stack_pose_loss",
+    "step_seed",
+    "train_stack_pose",
+]
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +213,71 @@ def draw_samples(
     return blocks, starts, stack.pose, positive.float()
 
 
+def simulate_batch(
+    volumes: list[CanonicalVolume],
+    trajectories: list[Trajectory] | None,
+    model_config: StackPoseConfig,
+    config: StackPoseTrainingConfig,
+    generator: torch.Generator,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One training step's blocks: ``stacks_per_step`` simulated stacks, their samples stacked.
+
+    Args:
+        volumes: Training brains in canonical space.
+        trajectories: Real motion recordings (``None``: random walks).
+        model_config: The network's block grid.
+        config: The draw's ranges.
+        generator: Source of every draw (advanced).
+
+    Returns:
+        ``(blocks, starts, targets, labels)`` over B = stacks_per_step * samples_per_stack
+        blocks: (B, 3, S, S, S) float32, (B, 4, 4) float64 start and true stack poses, (B,)
+        labels.
+    """
+    batch = []
+    for _ in range(config.stacks_per_step):
+        volume = volumes[int(torch.randint(len(volumes), (1,), generator=generator))]
+        stack = simulate_training_stack(volume, config.stacks, generator, trajectories)
+        blocks, starts, target, labels = draw_samples(stack, model_config, config, generator)
+        batch.append((blocks, starts, target.expand_as(starts), labels))
+    blocks, starts, targets, labels = (torch.cat(parts) for parts in zip(*batch, strict=True))
+    return blocks, starts, targets, labels
+
+
+def step_seed(seed: int, step: int) -> int:
+    """The seed of step ``step``'s simulation when stacks are simulated by worker processes."""
+    return (seed * 1_000_003 + step) % (2**63)
+
+
+class _StepBatches(Dataset):
+    """Step ``i``'s batch, simulated from a generator seeded by :func:`step_seed`."""
+
+    def __init__(
+        self,
+        volumes: list[CanonicalVolume],
+        trajectories: list[Trajectory] | None,
+        model_config: StackPoseConfig,
+        config: StackPoseTrainingConfig,
+    ) -> None:
+        self.volumes = volumes
+        self.trajectories = trajectories
+        self.model_config = model_config
+        self.config = config
+
+    def __len__(self) -> int:
+        return self.config.steps
+
+    def __getitem__(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        generator = torch.Generator().manual_seed(step_seed(self.config.seed, step))
+        return simulate_batch(
+            self.volumes, self.trajectories, self.model_config, self.config, generator
+        )
+
+
+def _one_thread(_worker: int) -> None:
+    torch.set_num_threads(1)  # the workers share the cores; one thread each simulates fastest
+
+
 def stack_pose_loss(
     output: StackPoseOutput,
     starts: Tensor,
@@ -277,6 +351,7 @@ def train_stack_pose(
     extra_config: dict | None = None,
     device: str | torch.device = "cpu",
     init: dict[str, Tensor] | None = None,
+    workers: int = 0,
 ) -> StackPoseNet:
     """Train (or resume training) the stack-pose network.
 
@@ -292,12 +367,23 @@ def train_stack_pose(
         device: Where the network trains (stacks are simulated on the CPU).
         init: Weights to start from (fine-tuning a trained network with a new schedule), used
             when ``folder`` holds no checkpoint yet; ``None`` starts from random weights.
+        workers: Processes that simulate the stacks. 0 (the shipped recipe) simulates them in
+            this process from one random stream, saved in the checkpoints; N >= 1 simulates each
+            step's stacks in one of N worker processes from a generator seeded by the seed and
+            the step (:func:`step_seed`), so the run is the same for every N >= 1 and resumes
+            exactly, but differs from a run with 0. Use them where simulation is the bottleneck
+            (a GPU, or a machine with spare cores).
 
     Returns:
         The network (eval mode).
+
+    Raises:
+        ValueError: If ``volumes`` is empty or ``workers`` is negative.
     """
     if not volumes:
         raise ValueError("train_stack_pose(): 'volumes' is empty")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+        raise ValueError(f"train_stack_pose(): 'workers' must be an int >= 0, got {workers!r}")
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     net = StackPoseNet(model_config)
@@ -312,16 +398,23 @@ def train_stack_pose(
     sums: dict[str, float] = {}
     count = 0
     began = time.time()
-    for step in range(start, config.steps):
-        batch = []
-        for _ in range(config.stacks_per_step):
-            volume = volumes[int(torch.randint(len(volumes), (1,), generator=generator))]
-            stack = simulate_training_stack(volume, config.stacks, generator, trajectories)
-            blocks, starts, target, labels = draw_samples(stack, model_config, config, generator)
-            batch.append((blocks, starts, target.expand_as(starts), labels))
-        blocks, starts, targets, labels = (
-            torch.cat(parts).to(device) for parts in zip(*batch, strict=False)
+    if workers == 0:
+        batches: Iterable[tuple[Tensor, ...]] = (
+            simulate_batch(volumes, trajectories, model_config, config, generator)
+            for _ in range(start, config.steps)
         )
+    else:
+        batches = DataLoader(
+            _StepBatches(volumes, trajectories, model_config, config),
+            batch_size=None,
+            sampler=range(start, config.steps),
+            num_workers=workers,
+            worker_init_fn=_one_thread,
+            prefetch_factor=4,
+            pin_memory=torch.device(device).type == "cuda",
+        )
+    for step, batch in zip(range(start, config.steps), batches, strict=True):
+        blocks, starts, targets, labels = (part.to(device) for part in batch)
         loss, parts = stack_pose_loss(
             net(blocks), starts, targets, labels, config, cells, model_config.representation
         )

@@ -334,7 +334,7 @@ def test_cuda_matches_cpu(rng, gradient):
     pred, target = poses(rng, 256).float(), poses(rng, 256).float()
     results = []
     for device in ("cpu", "cuda"):
-        p = pred.to(device).requires_grad_(True)
+        p = pred.to(device).detach().requires_grad_(True)
         loss = se3_geodesic_loss(
             p,
             target.to(device),

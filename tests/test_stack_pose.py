@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -25,7 +26,9 @@ from svr.models.stack_pose import (
 from svr.models.stack_pose_train import (
     StackPoseTrainingConfig,
     draw_samples,
+    simulate_batch,
     stack_pose_loss,
+    step_seed,
     train_stack_pose,
 )
 from svr.representations import REPRESENTATIONS
@@ -323,6 +326,39 @@ def test_a_tiny_model_learns_and_resumes(tmp_path) -> None:
     again = train_stack_pose([volume], None, model_config, training, folder=tmp_path / "run")
     for a, b in zip(net.state_dict().values(), again.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+
+
+def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_path) -> None:
+    """--workers N: the step's seed fixes its stacks, so N = 1 and N = 2 agree, and a run stopped
+    after one step and resumed ends as the run straight through; N = 0 is the single stream."""
+    from svr.models.stack_pose_train import _StepBatches
+
+    model_config, training = _tiny_training()
+    training = dataclasses.replace(training, steps=3, checkpoint_every=3)
+    volume = _volume()
+
+    def run(workers: int, **kwargs) -> list[torch.Tensor]:
+        net = train_stack_pose([volume], None, model_config, training, workers=workers, **kwargs)
+        return list(net.state_dict().values())
+
+    def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+        return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+    one = run(1)
+    assert same(run(2), one)
+    assert not same(run(0), one)
+    # Each step's batch is the in-process simulation from the step's seed.
+    dataset = _StepBatches([volume], None, model_config, training)
+    for step in (0, 2):
+        generator = torch.Generator().manual_seed(step_seed(training.seed, step))
+        expected = simulate_batch([volume], None, model_config, training, generator)
+        assert all(torch.equal(a, b) for a, b in zip(dataset[step], expected, strict=True))
+    # Out of time after the first step (checkpoint 1), then resumed with another count.
+    run(2, folder=tmp_path / "run", time_limit_s=0.0)
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["step_000000001"]
+    assert same(run(1, folder=tmp_path / "run"), one)
+    with pytest.raises(ValueError, match="'workers'"):
+        run(-1)
 
 
 def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:

@@ -13,6 +13,7 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     check_run_folder,
+    non_negative_int,
     positive_float,
     positive_int,
     resolve_device,
@@ -27,7 +28,9 @@ mask's principal axes give) to the right one, with the SE(3) geodesic loss on th
 and to tell right frames from wrong ones. Checkpoints go to --output-dir every
 --checkpoint-every steps; running the same command again resumes from the newest. --minutes
 stops a run after a checkpoint once that much time has passed (the default recipe: 110 minutes
-on one CPU core). Use the result with `svr reconstruct --registration cnn --model OUTPUT_DIR`.
+on one CPU core; on a GPU, simulation is the bottleneck: add --device cuda --workers N, N about
+the number of free cores). Use the result with
+`svr reconstruct --registration cnn --model OUTPUT_DIR`.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
 srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
@@ -107,6 +110,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
+    )
+    p.add_argument(
+        "--workers",
+        type=non_negative_int,
+        default=0,
+        help="processes that simulate the training stacks: 0 simulates them in the training "
+        "process (the shipped recipe); N >= 1 seeds each step's simulation by the step, so a run "
+        "is the same for any N (worth it on a GPU or with spare cores)",
     )
     p.add_argument(
         "--minutes",
@@ -198,9 +209,11 @@ def run(args: argparse.Namespace) -> int:
             },
             "command": shlex.join(["svr", *sys.argv[1:]]),
             "init_from": args.init_from,
+            "workers": args.workers,
         },
         device=device,
         init=init,
+        workers=args.workers,
     )
     print(f"trained in {time.time() - began:.0f} s; checkpoints in {args.output_dir}")
     return 0
