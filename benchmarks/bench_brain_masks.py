@@ -10,7 +10,7 @@ stack of
 * the bench cases ``bench/sb28-moderate`` and ``bench/sb24-large`` (their masks),
 
 and reports per stack Dice, recall (the fraction of the manual brain inside ours) and precision
-against the given masks, the wall time of :func:`svr.models.brain_mask.segment_stack` with
+against the given masks, the wall time of :func:`svr.masking.segment_stack` with
 ``--threads`` torch threads, and the peak resident memory of a fresh process that loads the model
 and segments the first real stack in which a brain was found (``VmHWM``, with the same
 process's peak before the call).
@@ -20,7 +20,7 @@ the same stacks (ratio columns).
 Part ``masks`` also fuses the automatic masks of each dataset whose stacks are of one fetus
 (the real scan, the phantom, the bench cases; not FaBiAN, whose 4 stacks are of 3 subjects) across
 its stacks, as ``svr segment-stack --fuse-masks`` does
-(:func:`svr.reconstruction.mask_fusion.fuse_stack_masks`, thickness = slice spacing, each stack
+(:func:`svr.masking.fuse.fuse_stack_masks`, thickness = slice spacing, each stack
 voting with the network's probabilities), and scores the fused masks in the same way; the
 fusion's wall time is given per stack. A second table compares that fusion with one whose
 stacks vote with their binary masks (the fusion of the previous release).
@@ -49,7 +49,7 @@ this measures the scenes and acquisitions held out, not unseen anatomy.
 
 Part ``consistency`` (not in ``all``): how well the manual masks of the real scan agree with
 each other: each stack's manual mask against the vote of the other five stacks' manual masks on
-its planes (:func:`svr.reconstruction.mask_fusion.leave_one_out_votes` above 0.5, with the slice
+its planes (:func:`svr.masking.fuse.leave_one_out_votes` above 0.5, with the slice
 poses of a reconstruction with the manual masks, excluded slices left out), beside the automatic
 masks' Dice and recall, own and fused; then both votes at lower thresholds (what recall a mask
 consistent in 3D reaches, and at what Dice); then the SVRTK phantom's one mask against each
@@ -58,7 +58,7 @@ stack's head (the Dice of the two and the distance between their centroids).
 Part ``opening`` (not in ``all``): the clean-up's opening (``BrainMaskConfig.opening_mm`` and
 ``regrow_mm``) swept over settings on every stack of part ``masks`` and of part ``simval``: the
 ``--mask-model`` probabilities of each stack are computed once and cleaned up with each setting
-(:func:`svr.models.brain_mask.clean_up_mask`); Dice min / mean per dataset.
+(:func:`svr.masking.clean_up_mask`); Dice min / mean per dataset.
 
 Run from the repository root on 2 quiet cores::
 
@@ -79,7 +79,7 @@ import numpy as np
 import torch
 
 from svr.image import Image, load_nifti, mask_on_grid
-from svr.models.brain_mask import BrainNotFoundError, load_brain_masker, segment_stack
+from svr.masking import BrainNotFoundError, load_brain_masker, segment_stack
 
 MASK_SUFFIX = "T2w_desc-brain_mask.nii.gz"
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -131,13 +131,13 @@ def scores(ours: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
 
 
 def otsu_masks(stacks: list[Image], names: list[str]) -> list[torch.Tensor]:
-    """The former automatic masks (``StackConfig(auto_mask="otsu")``), on each stack's grid."""
-    from svr.reconstruction.stacks import _automatic_mask
+    """The former automatic masks (``MaskingConfig(method="otsu")``), on each stack's grid."""
+    from svr.masking.otsu import otsu_mask
 
     out = []
     for n, (image, name) in enumerate(zip(stacks, names, strict=True)):
         try:
-            out.append(_automatic_mask(image, stacks[:n] + stacks[n + 1 :], name))
+            out.append(otsu_mask(image, stacks[:n] + stacks[n + 1 :], name))
         except ValueError:
             out.append(torch.zeros(image.shape, dtype=torch.bool))
     return out
@@ -153,7 +153,7 @@ def peak_kb():
         return next(float(line.split()[1]) for line in status if line.startswith("VmHWM:"))
 torch.set_num_threads(int(sys.argv[2]))
 from svr.image import load_nifti
-from svr.models.brain_mask import load_brain_masker, segment_stack
+from svr.masking import load_brain_masker, segment_stack
 masker = load_brain_masker(sys.argv[3])
 stack = load_nifti(sys.argv[1])
 before = peak_kb()
@@ -170,7 +170,7 @@ ONE_FETUS = ("real-mialsrtk-sub01", "sim-svrtk-phantom", "sb28-moderate", "sb24-
 
 
 def part_masks(args: argparse.Namespace, report: dict) -> list[str]:
-    from svr.reconstruction.mask_fusion import fuse_stack_masks
+    from svr.masking.fuse import fuse_stack_masks
 
     masker = load_brain_masker(args.mask_model)
     lines = [
@@ -345,7 +345,7 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
         ("automatic", [Image(auto.float(), image.affine) for _, _, image, auto, _ in found]),
     ]
     if len(found) >= 3:
-        from svr.reconstruction.mask_fusion import fuse_stack_masks
+        from svr.masking.fuse import fuse_stack_masks
 
         fused = fuse_stack_masks(
             [f[2] for f in found],
@@ -424,8 +424,8 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
 
 def part_consistency(args: argparse.Namespace, report: dict) -> list[str]:
     """How well the other stacks' manual masks predict each stack's (the masks' own agreement)."""
+    from svr.masking.fuse import fuse_stack_masks, leave_one_out_votes
     from svr.reconstruction.config import ReconstructionConfig
-    from svr.reconstruction.mask_fusion import fuse_stack_masks, leave_one_out_votes
     from svr.reconstruction.pipeline import reconstruct
     from svr.reconstruction.stacks import prepare_stacks
 
@@ -573,7 +573,7 @@ def simval_stacks(args: argparse.Namespace) -> list[tuple[str, Image, torch.Tens
     """The held-out simulated stacks of part ``simval``: (case name, stack, bool brain mask)."""
     import dataclasses
 
-    from svr.models.brain_mask_train import stage_data
+    from svr.masking.train import stage_data
     from svr.sampling.scenes import make_scene
     from svr.sampling.simulate import SimulationConfig, simulate_case
     from svr.sampling.volume import atlas_volume_paths, load_volumes
@@ -623,7 +623,7 @@ OPENINGS = [
 
 
 def part_opening(args: argparse.Namespace, report: dict) -> list[str]:
-    from svr.models.brain_mask import clean_up_mask
+    from svr.masking import clean_up_mask
 
     masker = load_brain_masker(args.mask_model)
     threshold = masker.config.threshold
@@ -697,7 +697,7 @@ def part_simval(args: argparse.Namespace, report: dict) -> list[str]:
             probabilities.append(probability)
         results = {model: rows}
         if args.sim_stacks >= 3:  # each scene's stacks fused (scenes where all were found)
-            from svr.reconstruction.mask_fusion import fuse_stack_masks
+            from svr.masking.fuse import fuse_stack_masks
 
             fused_rows, hard_rows = list(rows), list(rows)
             for case in dict.fromkeys(name for name, _, _ in stacks):

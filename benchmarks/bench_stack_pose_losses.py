@@ -62,7 +62,7 @@ from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pos
 from svr.reconstruction.cnn_init import cnn_slice_poses
 from svr.reconstruction.slices import extract_slices
 from svr.reconstruction.stacks import prepare_stacks
-from svr.representations import representations_by_cli_name
+from svr.representation_registry import representations_by_cli_name
 from svr.sampling.blocks import coarsen_stack, stack_frame
 from svr.sampling.motion import load_trajectories
 from svr.sampling.volume import atlas_volume_paths, downsample_volume, load_canonical_volume

@@ -1,4 +1,4 @@
-r"""Train the shipped brain-mask model (svr.models.brain_mask) on simulated scenes only.
+r"""Train the shipped brain-mask model (svr.masking) on simulated scenes only.
 
 Each network is one process (one core each; run the two stages side by side), then ``assemble``
 puts the two into one model folder. The shipped model (simulation + training: about 17 + 21 min
@@ -42,8 +42,8 @@ import torch
 
 from svr.files import atomic_write_text
 from svr.image import load_nifti
-from svr.models.brain_mask import BrainMaskConfig, BrainMasker, save_brain_masker
-from svr.models.brain_mask_train import (
+from svr.masking import BrainMaskConfig, BrainMasker, save_brain_masker
+from svr.masking.train import (
     BrainMaskTrainingConfig,
     TrainingExamples,
     make_examples,
@@ -59,8 +59,8 @@ MODEL_CARD = """\
 
 Two 2D U-Nets (`svr.models.segmentation.BrainUNet`, depth 4, width 8 for the localiser and 12
 for the segmenter; float16 safetensors and a JSON config, loaded by
-`svr.models.brain_mask.load_brain_masker("default")` without running code),
-`svr.models.brain_mask`: a localiser on 1.5 mm canvases of 192 mm tiled over each slice's
+`svr.masking.load_brain_masker("default")` without running code),
+`svr.masking`: a localiser on 1.5 mm canvases of 192 mm tiled over each slice's
 field of view (overlapping by half, blended), which gives the brain's in-plane centre, and a
 segmenter on 1.25 mm canvases of 160 mm centred there, run on every slice. The clean-up keeps
 the largest 3D component, opens it by a ball of 8 mm (cutting thin leaks into the fluid beside
@@ -72,7 +72,7 @@ stacks are drawn).
 **Training data.** Simulated only; no real scan was used. Brains: the 15 volumes of the
 sb-fidon2021 atlas (GA 21-34, `../shared/data/atlas/sb-fidon2021`, CC0), placed in random
 whole-uterus scenes (`svr.sampling.scenes.make_scene`, settings in
-`svr.models.brain_mask_train.stage_data`) or alone, cut by the project's stack simulator.
+`svr.masking.train.stage_data`) or alone, cut by the project's stack simulator.
 Localiser: {localiser.cases} cases, {localiser.steps} steps; segmenter: {segmenter.cases} cases,
 {segmenter.steps} steps ({segmenter.batch_size} canvases a step, seed {segmenter.seed}, one CPU
 thread per network; random intensity maps on a fraction {localiser.intensity_curves} /

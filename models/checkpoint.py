@@ -35,7 +35,9 @@ import torch
 from safetensors import SafetensorError, safe_open
 
 from svr import __version__ as svr_version
+from svr.errors import CheckpointError
 from svr.files import atomic_directory, file_sha256
+from svr.models import pretrained
 
 __all__ = [
     "CHECKPOINT_CONFIG",
@@ -67,23 +69,6 @@ _MAPPING_TYPES = (dict, OrderedDict)
 _SEQUENCE_TYPES = (list, tuple)
 
 log = logging.getLogger(__name__)
-
-
-class CheckpointError(ValueError):
-    """A checkpoint cannot be written or read; the message names the path and the problem.
-
-    Attributes:
-        path: The checkpoint folder or file concerned.
-        problem: What is wrong with it.
-    """
-
-    def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
-        self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{self.path}: {problem}")
-
-    def __reduce__(self) -> tuple[type[CheckpointError], tuple[Path, str]]:
-        return type(self), (self.path, self.problem)
 
 
 @dataclass
@@ -255,10 +240,8 @@ def resolve_model_path(path_or_name: str | os.PathLike[str]) -> Path:
         CheckpointError: Naming the folder, if it does not exist, holds no checkpoint, or is the
             shipped model's and its files are not installed.
     """
-    from svr.models.pretrained import DEFAULT_MODEL, default_model_path
-
-    if isinstance(path_or_name, str) and path_or_name == DEFAULT_MODEL:
-        folder = default_model_path()
+    if isinstance(path_or_name, str) and path_or_name == pretrained.DEFAULT_MODEL:
+        folder = pretrained.default_model_path()
         missing = [f for f in (CHECKPOINT_WEIGHTS, CHECKPOINT_CONFIG) if not (folder / f).is_file()]
         if missing:
             raise CheckpointError(

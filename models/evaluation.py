@@ -13,7 +13,7 @@ compared with the slice cut from the same volume at the predicted pose, as SVRne
   ``translation_mm``: :func:`svr.metrics.pose_errors`. ``geodesic`` is the left-invariant SE(3)
   distance in radian-equivalents (1 = 1 rad or 30 mm), not the paper's GD scale.
 * ``geodesic_twin``, ``rotation_twin_deg``, ``translation_twin_mm``: the same errors up to the
-  mirror twin (:mod:`svr.geometry.symmetry`): to whichever of the true pose and its twin is
+  mirror twin (:mod:`svr.geometry.mirror`): to whichever of the true pose and its twin is
   nearer the prediction. A single slice of a symmetric brain cannot tell the two apart, so these
   are what a network can achieve on slices alone; the raw errors stay beside them.
 
@@ -41,7 +41,7 @@ from torch import Tensor
 
 from svr.files import atomic_directory
 from svr.geometry._validation import check_tensor
-from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
+from svr.geometry.mirror import SAGITTAL, ReflectionPlane
 from svr.image_metrics import mse, ncc, psnr, ssim
 from svr.metrics import nearest_orbit_member, pose_errors
 from svr.sampling.slicer import SliceConfig, sample_slices

@@ -1,8 +1,8 @@
 """Pose heads: a linear layer from backbone features to the labels of one pose representation.
 
 Everything a head needs to know about its representation comes from the registry
-:data:`svr.representations.REPRESENTATIONS`: the output size, the scale of the raw outputs, the
-identity label and the decoder. A head's output is in the units of
+:data:`svr.representation_registry.REPRESENTATIONS`: the output size, the scale of the raw
+outputs, the identity label and the decoder. A head's output is in the units of
 :func:`svr.sampling.poses.pose_labels` (rad, mm), so that it goes straight into the
 representation's loss and :meth:`PoseHead.to_pose` recovers pose vectors with the entry's
 ``decode``. The linear layer's raw outputs are kept O(1) by the entry's ``output_scale``: the
@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from svr.geometry import ANCHOR_HALF_SIZE_MM, matrix_to_quat, quat_to_rotvec, rotation_6d_to_matrix
 from svr.geometry._validation import check_tensor
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
-from svr.representations import REPRESENTATIONS, Representation, get_representation
+from svr.representation_registry import REPRESENTATIONS, Representation, get_representation
 
 SE3_ROTATIONS = ("rotvec", "6d")
 """Rotation parameterisations of the ``"se3"`` head's linear layer."""
@@ -68,7 +68,7 @@ class PoseHead(nn.Module):
 
     Args:
         in_features: Number of input features, >= 1.
-        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
+        representation: A registered name (:data:`svr.representation_registry.REPRESENTATIONS`).
         translation_scale_mm: Millimetres per unit of the raw translation outputs, > 0.
         anchor_half_size_mm: Half-size ``a`` (mm) of the anchor-point triangle and millimetres per
             unit of the raw anchor-point outputs, > 0 (``"anchor_points"`` only).

@@ -4,7 +4,7 @@ A :class:`SlicePoseNet` maps ``(B, 1, H, W)`` slices (in-plane spacing ``spacing
 ``input_size`` pixels) to the labels of its representation (:func:`svr.sampling.poses.pose_labels`,
 rad and mm); :meth:`SlicePoseNet.predict_poses` turns them into pose vectors in the canonical
 frame. :func:`loss_function` gives the loss that trains each representation (the registry
-:data:`svr.representations.REPRESENTATIONS` says which).
+:data:`svr.representation_registry.REPRESENTATIONS` says which).
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ import torch
 from torch import Tensor, nn
 
 from svr.geometry import ANCHOR_HALF_SIZE_MM
-from svr.geometry.symmetry import ReflectionPlane, check_planes
+from svr.geometry.mirror import ReflectionPlane, check_planes
 from svr.losses import DEFAULT_LENGTH_SCALE_MM, validate_metric_weights
-from svr.losses.symmetry import orbit_min_loss
+from svr.losses.orbit import orbit_min_loss
 from svr.models.backbones import BackboneConfig, build_backbone
 from svr.models.heads import SE3_ROTATIONS, PoseHead, check_length
-from svr.representations import REPRESENTATIONS, Representation, get_representation
+from svr.representation_registry import REPRESENTATIONS, Representation, get_representation
 
 MIN_INPUT_SIZE = 32
 """Smallest height and width (pixels) of ``ModelConfig.input_size``."""
@@ -36,7 +36,7 @@ class ModelConfig:
 
     Attributes:
         backbone: The backbone's architecture.
-        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
+        representation: A registered name (:data:`svr.representation_registry.REPRESENTATIONS`).
         input_size: ``(H, W)`` in pixels (each >= 32) of the slices the model is trained on; the
             network itself accepts any size.
         spacing_mm: In-plane pixel spacing (mm) of the slices the model expects, > 0.
@@ -46,7 +46,7 @@ class ModelConfig:
             ``"rotvec"`` or ``"6d"`` (:class:`svr.models.heads.PoseHead`); the head's output is the
             pose vector either way.
         symmetry_planes: Canonical-frame mirror planes of the training anatomy. Non-empty: the
-            network was trained up to the mirror twin (:mod:`svr.losses.symmetry`), so each
+            network was trained up to the mirror twin (:mod:`svr.losses.orbit`), so each
             prediction stands for its whole orbit; the stack consensus picks the member
             (:mod:`svr.reconstruction.cnn_init`) and evaluation reports errors up to the twin.
 
@@ -239,19 +239,19 @@ def loss_function(
 ) -> Callable[[Tensor, Tensor], Tensor]:
     """The loss that trains a representation, reduced by the mean over the batch.
 
-    The registry entry's ``loss`` (:data:`svr.representations.REPRESENTATIONS`):
+    The registry entry's ``loss`` (:data:`svr.representation_registry.REPRESENTATIONS`):
     :func:`svr.losses.se3_geodesic_loss` with metric weights ``weights`` for ``"se3"``, and the
     baselines :func:`svr.losses.posenet_loss` (``"quat_translation"``),
     :func:`svr.losses.anchor_point_loss` (``"anchor_points"``) and
     :func:`svr.losses.rotation_6d_loss` (``"rotation6d_translation"``) with their default
     parameters. With reflection ``planes`` every loss is taken to the nearest member of the
-    label's mirror orbit (:mod:`svr.losses.symmetry`): the entry's fused ``orbit_loss`` where it
+    label's mirror orbit (:mod:`svr.losses.orbit`): the entry's fused ``orbit_loss`` where it
     has one (``"se3"``), else the labels are decoded to poses, their twins encoded back, and the
     smallest per-slice loss kept, so that the SE(3) loss and the baselines meet the symmetry on the
     same terms.
 
     Args:
-        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`).
+        representation: A registered name (:data:`svr.representation_registry.REPRESENTATIONS`).
         weights: Z as a (6,) diagonal or (6, 6) SPD matrix (rad, mm), or ``None`` for the
             default; only for representations whose entry has ``metric_weights`` (``"se3"``).
         planes: Canonical-frame mirror planes of the training anatomy (empty: plain losses).

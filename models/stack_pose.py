@@ -53,7 +53,7 @@ from svr.models.checkpoint import (
 )
 from svr.models.heads import PoseHead
 from svr.models.pretrained import stack_pose_model_path
-from svr.representations import Representation, get_representation
+from svr.representation_registry import Representation, get_representation
 from svr.sampling.blocks import BlockGrid, block_inputs, coarsen_stack, stack_frame
 from svr.sampling.volume import CanonicalVolume
 
@@ -89,8 +89,8 @@ class StackPoseConfig:
         in_plane_mm: Stacks are averaged in-plane to about this spacing first (mm).
         translation_scale_mm: The network's translation outputs are in units of this (mm).
         representation: What the ``"regress"`` head outputs, a registered name
-            (:data:`svr.representations.REPRESENTATIONS`): ``"se3"`` (the rotation vector and
-            translation, trained with the SE(3) geodesic loss on the final pose: the shipped
+            (:data:`svr.representation_registry.REPRESENTATIONS`): ``"se3"`` (the rotation vector
+            and translation, trained with the SE(3) geodesic loss on the final pose: the shipped
             model) or a baseline trained with its own loss on the residual.
     """
 

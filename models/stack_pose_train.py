@@ -42,7 +42,7 @@ from svr.geometry import (
 from svr.losses.se3 import se3_geodesic_loss
 from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet, StackPoseOutput
-from svr.representations import Representation, get_representation
+from svr.representation_registry import Representation, get_representation
 from svr.sampling.blocks import (
     TrainingStack,
     TrainingStackConfig,
@@ -290,7 +290,7 @@ def stack_pose_loss(
     """The pose loss on the blocks within reach, plus the score's and coordinates' losses.
 
     The pose loss is the SE(3) geodesic loss on the refined stack poses (``"se3"``), or a
-    baseline's own loss (:data:`svr.representations.REPRESENTATIONS`) between the head's raw
+    baseline's own loss (:data:`svr.representation_registry.REPRESENTATIONS`) between the head's raw
     outputs and the true residual's labels.
 
     Args:

@@ -109,7 +109,7 @@ class TrainConfig:
             ``data.angle_range_deg`` and ``data.tz_range_mm`` are replaced by ``grid``'s).
         grid: The Euler grid of ``pose_sampling="grid"`` (default: the paper's).
         symmetry_report: How ``model.symmetry_planes`` were chosen
-            (:func:`svr.sampling.symmetry.resolve_symmetry`), recorded in checkpoints.
+            (:func:`svr.sampling.mirror_planes.resolve_symmetry`), recorded in checkpoints.
     """
 
     output_dir: str

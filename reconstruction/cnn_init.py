@@ -41,7 +41,7 @@ from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse, so3_log
 from svr.geometry.averaging import robust_mean_pose
-from svr.geometry.symmetry import ReflectionPlane, check_planes, orbit_matrices
+from svr.geometry.mirror import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
 from svr.models.stack_pose import StackPoseNet, estimate_stack_pose

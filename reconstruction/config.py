@@ -69,7 +69,9 @@ class ReconstructionConfig:
             Both bounds also define a slice's support for its stack's consensus.
         cnn_min_support: ``"cnn"``: a stack whose fraction of supporting slices is below this
             keeps stack registration (the model is unsure of it), in [0, 1].
-        seed: Random seed.
+        seed: Seed of the reconstruction's random draws, were a step to make any: every step is
+            deterministic, and :func:`~svr.reconstruction.pipeline.reconstruct` neither reads
+            nor changes torch's global generator.
         converged_deg: ``"adaptive"``: a registered slice whose rotation changed by more than
             this (degrees) in a round is still moving.
         converged_mm: ``"adaptive"``: likewise for the displacement of its centre (mm).

@@ -186,63 +186,58 @@ def reconstruct(
     """
     config = config or ReconstructionConfig()
     timer = _Timer()
-    generator_state = torch.random.get_rng_state()
-    torch.manual_seed(config.seed)
     notes: tuple[str, ...] = ()
-    try:
-        with timer.phase("slices"):
-            slices = extract_slices(stacks).to(device)
-            log.info("%d slices from %d stacks", len(slices), len(stacks))
-        with timer.phase("initialisation"):
-            if initial_poses is not None:
-                slices = slices.with_poses(initial_poses.to(device), frame)
-                init = initialisation or ("given",) * len(stacks)
-            elif config.registration == "stack":
-                poses, template = stack_registration(
-                    slices, config.output_resolution_mm, config.template
-                )
-                log.info("stack registration to template stack %d", template)
-                slices = slices.with_poses(poses)
-                init = ("stack",) * len(stacks)
-            elif config.registration == "none":
-                init = ("none",) * len(stacks)
-            elif config.registration == "cnn" and (
-                isinstance(model, StackPoseNet) or (model is None and atlas is not None)
-            ):
-                slices, init, notes = stack_pose_initialisation(
-                    slices,
-                    stacks,
-                    model if isinstance(model, StackPoseNet) else None,
-                    config,
-                    atlas,
-                )
-            elif config.registration == "cnn":
-                if not isinstance(model, SlicePoseNet):
-                    raise ValueError("reconstruct(): registration 'cnn' needs a model or an atlas")
-                learned = cnn_slice_poses(
-                    model,
-                    stacks,
-                    slices,
-                    max_rotation_deg=config.cnn_max_deviation_deg,
-                    max_translation_mm=config.cnn_max_deviation_mm,
-                )
-                slices, init, notes = learned_initialisation(slices, learned, config)
-            else:
-                raise ValueError(
-                    f"reconstruct(): 'registration' must be one of {REGISTRATIONS}, "
-                    f"got {config.registration!r}"
-                )
-        result = _rounds(slices, config, init, timer, progress)
-        if notes:
-            result = dataclasses.replace(result, initialisation_notes=notes)
-        if atlas is not None and config.registration == "cnn":
-            with timer.phase("atlas frame"):
-                result = align_to_atlas(
-                    result, atlas, model=model if isinstance(model, StackPoseNet) else None
-                )
-        return result
-    finally:
-        torch.random.set_rng_state(generator_state)
+    with timer.phase("slices"):
+        slices = extract_slices(stacks).to(device)
+        log.info("%d slices from %d stacks", len(slices), len(stacks))
+    with timer.phase("initialisation"):
+        if initial_poses is not None:
+            slices = slices.with_poses(initial_poses.to(device), frame)
+            init = initialisation or ("given",) * len(stacks)
+        elif config.registration == "stack":
+            poses, template = stack_registration(
+                slices, config.output_resolution_mm, config.template
+            )
+            log.info("stack registration to template stack %d", template)
+            slices = slices.with_poses(poses)
+            init = ("stack",) * len(stacks)
+        elif config.registration == "none":
+            init = ("none",) * len(stacks)
+        elif config.registration == "cnn" and (
+            isinstance(model, StackPoseNet) or (model is None and atlas is not None)
+        ):
+            slices, init, notes = stack_pose_initialisation(
+                slices,
+                stacks,
+                model if isinstance(model, StackPoseNet) else None,
+                config,
+                atlas,
+            )
+        elif config.registration == "cnn":
+            if not isinstance(model, SlicePoseNet):
+                raise ValueError("reconstruct(): registration 'cnn' needs a model or an atlas")
+            learned = cnn_slice_poses(
+                model,
+                stacks,
+                slices,
+                max_rotation_deg=config.cnn_max_deviation_deg,
+                max_translation_mm=config.cnn_max_deviation_mm,
+            )
+            slices, init, notes = learned_initialisation(slices, learned, config)
+        else:
+            raise ValueError(
+                f"reconstruct(): 'registration' must be one of {REGISTRATIONS}, "
+                f"got {config.registration!r}"
+            )
+    result = _rounds(slices, config, init, timer, progress)
+    if notes:
+        result = dataclasses.replace(result, initialisation_notes=notes)
+    if atlas is not None and config.registration == "cnn":
+        with timer.phase("atlas frame"):
+            result = align_to_atlas(
+                result, atlas, model=model if isinstance(model, StackPoseNet) else None
+            )
+    return result
 
 
 class Acquisition(NamedTuple):

@@ -4,18 +4,11 @@ A stack is an ``(I, J, K)`` image whose slices are its k-planes (in-plane axes a
 and 1), in any orientation, posed in the scanner's world frame by its affine. Preparation
 (:func:`load_stacks` for files, :func:`prepare_stacks` for images in memory), per stack:
 
-1. **Mask.** A given mask on another grid is resampled onto the stack's (nearest neighbour, by
-   world position, as :mod:`svr.models.predict` does); it must overlap the stack. Without masks, an
-   automatic one, by ``StackConfig.auto_mask``: ``"network"`` runs the shipped brain-mask
-   networks (:func:`svr.models.brain_mask.segment_stack`, meant for whole-uterus and cropped
-   stacks; the shipped model is accurate on cropped ones, looser than manual masks on
-   whole-uterus ones; a stack where no brain is found is an error naming it); ``"otsu"`` keeps
-   voxels above the stack's Otsu threshold inside the region that every stack's field of view
-   covers (each stack covering the boxes of its voxels), then the largest 3D connected component
-   with its holes filled, which suits only stacks already cropped around the brain (the brain is
-   the largest bright object seen by all stacks). With ``StackConfig.fuse_masks`` the network's
-   masks of 3 or more stacks are then made to agree in 3D
-   (:func:`svr.reconstruction.mask_fusion.fuse_stack_masks`).
+1. **Mask.** Each stack's mask, on any grid, is resampled onto the stack's (nearest neighbour,
+   by world position, as :mod:`svr.models.predict` does); it must overlap the stack. Stacks
+   given without masks get them from the masking stage first
+   (:func:`svr.masking.auto_masks`: the brain-mask networks, or an Otsu threshold, optionally
+   fused across the stacks).
 2. **Crop.** In-plane (axes 0 and 1) to the mask's bounding box over all planes plus
    ``crop_margin_mm``, clipped to the array; along k to the planes from the first to the last
    with mask (a contiguous range; planes with an empty mask inside it are kept and dropped later
@@ -39,35 +32,30 @@ import numbers
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
 import torch
-from scipy import ndimage
-from skimage.filters import threshold_otsu
 from torch import Tensor
 
 from svr.image import (
     Image,
     ImageError,
     intensity_scale,
-    largest_component,
     load_nifti,
     mask_on_grid,
 )
 from svr.reconstruction.slices import Stack
 
-if TYPE_CHECKING:
-    from svr.models.brain_mask import BrainMasker
-
-__all__ = ["AUTO_MASKS", "AutoMask", "StackConfig", "load_stacks", "prepare_stacks"]
+__all__ = [
+    "StackConfig",
+    "check_stack",
+    "load_stacks",
+    "prepare_stacks",
+    "slice_thicknesses",
+]
 
 log = logging.getLogger(__name__)
-
-AutoMask = Literal["otsu", "network"]
-AUTO_MASKS: tuple[str, ...] = ("network", "otsu")
-"""The automatic masks of stacks given without one (``StackConfig.auto_mask``)."""
 
 _SHEAR_TOLERANCE = 1e-3  # |cos| of the angle between the in-plane axes treated as orthogonal
 
@@ -86,28 +74,14 @@ class StackConfig:
             the slices are already thick, so k is not downsampled).
         n4_iterations: Maximum iterations per N4 fitting level; its length is the number of
             levels (SimpleITK's default).
-        auto_mask: How stacks without a mask get one: ``"otsu"`` or ``"network"`` (module
-            docstring). The ``svr`` commands default to ``"network"``.
-        fuse_masks: Whether the network's automatic masks are fused across the stacks (all of
-            one fetus, at least 3; :mod:`svr.reconstruction.mask_fusion`). Needs
-            ``auto_mask="network"``.
     """
 
     crop_margin_mm: float = 5.0
     bias_correction: bool = False
     n4_shrink_factor: int = 2
     n4_iterations: tuple[int, ...] = (50, 50, 50, 50)
-    auto_mask: AutoMask = "otsu"
-    fuse_masks: bool = False
 
     def __post_init__(self) -> None:
-        if self.auto_mask not in AUTO_MASKS:
-            raise ValueError(
-                f"StackConfig: 'auto_mask' must be one of {', '.join(AUTO_MASKS)}, "
-                f"got {self.auto_mask!r}"
-            )
-        if self.fuse_masks and self.auto_mask != "network":
-            raise ValueError("StackConfig: 'fuse_masks' needs auto_mask='network'")
         if not (math.isfinite(self.crop_margin_mm) and self.crop_margin_mm >= 0):
             raise ValueError(
                 f"StackConfig: 'crop_margin_mm' must be >= 0, got {self.crop_margin_mm}"
@@ -125,25 +99,22 @@ class StackConfig:
 
 def load_stacks(
     stack_paths: Sequence[str | os.PathLike[str]],
-    mask_paths: Sequence[str | os.PathLike[str]] | None = None,
+    mask_paths: Sequence[str | os.PathLike[str]],
     thicknesses: float | Sequence[float] | None = None,
     config: StackConfig | None = None,
-    masker: BrainMasker | str | os.PathLike[str] | None = None,
-    device: torch.device | str = "cpu",
 ) -> list[Stack]:
-    """Read NIfTI stacks (and their masks) and prepare them for reconstruction.
+    """Read NIfTI stacks and their masks and prepare them for reconstruction.
+
+    Stacks without masks: read them (:func:`svr.image.load_nifti`), make masks with
+    :func:`svr.masking.auto_masks`, and call :func:`prepare_stacks`.
 
     Args:
         stack_paths: The stacks, ``.nii`` or ``.nii.gz`` files (3D, or 4D with one volume).
         mask_paths: One brain mask per stack (voxels > 0.5 are brain; any grid that overlaps the
-            stack), or ``None`` for the automatic masks of the module docstring.
+            stack).
         thicknesses: Slice thicknesses in mm: ``None`` (each stack's slice spacing, with a
             warning), one value for all stacks, or one per stack.
         config: Preparation settings; default :class:`StackConfig`'s.
-        masker: The brain-mask networks for ``config.auto_mask == "network"``, or the model to
-            load (:func:`svr.models.brain_mask.load_brain_masker`: ``"default"``, a folder),
-            loaded after the stacks are checked; ``None`` for ``"default"``.
-        device: Where those networks run.
 
     Returns:
         One :class:`~svr.reconstruction.slices.Stack` per file, in order, on the CPU: float32
@@ -152,57 +123,51 @@ def load_stacks(
     Raises:
         ImageError: Beginning with the file's path, for a missing or unreadable file, one that is
             not NIfTI, not 3D, empty or has NaN/Inf voxels; a stack whose in-plane axes are not
-            orthogonal or whose in-mask intensities are not positive; an empty mask, one that
-            does not overlap its stack, or an empty automatic mask; a failed bias correction.
+            orthogonal or whose in-mask intensities are not positive; an empty mask, or one that
+            does not overlap its stack; a failed bias correction.
         ValueError: If there are no stacks, the number of masks or thicknesses does not match
             the number of stacks, or a thickness is not a positive number.
     """
-    if mask_paths is not None and len(mask_paths) != len(stack_paths):
+    if len(mask_paths) != len(stack_paths):
         raise ValueError(_count_mismatch("masks", len(mask_paths), len(stack_paths)))
     images = [load_nifti(path) for path in stack_paths]
-    masks = None if mask_paths is None else [load_nifti(path) for path in mask_paths]
+    masks = [load_nifti(path) for path in mask_paths]
     return prepare_stacks(
         images,
         masks,
         thicknesses,
         config,
         names=[str(path) for path in stack_paths],
-        mask_names=None if mask_paths is None else [str(path) for path in mask_paths],
-        masker=masker,
-        device=device,
+        mask_names=[str(path) for path in mask_paths],
     )
 
 
 def prepare_stacks(
     images: Sequence[Image],
-    masks: Sequence[Image] | None = None,
+    masks: Sequence[Image],
     thicknesses: float | Sequence[float] | None = None,
     config: StackConfig | None = None,
     names: Sequence[str] | None = None,
     mask_names: Sequence[str] | None = None,
-    masker: BrainMasker | str | os.PathLike[str] | None = None,
-    device: torch.device | str = "cpu",
 ) -> list[Stack]:
     """Prepare stacks held in memory (e.g. simulated ones); :func:`load_stacks` for files.
 
     Args:
         images: The ``(I, J, K)`` stacks (any device; the results are on the CPU).
-        masks: One mask per stack (any grid), or ``None`` for automatic masks.
+        masks: One mask per stack (any grid; from :func:`svr.masking.auto_masks` for stacks
+            without one).
         thicknesses: As in :func:`load_stacks`.
         config: Preparation settings; default :class:`StackConfig`'s.
         names: The stacks' names for the results and messages; default ``"stack 0"``, ...
         mask_names: The masks' names for messages; default ``"mask of <stack name>"``.
-        masker: As in :func:`load_stacks`.
-        device: As in :func:`load_stacks`.
 
     Returns:
         One prepared :class:`~svr.reconstruction.slices.Stack` per image.
 
     Raises:
         ImageError: Beginning with the stack's or mask's name (see :func:`load_stacks`).
-        ValueError: For no stacks or a count mismatch of masks, names or thicknesses, a
-            thickness that is not a positive number, or ``config.fuse_masks`` with fewer than 3
-            stacks.
+        ValueError: For no stacks, a count mismatch of masks, names or thicknesses, or a
+            thickness that is not a positive number.
     """
     config = StackConfig() if config is None else config
     count = len(images)
@@ -216,44 +181,12 @@ def prepare_stacks(
         mask_names = [f"mask of {name}" for name in names]
     images = [image.to("cpu", torch.float32) for image in images]
     for image, name in zip(images, names, strict=True):
-        _check_stack(image, name)
-    widths = _thicknesses(thicknesses, images, names)
-    if masks is None and config.auto_mask == "network":
-        from svr.models.brain_mask import BrainMasker, load_brain_masker, segment_stack
-
-        networks = (
-            masker
-            if isinstance(masker, BrainMasker)
-            else load_brain_masker("default" if masker is None else masker, device)
-        )
-        brains, probabilities = [], []
-        for image, name in zip(images, names, strict=True):
-            result = segment_stack(image, networks, name=name, device=device)
-            log.info("%s: automatic brain mask (network), %.0f ml", name, result.volume_ml)
-            brains.append(result.mask)
-            probabilities.append(result.probability)
-        if config.fuse_masks:
-            from svr.reconstruction.mask_fusion import fuse_stack_masks
-
-            fused = fuse_stack_masks(
-                images, brains, widths, names, device=device, probabilities=probabilities
-            )
-            brains = fused.masks
-            log.info(
-                "automatic brain masks fused across %d stacks (Dice with their own: %s)",
-                count,
-                ", ".join(f"{value:.3f}" for value in fused.agreement),
-            )
-    elif masks is None:
-        brains = [
-            _automatic_mask(image, images[:n] + images[n + 1 :], name)
-            for n, (image, name) in enumerate(zip(images, names, strict=True))
-        ]
-    else:
-        brains = [
-            _given_mask(image, mask.to("cpu"), name, mask_name)
-            for image, mask, name, mask_name in zip(images, masks, names, mask_names, strict=True)
-        ]
+        check_stack(image, name)
+    widths = slice_thicknesses(thicknesses, images, names)
+    brains = [
+        _given_mask(image, mask.to("cpu"), name, mask_name)
+        for image, mask, name, mask_name in zip(images, masks, names, mask_names, strict=True)
+    ]
     return [
         _prepare(image, brain, name, width, config)
         for image, brain, name, width in zip(images, brains, names, widths, strict=True)
@@ -264,8 +197,12 @@ def _count_mismatch(what: str, given: int, count: int) -> str:
     return f"got {given} {what} for {count} stacks; give one per stack"
 
 
-def _check_stack(image: Image, name: str) -> None:
-    """Reject non-finite intensities and non-rectangular slices (sheared in-plane axes)."""
+def check_stack(image: Image, name: str) -> None:
+    """Reject non-finite intensities and non-rectangular slices (sheared in-plane axes).
+
+    Raises:
+        ImageError: Beginning with ``name``.
+    """
     if not bool(torch.isfinite(image.data).all()):
         raise ImageError(
             f"{name}: {int((~torch.isfinite(image.data)).sum())} voxels are NaN or Inf"
@@ -280,10 +217,19 @@ def _check_stack(image: Image, name: str) -> None:
         )
 
 
-def _thicknesses(
+def slice_thicknesses(
     thicknesses: float | Sequence[float] | None, images: Sequence[Image], names: Sequence[str]
 ) -> list[float]:
-    """One thickness (mm) per stack: given, or the slice spacing with a warning."""
+    """One slice thickness (mm) per stack: given, or the slice spacing with a warning.
+
+    Args:
+        thicknesses: ``None``, one value for all stacks, or one per stack.
+        images: The stacks.
+        names: Their names, for messages.
+
+    Raises:
+        ValueError: For a count mismatch or a thickness that is not a positive number.
+    """
     if thicknesses is None:
         widths = [float(image.spacing[2]) for image in images]
         for name, width in zip(names, widths, strict=True):
@@ -322,41 +268,6 @@ def _given_mask(image: Image, mask: Image, name: str, mask_name: str) -> Tensor:
             f"stack shape {image.shape}; their affines place them apart)"
         )
     return brain
-
-
-def _inside_fields_of_view(image: Image, others: Sequence[Image]) -> Tensor:
-    """(I, J, K) bool: voxels of ``image`` whose centres lie inside every image of ``others``.
-
-    An image covers the boxes of its voxels: continuous indices in [-0.5, n - 0.5] on each axis.
-    """
-    axes = [torch.arange(n, dtype=torch.float64) for n in image.shape]
-    inside = torch.ones(image.shape, dtype=torch.bool)
-    for other in others:
-        to_other = torch.linalg.solve(other.affine.double(), image.affine.double())  # voxel map
-        for row, n in zip(to_other[:3], other.shape, strict=True):
-            index = (
-                row[0] * axes[0][:, None, None]
-                + row[1] * axes[1][None, :, None]
-                + row[2] * axes[2][None, None, :]
-                + row[3]
-            )
-            inside &= (index >= -0.5) & (index <= n - 0.5)
-    return inside
-
-
-def _automatic_mask(image: Image, others: Sequence[Image], name: str) -> Tensor:
-    """Otsu foreground inside all fields of view, largest 3D component, holes filled."""
-    data = image.data.numpy()
-    foreground = (data > threshold_otsu(data.ravel())) & _inside_fields_of_view(
-        image, others
-    ).numpy()
-    if not foreground.any():
-        raise ImageError(
-            f"{name}: the automatic mask is empty (no voxel above the Otsu threshold inside the "
-            "region all stacks cover); give a brain mask"
-        )
-    log.info("%s: automatic brain mask (otsu)", name)
-    return torch.from_numpy(ndimage.binary_fill_holes(largest_component(foreground)))
 
 
 def _span(present: Tensor, margin: int) -> tuple[int, int]:

@@ -40,7 +40,7 @@ from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from svr.image import Image
-from svr.representations import Representation, get_representation
+from svr.representation_registry import Representation, get_representation
 from svr.sampling._validation import check_positive_range, is_finite_number
 from svr.sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
 from svr.sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
@@ -101,7 +101,7 @@ class SliceDatasetConfig:
         mix_volumes: ``False``: each batch comes from one volume drawn uniformly; ``True``: each
             slice draws its own volume.
         representation: Label representation, a registered name
-            (:data:`svr.representations.REPRESENTATIONS`).
+            (:data:`svr.representation_registry.REPRESENTATIONS`).
         augment: Intensity augmentation, or ``None`` for none.
         scale_range: ``None`` for none, else ``(low, high)``, ``0 < low <= high``: each batch
             scales its volume about the canonical origin by a factor drawn log-uniformly per
@@ -207,7 +207,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
     * ``"slices"``: (B, 1, H, W) float32 slices (after augmentation).
     * ``"labels"``: (B, D) float32 :func:`~svr.sampling.poses.pose_labels` of ``"poses"`` in
       ``config.representation`` (D: the ``size`` of its entry in
-      :data:`svr.representations.REPRESENTATIONS`).
+      :data:`svr.representation_registry.REPRESENTATIONS`).
     * ``"poses"``: (B, 6) float64 pose vectors (rad, mm), slice plane -> canonical frame.
     * ``"volume_index"``: (B,) int64 index of each slice's volume in ``volumes``.
     * ``"spacing_mm"``: (B,) float64 in-plane spacing the slices were sampled with, mm.
@@ -511,7 +511,7 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
         slice_config: Slice size, spacing, PSF and interpolation.
         min_brain_fraction: The empty-slice rule (module docstring), in [0, 1].
         representation: Label representation, a registered name
-            (:data:`svr.representations.REPRESENTATIONS`).
+            (:data:`svr.representation_registry.REPRESENTATIONS`).
         chunk_size: Poses per chunk of the sweep, >= 1.
 
     Attributes:

@@ -34,7 +34,7 @@ from svr.geometry import (
     so3_log,
 )
 from svr.image import Image
-from svr.representations import Representation, get_representation
+from svr.representation_registry import Representation, get_representation
 from svr.sampling.slicer import SliceConfig, brain_fraction
 from svr.sampling.volume import CanonicalVolume
 
@@ -461,13 +461,13 @@ def pose_labels(
 ) -> Tensor:
     """Training labels of poses in the representation a loss works on.
 
-    The registry entry's ``encode`` (:data:`svr.representations.REPRESENTATIONS`, where the label
-    layouts are listed); its ``decode`` maps each label back to the pose.
+    The registry entry's ``encode`` (:data:`svr.representation_registry.REPRESENTATIONS`, where
+    the label layouts are listed); its ``decode`` maps each label back to the pose.
 
     Args:
         poses: (..., 6) pose vectors (rad, mm) mapping the slice plane to the canonical frame.
-        representation: A registered name (:data:`svr.representations.REPRESENTATIONS`), e.g.
-            ``"se3"`` (the pose vectors themselves, the same tensor), ``"quat_translation"``,
+        representation: A registered name (:data:`svr.representation_registry.REPRESENTATIONS`),
+            e.g. ``"se3"`` (the pose vectors themselves, the same tensor), ``"quat_translation"``,
             ``"anchor_points"`` or ``"rotation6d_translation"``.
         anchor_half_size_mm: Half-size of the anchor-point triangle in mm, > 0 (``"anchor_points"``
             only).

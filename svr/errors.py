@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-__all__ = ["ConfigFieldError"]
+import os
+from pathlib import Path
+
+__all__ = ["CheckpointError", "ConfigFieldError"]
 
 
 class ConfigFieldError(ValueError):
@@ -27,3 +30,20 @@ class ConfigFieldError(ValueError):
 
     def __reduce__(self) -> tuple[type[ConfigFieldError], tuple[str, str, str, object]]:
         return type(self), (self.owner, self.field, self.expected, self.value)
+
+
+class CheckpointError(ValueError):
+    """A checkpoint cannot be written or read; the message names the path and the problem.
+
+    Attributes:
+        path: The checkpoint folder or file concerned.
+        problem: What is wrong with it.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self) -> tuple[type[CheckpointError], tuple[Path, str]]:
+        return type(self), (self.path, self.problem)

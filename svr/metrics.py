@@ -22,9 +22,9 @@ import torch
 from torch import Tensor
 
 from svr.geometry._validation import check_tensor
+from svr.geometry.mirror import SAGITTAL, ReflectionPlane, check_planes, orbit_poses
 from svr.geometry.se3 import se3_error
 from svr.geometry.so3 import matrix_to_euler, so3_exp
-from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, check_planes, orbit_poses
 from svr.losses.se3 import quadratic_form, resolve_weights
 
 
@@ -134,7 +134,7 @@ def nearest_orbit_member(
     Args:
         pred: (..., 6) predicted pose vectors (rad, mm).
         target: (..., 6) true pose vectors, the same shape.
-        planes: Canonical-frame mirror planes (:mod:`svr.geometry.symmetry`); empty: the target.
+        planes: Canonical-frame mirror planes (:mod:`svr.geometry.mirror`); empty: the target.
         distance: ``(pred, target) -> (...)`` between pose vectors; default
             :func:`geodesic_distance` with the default Z.
 

@@ -1,4 +1,4 @@
-"""Automatic brain masks (svr.models.brain_mask, svr segment-stack): geometry, files, a tiny model.
+"""Automatic brain masks (svr.masking, svr segment-stack): geometry, files, a tiny model.
 
 The tiny model is trained here, on simulated scenes around the procedural phantom, in about 20 s;
 it must find the brain of an unseen scene with Dice >= 0.8 (issue 14).
@@ -20,21 +20,23 @@ from scipy import ndimage
 
 from svr.cli import main
 from svr.image import Image, save_mask_like
-from svr.models import brain_mask_train
-from svr.models.brain_mask import (
+from svr.masking import (
     BrainMaskConfig,
     BrainMasker,
     BrainNotFoundError,
-    _localise,
-    canvas_to_slices,
     load_brain_masker,
-    neighbour_slices,
     save_brain_masker,
     segment_stack,
+)
+from svr.masking import train as brain_mask_train
+from svr.masking.canvas import (
+    canvas_to_slices,
+    neighbour_slices,
     slices_to_canvas,
     tile_centres,
 )
-from svr.models.brain_mask_train import (
+from svr.masking.segment import _localise
+from svr.masking.train import (
     BrainMaskTrainingConfig,
     StageData,
     TrainingExamples,
@@ -465,7 +467,7 @@ def test_2_5d_examples_hold_the_2d_canvas_in_the_middle_and_neighbours_around(ph
 
 
 def test_2_5d_training_reverses_the_slice_order_of_some_batches(monkeypatch):
-    import svr.models.brain_mask_train as module
+    import svr.masking.train as module
 
     seen = []
     real = module._augment
@@ -641,7 +643,7 @@ def test_no_brain_in_one_stack_writes_no_mask(
     tiny_masker, unseen_stack, tmp_path, capsys, monkeypatch
 ):
     """The second stack has no brain (its localiser sees none): no mask is written at all."""
-    import svr.models.brain_mask as module
+    import svr.masking as module
 
     image, _ = unseen_stack
     from svr.image import save_nifti
@@ -740,7 +742,7 @@ def test_register_fuses_automatic_masks_and_says_so(tiny_masker, phantom, tmp_pa
     log = (tmp_path / "l").read_text()
     assert "automatic brain masks fused across 3 stacks" in log
     assert f"(mask automatic (network, --mask-model {model}, fused across stacks))" in log
-    assert "fuse_masks: True" in log
+    assert "fuse: True" in log
 
 
 # --- the shipped model ---------------------------------------------------------------------------
@@ -794,7 +796,7 @@ def test_training_resumes_exactly_from_its_checkpoint(tmp_path):
 
 def test_examples_pass_each_brain_its_own_tissue_labels(phantom, monkeypatch):
     """With tissue labels, scenes get the labels of the brain drawn for them (about half)."""
-    import svr.models.brain_mask_train as module
+    import svr.masking.train as module
 
     labels = [torch.ones(phantom.image.shape, dtype=torch.long) * (n + 1) for n in range(2)]
     brains = [phantom, phantom]
@@ -825,7 +827,7 @@ def test_examples_are_a_function_of_the_seed(phantom):
 
 
 def test_clean_up_fills_holes_and_keeps_one_body_through_the_slices():
-    from svr.models.brain_mask import clean_up_mask
+    from svr.masking import clean_up_mask
 
     mask = np.zeros((20, 20, 3), dtype=bool)
     mask[4:12, 4:12, :] = True
@@ -849,7 +851,7 @@ def _solid_ellipsoid(shape, spacing, centre_mm, radii_mm):
 
 @pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (1.1, 0.9, 3.3)])
 def test_open_mask_equals_scipy_opening_by_a_ball_in_mm(spacing):
-    from svr.models.brain_mask import open_mask
+    from svr.masking import open_mask
 
     rng = np.random.default_rng(2)
     mask = ndimage.gaussian_filter(rng.standard_normal((40, 36, 14)), 2.5) > 0
@@ -867,7 +869,7 @@ def test_open_mask_equals_scipy_opening_by_a_ball_in_mm(spacing):
 
 
 def test_clean_up_opening_cuts_a_leak_and_a_bridged_piece_and_keeps_the_head():
-    from svr.models.brain_mask import clean_up_mask
+    from svr.masking import clean_up_mask
 
     spacing = np.array([1.0, 1.0, 3.0])
     head = _solid_ellipsoid((110, 100, 26), spacing, (50.0, 50.0, 36.0), (30, 24, 27))

@@ -39,12 +39,12 @@ from synthetic import ellipsoid_brain
 import svr.apps.demo as recon_demo
 import svr.files
 import svr.image
-import svr.models.brain_mask as brain_mask
+import svr.masking as brain_mask
 import svr.reconstruction.pipeline as pipeline
 from svr.cli import SUBCOMMANDS, main
 from svr.image import save_nifti
+from svr.masking import BrainMaskConfig, BrainMasker, save_brain_masker
 from svr.models.backbones import BackboneConfig
-from svr.models.brain_mask import BrainMaskConfig, BrainMasker, save_brain_masker
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CHECKPOINT_WEIGHTS,

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from skimage import io as skio
 
 from svr.files import OutputExistsError
-from svr.geometry.symmetry import mirror_twin
+from svr.geometry.mirror import mirror_twin
 from svr.image import Image
 from svr.models.evaluation import EvalConfig, evaluate_poses, paired_tests, summarize, write_report
 from svr.sampling.slicer import SliceConfig, sample_slices

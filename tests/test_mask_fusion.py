@@ -1,4 +1,4 @@
-"""Brain masks of several stacks of one fetus made to agree (svr.reconstruction.mask_fusion)."""
+"""Brain masks of several stacks of one fetus made to agree (svr.masking.fuse)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
 from svr.image import Image, stack_slice_poses
-from svr.reconstruction.mask_fusion import (
+from svr.masking.fuse import (
     MaskFusionConfig,
     all_plane_poses,
     fuse_masks,
@@ -123,7 +123,7 @@ def test_fusion_mends_the_end_slices_and_a_leak_of_one_stack(stacks):
 
 @pytest.mark.parametrize("margin", [0.0, 0.15, 0.3])
 def test_the_own_mask_decides_where_the_vote_is_near_the_threshold(stacks, margin):
-    from svr.models.brain_mask import clean_up_mask
+    from svr.masking import clean_up_mask
 
     images, truth = stacks
     own = [m.clone() for m in truth]

@@ -12,7 +12,7 @@ from svr.losses import anchor_point_loss, posenet_loss, rotation_6d_loss, se3_ge
 from svr.models.backbones import BackboneConfig, build_backbone
 from svr.models.heads import PoseHead
 from svr.models.network import ModelConfig, SlicePoseNet, build_model, loss_function
-from svr.representations import REPRESENTATIONS
+from svr.representation_registry import REPRESENTATIONS
 from svr.sampling.poses import pose_labels, random_slice_poses
 
 BACKBONES = ("resnet", "inception")

@@ -119,13 +119,23 @@ LAYERS = {
     "sampling": ("svr", "svr.sampling"),
     "models": ("svr", "svr.sampling", "svr.models"),
     "reconstruction": ("svr", "svr.sampling", "svr.models", "svr.reconstruction"),
+    # The masking stage runs before stack preparation and uses preparation and registration
+    # (the fusion); nothing below it imports it.
+    "masking": ("svr", "svr.sampling", "svr.models", "svr.reconstruction", "svr.masking"),
 }
-UPPER = ("svr.sampling", "svr.models", "svr.reconstruction", "svr.apps", "svr.cli")
+UPPER = ("svr.sampling", "svr.models", "svr.reconstruction", "svr.masking", "svr.apps", "svr.cli")
+FOLDERS = {
+    "sampling": "svr.sampling",
+    "models": "svr.models",
+    "reconstruction": "svr.reconstruction",
+    "masking": "svr.masking",
+}
+"""The repository's top-level folders installed as subpackages of ``svr`` (pyproject.toml)."""
 
 
 def _layer(path: Path) -> str | None:
     rel = path.relative_to(REPO).parts
-    if rel[0] in ("sampling", "models", "reconstruction"):
+    if rel[0] in FOLDERS:
         return rel[0]
     if rel[0] == "svr" and rel[1] not in ("apps", "cli", "__main__.py"):
         return "core"
@@ -151,6 +161,78 @@ def test_layers_import_only_downwards():
                 upper = [u for u in UPPER if name == u or name.startswith(u + ".")]
                 if upper and not any(name == a or name.startswith(a + ".") for a in allowed[1:]):
                     bad.append(f"{path.relative_to(REPO)}:{node.lineno} imports {name}")
-                if name.split(".")[0] in ("models", "sampling", "reconstruction"):
+                if name.split(".")[0] in FOLDERS:
                     bad.append(f"{path.relative_to(REPO)}:{node.lineno} imports top-level {name}")
     assert not bad, "\n".join(bad)
+
+
+def _module_imports() -> dict[str, set[str]]:
+    """The package's import graph: each ``svr`` module and the ``svr`` modules it imports.
+
+    Module-level and function-level imports alike. ``from package import submodule`` is an edge
+    to the submodule (the package's ``__init__`` runs first either way: that is not an edge).
+    """
+    import ast
+
+    roots = {"svr": REPO / "svr", **{name: REPO / folder for folder, name in FOLDERS.items()}}
+    modules: dict[str, Path] = {}
+    for package, folder in roots.items():
+        for path in folder.rglob("*.py"):
+            parts = (package, *path.relative_to(folder).with_suffix("").parts)
+            modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        edges = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                subs = {f"{node.module}.{a.name}" for a in node.names} & modules.keys()
+                if len(subs) < len(node.names) and node.module in modules:
+                    edges.add(node.module)
+                edges |= subs
+            elif isinstance(node, ast.Import):
+                edges |= {a.name for a in node.names} & modules.keys()
+        graph[name] = edges - {name}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_package_import_graph_has_no_cycle():
+    graph = _module_imports()
+    assert {"svr.masking.stage", "svr.reconstruction.stacks", "svr.cli.reconstruct"} <= set(graph)
+    assert "svr.reconstruction.stacks" in graph["svr.masking.stage"]
+    assert _cycles(graph) == []
+    # The check finds a cycle when there is one (preparation calling the masking stage back).
+    graph["svr.reconstruction.stacks"] = graph["svr.reconstruction.stacks"] | {"svr.masking.stage"}
+    cycles = _cycles(graph)
+    assert any({"svr.masking.stage", "svr.reconstruction.stacks"} <= set(c) for c in cycles)

@@ -20,7 +20,7 @@ from scipy import stats
 from scipy.spatial.transform import Rotation
 
 import svr.geometry as g
-from svr.representations import REPRESENTATIONS
+from svr.representation_registry import REPRESENTATIONS
 from svr.sampling.poses import (
     EulerGridConfig,
     euler_grid,

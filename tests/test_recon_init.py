@@ -19,7 +19,7 @@ from svr.geometry import (
     vector_to_se3,
 )
 from svr.geometry.averaging import robust_mean_pose
-from svr.geometry.symmetry import SAGITTAL, mirror_twin_matrix
+from svr.geometry.mirror import SAGITTAL, mirror_twin_matrix
 from svr.image import Image, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, build_model

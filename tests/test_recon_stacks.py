@@ -13,6 +13,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from svr.image import Image, ImageError, load_nifti, stack_slice_poses
+from svr.masking import MaskingConfig, auto_masks
 from svr.reconstruction.slices import extract_slices, plane_poses
 from svr.reconstruction.stacks import StackConfig, load_stacks, prepare_stacks
 
@@ -222,6 +223,14 @@ def _good(tmp_path: Path) -> tuple[Path, Path, np.ndarray]:
     )
 
 
+def _load_auto(paths: list[Path], thicknesses: float | None = None):
+    """Stacks without masks, as the commands load them: read, the Otsu masks, then preparation."""
+    names = [str(path) for path in paths]
+    images = [load_nifti(path) for path in paths]
+    masks = auto_masks(images, MaskingConfig(method="otsu"), names)
+    return prepare_stacks(images, masks, thicknesses, names=names)
+
+
 def _bad_stack(tmp_path: Path, kind: str) -> tuple[Path, Path | None]:
     """A bad stack (with the good mask) or a bad mask (with the good stack); returns (bad, mask)."""
     _, good_mask, affine = _good(tmp_path)
@@ -273,7 +282,7 @@ def _bad_stack(tmp_path: Path, kind: str) -> tuple[Path, Path | None]:
 def test_bad_stacks_raise_one_line_naming_the_file(tmp_path, kind):
     bad, mask = _bad_stack(tmp_path, kind)
     with pytest.raises(ImageError) as err:
-        load_stacks([bad], None if mask is None else [mask])
+        _load_auto([bad]) if mask is None else load_stacks([bad], [mask])
     message = str(err.value)
     assert message.startswith(f"{bad}: ") and "\n" not in message
 
@@ -298,7 +307,9 @@ def test_bad_masks_raise_one_line_naming_the_mask(tmp_path, kind):
 def test_argument_errors(tmp_path):
     good, good_mask, _ = _good(tmp_path)
     with pytest.raises(ValueError, match="no stacks"):
-        load_stacks([])
+        load_stacks([], [])
+    with pytest.raises(ValueError, match="no stacks"):
+        auto_masks([])
     with pytest.raises(ValueError, match="got 1 masks for 2 stacks"):
         load_stacks([good, good], [good_mask])
     with pytest.raises(ValueError, match="got 2 thicknesses for 3 stacks"):
@@ -310,8 +321,10 @@ def test_argument_errors(tmp_path):
         StackConfig(crop_margin_mm=-1.0)
     with pytest.raises(ValueError, match="n4_shrink_factor"):
         StackConfig(n4_shrink_factor=0)
-    with pytest.raises(ValueError, match="'auto_mask' must be one of network, otsu, got 'unet'"):
-        StackConfig(auto_mask="unet")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="'method' must be one of network, otsu, got 'unet'"):
+        MaskingConfig(method="unet")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="'fuse' must be false unless method='network'"):
+        MaskingConfig(method="otsu", fuse=True)
 
 
 # --- automatic mask -----------------------------------------------------------------------------
@@ -343,7 +356,7 @@ def test_automatic_mask_finds_the_brain_inside_the_shared_field_of_view(tmp_path
         data = np.abs(data + rng.normal(0, 0.03, shape))
         paths.append(write(tmp_path / f"{orientation}.nii.gz", data, affine))
         truths.append(brain)
-    stacks = load_stacks(paths, thicknesses=3.0)
+    stacks = _load_auto(paths, thicknesses=3.0)
     for stack, truth, path in zip(stacks, truths, paths, strict=True):
         found = np.zeros(truth.shape, dtype=bool)
         i0, j0 = stack.crop_origin

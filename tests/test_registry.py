@@ -20,13 +20,13 @@ from torch import Tensor
 import svr.cli.train as train_cli
 import svr.geometry as g
 from svr.cli import build_parser
-from svr.geometry.symmetry import SAGITTAL, mirror_twin
+from svr.geometry.mirror import SAGITTAL, mirror_twin
 from svr.losses import anchor_point_loss, posenet_loss, rotation_6d_loss, se3_geodesic_loss
 from svr.models import heads
 from svr.models.backbones import BackboneConfig
 from svr.models.heads import PoseHead
 from svr.models.network import ModelConfig, build_model, loss_function
-from svr.representations import (
+from svr.representation_registry import (
     REPRESENTATIONS,
     PoseRepresentation,
     Representation,

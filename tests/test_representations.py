@@ -1,4 +1,4 @@
-"""Tests of the pose representations in :mod:`svr.geometry.representations`.
+"""Tests of the pose representations in :mod:`svr.geometry.conversions`.
 
 Oracles: scipy rotations and NumPy float64 re-implementations of the definitions (anchor points
 ``P = R p + t`` of the plane template, first two matrix columns, Gram-Schmidt).

@@ -31,7 +31,7 @@ from svr.models.stack_pose_train import (
     step_seed,
     train_stack_pose,
 )
-from svr.representations import REPRESENTATIONS
+from svr.representation_registry import REPRESENTATIONS
 from svr.sampling.blocks import (
     BlockGrid,
     TrainingStackConfig,

@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from svr.geometry import se3_error, vector_to_se3
-from svr.geometry.symmetry import (
+from svr.geometry.mirror import (
     SAGITTAL,
     ReflectionPlane,
     mirror_twin,
@@ -22,13 +22,13 @@ from svr.geometry.symmetry import (
 )
 from svr.image import Image
 from svr.losses import se3_geodesic_loss
-from svr.losses.symmetry import orbit_min_loss, symmetric_se3_geodesic_loss
+from svr.losses.orbit import orbit_min_loss, symmetric_se3_geodesic_loss
 from svr.metrics import nearest_orbit_member
 from svr.models.network import loss_function
-from svr.representations import REPRESENTATIONS
+from svr.representation_registry import REPRESENTATIONS
+from svr.sampling.mirror_planes import mean_plane, measure_reflection_plane, resolve_symmetry
 from svr.sampling.poses import pose_labels, random_slice_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
-from svr.sampling.symmetry import mean_plane, measure_reflection_plane, resolve_symmetry
 from svr.sampling.volume import canonicalize
 
 F64 = torch.float64

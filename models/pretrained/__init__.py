@@ -16,7 +16,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-from svr.models.checkpoint import CheckpointError
+from svr.errors import CheckpointError
 
 __all__ = [
     "BRAIN_MASK_FOLDER",
@@ -46,7 +46,7 @@ def default_model_path() -> Path:
 
 
 BRAIN_MASK_FOLDER = "brain_mask"
-"""The package-data folder of the shipped brain-mask model (:mod:`svr.models.brain_mask`)."""
+"""The package-data folder of the shipped brain-mask model (:mod:`svr.masking`)."""
 
 
 def brain_mask_model_path() -> Path:

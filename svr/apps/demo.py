@@ -93,10 +93,10 @@ from svr.reconstruction.slices import SliceSet, plane_poses
 from svr.reconstruction.stacks import prepare_stacks
 from svr.sampling.augment import SliceAugmentConfig
 from svr.sampling.dataset import SliceDatasetConfig
+from svr.sampling.mirror_planes import resolve_symmetry
 from svr.sampling.phantom import gestational_age_config, make_phantom, required_field_of_view_mm
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.slicer import SliceConfig
-from svr.sampling.symmetry import resolve_symmetry
 from svr.sampling.volume import CanonicalVolume, canonicalize
 
 __all__ = [

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from svr.geometry import ANCHOR_HALF_SIZE_MM
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
 from svr.metrics import pose_errors
-from svr.representations import REPRESENTATIONS, PoseRepresentation
+from svr.representation_registry import REPRESENTATIONS, PoseRepresentation
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,8 @@ def _method(entry: PoseRepresentation) -> _Method:
 
 
 METHODS = tuple(_method(entry) for entry in REPRESENTATIONS.values())
-"""One method per registered representation (:data:`svr.representations.REPRESENTATIONS`)."""
+"""One method per registered representation (:data:`svr.representation_registry.REPRESENTATIONS`).
+"""
 
 
 def run_loss_demo(config: LossDemoConfig, targets: Tensor) -> list[LossDemoResult]:

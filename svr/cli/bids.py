@@ -385,7 +385,8 @@ def _reconstruct(
     args, participant = job.settings, job.participant
     args = copy.copy(args)
     args.quiet = args.quiet or not job.progress
-    stack_config, config = build_configs(args, len(participant.stacks))
+    settings = build_configs(args, len(participant.stacks))
+    config = settings.reconstruction
     masks = None
     if participant.stacks[0].mask is not None:
         masks = [str(s.mask) for s in participant.stacks]
@@ -394,8 +395,7 @@ def _reconstruct(
         [str(s.path) for s in participant.stacks],
         masks,
         list(job.thicknesses),
-        stack_config,
-        config,
+        settings,
         job.device,
     )
     slices = result.slices
@@ -426,7 +426,8 @@ def _reconstruct(
                 "volume_sha256": file_sha256(args.atlas_volume),
             },
             "options": {
-                "stack_preparation": asdict(stack_config),
+                "masking": None if masks else asdict(settings.masking),
+                "stack_preparation": asdict(settings.stacks),
                 "reconstruction": asdict(config),
                 "masks": "given (--masks-dir)" if masks else f"automatic ({args.auto_masks})",
                 "mask_model": None if masks else args.mask_model,

@@ -39,7 +39,7 @@ MASK_MODEL_HELP = (
     "brain-mask model: 'default' (shipped with the package) or a folder written by "
     "benchmarks/train_brain_masker.py"
 )
-"""The meaning of ``--mask-model`` (:func:`svr.models.brain_mask.load_brain_masker`)."""
+"""The meaning of ``--mask-model`` (:func:`svr.masking.load_brain_masker`)."""
 
 
 def check_outputs(
@@ -174,7 +174,7 @@ def check_fusion_count(count: int) -> None:
     Raises:
         CliError: Naming ``--fuse-masks``.
     """
-    from svr.reconstruction.mask_fusion import MIN_FUSED_STACKS
+    from svr.masking import MIN_FUSED_STACKS
 
     if count < MIN_FUSED_STACKS:
         raise CliError(

@@ -12,7 +12,7 @@ import logging
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 from svr.cli.common import (
     MASK_MODEL_HELP,
@@ -31,6 +31,7 @@ from svr.errors import ConfigFieldError
 from svr.files import atomic_write_text
 
 if TYPE_CHECKING:
+    from svr.masking import MaskingConfig
     from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
     from svr.reconstruction.stacks import Stack, StackConfig
 
@@ -307,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
             "one per stack"
         )
     check_thickness_count(args.thicknesses, count)
-    stack_config, config = build_configs(args, count)
+    settings = build_configs(args, count)
     _check_outputs(args)
     device = resolve_device(args.device)
     with _captured_log() as captured:
@@ -316,14 +317,13 @@ def run(args: argparse.Namespace) -> int:
             args.input_stacks,
             args.stack_masks,
             args.thicknesses,
-            stack_config,
-            config,
+            settings,
             device,
         )
         _log_result(result)
         written = _write_outputs(args, result)
     if args.output_log is not None:
-        text = captured.getvalue() + _summary(args, stack_config, config, result, device)
+        text = captured.getvalue() + _summary(args, settings, result, device)
         atomic_write_text(args.output_log, text, args.overwrite)
         written.append(args.output_log)
     excluded = int(result.excluded.sum())
@@ -339,8 +339,7 @@ def load_and_reconstruct(
     stack_paths: Sequence[str],
     mask_paths: Sequence[str] | None,
     thicknesses: Sequence[float] | None,
-    stack_config: StackConfig,
-    config: ReconstructionConfig,
+    settings: Settings,
     device: str,
 ) -> tuple[list[Stack], ReconstructionResult]:
     """Load the model, atlas and stacks that the options name, and reconstruct.
@@ -354,8 +353,7 @@ def load_and_reconstruct(
         stack_paths: The stacks (NIfTI).
         mask_paths: One brain mask per stack, or ``None`` for automatic masks.
         thicknesses: Slice thickness (mm): one for all stacks, one per stack, or ``None``.
-        stack_config: Stack preparation (:func:`build_configs`).
-        config: The reconstruction (:func:`build_configs`).
+        settings: The masking, stack preparation and reconstruction (:func:`build_configs`).
         device: Torch device.
 
     Returns:
@@ -364,10 +362,14 @@ def load_and_reconstruct(
     Raises:
         CliError: For inconsistent model and atlas options.
     """
+    from svr.image import load_nifti
+    from svr.masking import auto_masks
     from svr.models.predict import load_any_pose_model
     from svr.reconstruction.pipeline import reconstruct
-    from svr.reconstruction.stacks import load_stacks
+    from svr.reconstruction.stacks import load_stacks, prepare_stacks, slice_thicknesses
     from svr.sampling.volume import load_canonical_volume
+
+    config = settings.reconstruction
 
     if config.registration != "cnn" and args.model != "stack-pose":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
@@ -381,14 +383,18 @@ def load_and_reconstruct(
     atlas = None
     if config.registration == "cnn" and args.atlas_volume is not None:
         atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
-    stacks = load_stacks(
-        list(stack_paths),
-        None if mask_paths is None else list(mask_paths),
-        None if thicknesses is None else list(thicknesses),
-        stack_config,
-        args.mask_model,
-        device,
-    )
+    widths = None if thicknesses is None else list(thicknesses)
+    if mask_paths is not None:
+        stacks = load_stacks(list(stack_paths), list(mask_paths), widths, settings.stacks)
+    else:
+        # The masking stage, then preparation with its masks.
+        names = [str(path) for path in stack_paths]
+        images = [load_nifti(path) for path in stack_paths]
+        masking = settings.masking
+        if masking.fuse:
+            widths = slice_thicknesses(widths, images, names)  # warned about once, here
+        masks = auto_masks(images, masking, names, widths, args.mask_model, device)
+        stacks = prepare_stacks(images, masks, widths, settings.stacks, names=names)
     result = reconstruct(
         stacks, config, model=model, device=device, progress=not args.quiet, atlas=atlas
     )
@@ -411,7 +417,18 @@ _OPTIONS = {
 """The option behind each ReconstructionConfig field that the command sets."""
 
 
-def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, ReconstructionConfig]:
+class Settings(NamedTuple):
+    """The dataclass configs that one run's options describe (:func:`build_configs`)."""
+
+    masking: MaskingConfig
+    """How stacks given without masks get them (used only then)."""
+    stacks: StackConfig
+    """How stacks are prepared."""
+    reconstruction: ReconstructionConfig
+    """The reconstruction."""
+
+
+def build_configs(args: argparse.Namespace, count: int) -> Settings:
     """The dataclass configs the settings describe, after the checks argparse cannot do.
 
     Args:
@@ -419,11 +436,12 @@ def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, Re
         count: The number of stacks they apply to (``--template`` and ``--fuse-masks`` checks).
 
     Returns:
-        The stack preparation and reconstruction configs.
+        The masking, stack preparation and reconstruction configs.
 
     Raises:
         CliError: Naming the option, for a value out of range.
     """
+    from svr.masking import MaskingConfig
     from svr.reconstruction.config import ReconstructionConfig
     from svr.reconstruction.stacks import StackConfig
 
@@ -435,11 +453,8 @@ def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, Re
         raise CliError("--fuse-masks: needs --auto-masks network")
     if args.fuse_masks:
         check_fusion_count(count)
-    stack_config = StackConfig(
-        bias_correction=args.bias_correction,
-        auto_mask=args.auto_masks,
-        fuse_masks=args.fuse_masks,
-    )
+    masking = MaskingConfig(method=args.auto_masks, fuse=args.fuse_masks)
+    stack_config = StackConfig(bias_correction=args.bias_correction)
     try:
         config = ReconstructionConfig(
             output_resolution_mm=args.output_resolution,
@@ -458,7 +473,7 @@ def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, Re
     except ConfigFieldError as err:
         option = _OPTIONS.get(err.field, err.field)
         raise CliError(f"{option} must be {err.expected}, got {err.value}") from err
-    return stack_config, config
+    return Settings(masking, stack_config, config)
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -554,13 +569,10 @@ def _rounds_line(config: ReconstructionConfig, result: ReconstructionResult) -> 
 
 
 def _summary(
-    args: argparse.Namespace,
-    stack_config: StackConfig,
-    config: ReconstructionConfig,
-    result: ReconstructionResult,
-    device: str,
+    args: argparse.Namespace, settings: Settings, result: ReconstructionResult, device: str
 ) -> str:
     """The settings, timings, initialisation and exclusions, as text for --output-log."""
+    config = settings.reconstruction
     lines = [f"# svr {args.command} summary", "inputs:"]
     masks = args.stack_masks or [_mask_source(args)] * len(args.input_stacks)
     lines += [
@@ -568,8 +580,11 @@ def _summary(
     ]
     if config.registration == "cnn":
         lines.append(f"model: {args.model}")
+    if args.stack_masks is None:
+        lines.append("masking:")
+        lines += [f"  {key}: {value}" for key, value in asdict(settings.masking).items()]
     lines.append("stack preparation:")
-    lines += [f"  {key}: {value}" for key, value in asdict(stack_config).items()]
+    lines += [f"  {key}: {value}" for key, value in asdict(settings.stacks).items()]
     lines.append("reconstruction:")
     lines += [f"  {key}: {value}" for key, value in asdict(config).items()]
     lines.append(f"  device: {device}")

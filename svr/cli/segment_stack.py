@@ -106,8 +106,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
     from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
-    from svr.models.brain_mask import load_brain_masker, segment_stack
-    from svr.reconstruction.mask_fusion import fuse_stack_masks
+    from svr.masking import fuse_stack_masks, load_brain_masker, segment_stack
     from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure
 
     if len(args.output_stack_masks) != len(args.input_stacks):

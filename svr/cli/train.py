@@ -43,8 +43,8 @@ examples:
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train``."""
     from svr.models.heads import SE3_ROTATIONS
-    from svr.representations import representations_by_cli_name
-    from svr.sampling.symmetry import SYMMETRY_MODES, SYMMETRY_THRESHOLD
+    from svr.representation_registry import representations_by_cli_name
+    from svr.sampling.mirror_planes import SYMMETRY_MODES, SYMMETRY_THRESHOLD
 
     p = subparsers.add_parser(
         "train",
@@ -223,11 +223,11 @@ def run(args: argparse.Namespace) -> int:
     from svr.models.backbones import BackboneConfig
     from svr.models.network import ModelConfig, loss_function
     from svr.models.train import OptimConfig, TrainConfig, train
-    from svr.representations import representations_by_cli_name
+    from svr.representation_registry import representations_by_cli_name
     from svr.sampling.augment import SliceAugmentConfig
     from svr.sampling.dataset import SliceDatasetConfig
+    from svr.sampling.mirror_planes import resolve_symmetry
     from svr.sampling.slicer import SliceConfig
-    from svr.sampling.symmetry import resolve_symmetry
 
     check_run_folder(args.output_dir)
     check_finite(args, "--weight-decay", "--metric-weights")

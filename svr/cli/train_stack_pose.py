@@ -56,7 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train-stack-pose``."""
     from svr.models.stack_pose import StackPoseConfig
     from svr.models.stack_pose_train import StackPoseTrainingConfig
-    from svr.representations import representations_by_cli_name
+    from svr.representation_registry import representations_by_cli_name
 
     m, t = StackPoseConfig(), StackPoseTrainingConfig()
     p = subparsers.add_parser(
@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     from svr.models.checkpoint import CheckpointError
     from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
-    from svr.representations import representations_by_cli_name
+    from svr.representation_registry import representations_by_cli_name
     from svr.sampling.motion import load_trajectories
     from svr.sampling.volume import (
         VolumeSourceError,

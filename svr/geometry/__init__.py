@@ -3,7 +3,7 @@
 See :mod:`svr.geometry.so3` and :mod:`svr.geometry.se3` for the conventions.
 """
 
-from svr.geometry.representations import (
+from svr.geometry.conversions import (
     ANCHOR_HALF_SIZE_MM,
     anchor_points_to_pose,
     pose_to_anchor_points,

@@ -1,7 +1,7 @@
 """Baseline pose losses, with the calling convention of :func:`svr.losses.se3_geodesic_loss`.
 
 Each takes the network output and the target in the same representation (see
-:mod:`svr.geometry.representations` for the layouts and the converters from pose vectors) and
+:mod:`svr.geometry.conversions` for the layouts and the converters from pose vectors) and
 returns the loss reduced by ``reduction``. Translations are divided by a length scale so that
 millimetres and the rotation terms are commensurate, as in the SE(3) loss.
 """
@@ -12,7 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from svr.geometry._validation import check_tensor
-from svr.geometry.representations import ANCHOR_HALF_SIZE_MM
+from svr.geometry.conversions import ANCHOR_HALF_SIZE_MM
 from svr.geometry.so3 import rotation_6d_to_matrix
 from svr.losses.metric_weights import DEFAULT_LENGTH_SCALE_MM
 from svr.losses.se3 import Reduction, reduce_loss

@@ -1,12 +1,12 @@
-"""Training the brain-mask networks on simulated whole-uterus scenes only (issue 14).
+"""Training the brain-mask networks on simulated whole-uterus scenes only.
 
 No real scan is used. Each training case is an atlas brain at a random age, either inside a random
 whole-uterus scene (:func:`svr.sampling.scenes.make_scene`) or alone on an empty background (as in
 stacks that were cropped and masked already), cut into motion-corrupted thick-slice stacks by the
 project's acquisition model (:func:`svr.sampling.simulate.simulate_case`: random orientations,
 slice thickness, in-plane spacing, field of view, noise, bias field, signal voids). The stacks'
-slices are resampled onto the canvases that :func:`svr.models.brain_mask.segment_stack` uses
-(:func:`svr.models.brain_mask.slices_to_canvas`), with each stack's brain mask as the target:
+slices are resampled onto the canvases that :func:`svr.masking.segment.segment_stack` uses
+(:func:`svr.masking.canvas.slices_to_canvas`), with each stack's brain mask as the target:
 
 - ``"localiser"``: the localiser's canvas centred near the stack's middle, shifted at random
   (by up to ``StageData.centre_shift_mm``, per stack or per slice: the whole-slice canvas, or a
@@ -35,12 +35,8 @@ import torch
 from torch import Tensor
 from torch.nn import functional
 
-from svr.models.brain_mask import (
-    BrainMaskConfig,
-    neighbour_slices,
-    normalise_stack,
-    slices_to_canvas,
-)
+from svr.masking.canvas import neighbour_slices, normalise_stack, slices_to_canvas
+from svr.masking.config import BrainMaskConfig
 from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
 from svr.models.segmentation import BrainUNet, SegmentationConfig
 from svr.sampling.scenes import SceneConfig, make_scene
@@ -117,7 +113,7 @@ class TrainingExamples:
 
     Attributes:
         inputs: (N, C, S, S) float16 normalised canvases (C > 1: a 2.5D segmenter's slices
-            with their neighbours, :func:`~svr.models.brain_mask.neighbour_slices`).
+            with their neighbours, :func:`~svr.masking.canvas.neighbour_slices`).
         targets: (N, 1, S, S) bool brain masks on the same canvases.
     """
 

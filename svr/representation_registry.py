@@ -26,7 +26,7 @@ rotation6d_translation rot6d     9  the first two columns of ``R``, then ``t`` (
 The losses are :func:`svr.losses.se3_geodesic_loss` (with metric weights Z),
 :func:`svr.losses.posenet_loss`, :func:`svr.losses.anchor_point_loss` and
 :func:`svr.losses.rotation_6d_loss`, each with its default parameters; the converters are those of
-:mod:`svr.geometry.representations`.
+:mod:`svr.geometry.conversions`.
 """
 
 from __future__ import annotations
@@ -49,10 +49,10 @@ from svr.geometry import (
     rotation_6d_translation_to_pose,
 )
 from svr.geometry._validation import check_tensor
-from svr.geometry.symmetry import ReflectionPlane
+from svr.geometry.mirror import ReflectionPlane
 from svr.losses.baselines import anchor_point_loss, posenet_loss, rotation_6d_loss
+from svr.losses.orbit import symmetric_se3_geodesic_loss
 from svr.losses.se3 import se3_geodesic_loss
-from svr.losses.symmetry import symmetric_se3_geodesic_loss
 
 Representation = Literal["se3", "quat_translation", "anchor_points", "rotation6d_translation"]
 """Names of the registered representations, for type hints (the same as :data:`REPRESENTATIONS`'s
@@ -97,7 +97,7 @@ class PoseRepresentation:
         metric_weights: Whether ``loss`` takes the SE(3) metric weights Z.
         orbit_loss: ``orbit_loss(weights, planes)``: a fused loss to the nearest member of the
             label's mirror orbit, or ``None`` to build it from ``loss``, ``decode`` and
-            ``encode`` with :func:`svr.losses.symmetry.orbit_min_loss`.
+            ``encode`` with :func:`svr.losses.orbit.orbit_min_loss`.
 
     Raises:
         ValueError: On construction, naming the field, for an empty name or a size < 1.

@@ -23,7 +23,7 @@ import torch
 from scipy.optimize import minimize
 from torch import Tensor
 
-from svr.geometry.symmetry import SAGITTAL, ReflectionPlane
+from svr.geometry.mirror import SAGITTAL, ReflectionPlane
 from svr.image import sample_world, voxel_to_world
 from svr.sampling.volume import CanonicalVolume
 

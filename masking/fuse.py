@@ -1,4 +1,4 @@
-"""Brain masks of several stacks of one fetus made to agree in 3D (issue 14).
+"""Brain masks of several stacks of one fetus made to agree in 3D.
 
 Each stack's automatic mask is drawn from that stack alone, so its errors are its own: the slices
 at the ends of the head, where the brain is a thin sliver of a thick slice, and pockets of bright
@@ -21,7 +21,7 @@ same head, so their masks can vote. :func:`fuse_masks`:
    ``MaskFusionConfig.threshold`` by more than ``own_margin``, not where it falls short of it by
    more than that, and as the stack's own mask says in between (where misregistration and the
    PSF blur the vote at the outline, the stack's own sharper outline is kept); then one body
-   with filled holes (:func:`svr.models.brain_mask.clean_up_mask`).
+   with filled holes (:func:`svr.masking.morphology.clean_up_mask`).
 
 A stack whose fused mask disagrees with its own (Dice below ``min_agreement``: a failed
 registration, a mask on the wrong object) is left out of the vote and keeps its own mask, with a
@@ -47,16 +47,15 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
-from svr.errors import ConfigFieldError
 from svr.geometry import se3_compose, se3_inverse
 from svr.image import Image, stack_slice_poses
-from svr.models.brain_mask import clean_up_mask
+from svr.masking.config import MaskFusionConfig
+from svr.masking.morphology import clean_up_mask
 from svr.reconstruction.operators import SliceProjector
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from svr.reconstruction.stacks import prepare_stacks
 from svr.reconstruction.superres import output_grid, scattered_data_approximation
-from svr.sampling._validation import is_finite_number
 
 log = logging.getLogger(__name__)
 
@@ -71,58 +70,6 @@ __all__ = [
 
 # Stacks needed for a vote (two stacks would only give their intersection).
 MIN_FUSED_STACKS = 3
-
-
-@dataclass(frozen=True)
-class MaskFusionConfig:
-    """How :func:`fuse_masks` makes the masks of one fetus's stacks agree.
-
-    Attributes:
-        resolution_mm: Voxel size of the fused mask volume, mm, > 0.
-        footprint_mm: How far beyond the in-plane outline of a stack's mask (its union over the
-            slices) its planes vote, mm, >= 0.
-        threshold: Vote above which a pixel is brain, in (0, 1).
-        own_margin: Where the vote is within this margin of ``threshold``, the stack's own mask
-            decides, in [0, min(threshold, 1 - threshold)).
-        min_agreement: Dice between a stack's own and fused masks below which the stack keeps
-            its own mask and is left out of the vote, in [0, 1].
-        registration_mm: Voxel size of the template volume of the stack registration
-            (:func:`fuse_stack_masks`; the registration works at twice it), mm, > 0.
-        psf_samples: Nodes of the through-plane PSF (odd).
-
-    Raises:
-        ValueError: On construction, naming the field, for an invalid value.
-    """
-
-    resolution_mm: float = 1.0
-    footprint_mm: float = 10.0
-    threshold: float = 0.5
-    own_margin: float = 0.15
-    min_agreement: float = 0.7
-    registration_mm: float = 0.8
-    psf_samples: int = 5
-
-    def __post_init__(self) -> None:
-        def fail(name: str, expected: str) -> None:
-            raise ConfigFieldError("MaskFusionConfig", name, expected, getattr(self, name))
-
-        for name in ("resolution_mm", "registration_mm"):
-            if not (is_finite_number(getattr(self, name)) and getattr(self, name) > 0):
-                fail(name, "a finite number > 0")
-        if not (is_finite_number(self.footprint_mm) and self.footprint_mm >= 0):
-            fail("footprint_mm", "a finite number >= 0")
-        if not (is_finite_number(self.threshold) and 0 < self.threshold < 1):
-            fail("threshold", "in (0, 1)")
-        limit = min(self.threshold, 1 - self.threshold)
-        if not (is_finite_number(self.own_margin) and 0 <= self.own_margin < limit):
-            fail("own_margin", "in [0, min(threshold, 1 - threshold))")
-        if not (is_finite_number(self.min_agreement) and 0 <= self.min_agreement <= 1):
-            fail("min_agreement", "in [0, 1]")
-        samples = self.psf_samples
-        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-            fail("psf_samples", "an odd integer >= 1")
-        if samples % 2 == 0:
-            fail("psf_samples", "an odd integer >= 1")
 
 
 @dataclass(frozen=True)
@@ -424,7 +371,7 @@ def fuse_masks(
         names: The stacks' names, for the log; default ``slices.stack_names``.
         device: Where to compute (the results are on the CPU).
         probabilities: Per stack, the (I, J, K) probability of brain behind its mask (e.g.
-            :attr:`svr.models.brain_mask.MaskResult.probability`), in [0, 1]: the stacks vote
+            :attr:`svr.masking.segment.MaskResult.probability`), in [0, 1]: the stacks vote
             with it (soft votes) instead of their masks; ``None`` to vote with the masks. The
             footprints and the own-mask margin still use the masks.
 

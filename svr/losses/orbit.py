@@ -1,7 +1,7 @@
 """Symmetry-aware pose losses: the loss to the nearest member of the target's symmetry orbit.
 
 For a (nearly) mirror-symmetric brain a slice at pose ``T`` and one at its mirror twin
-(:func:`svr.geometry.symmetry.mirror_twin`) are the same image, so a network cannot tell them
+(:func:`svr.geometry.mirror.mirror_twin`) are the same image, so a network cannot tell them
 apart, and any unimodal loss trains it towards the average of the two, which is far from both.
 The orbit loss
 
@@ -30,7 +30,7 @@ from typing import Literal, overload
 from torch import Tensor
 
 from svr.geometry._validation import check_tensor
-from svr.geometry.symmetry import SAGITTAL, ReflectionPlane, check_planes, orbit_poses
+from svr.geometry.mirror import SAGITTAL, ReflectionPlane, check_planes, orbit_poses
 from svr.losses.se3 import Gradient, Reduction, reduce_loss, resolve_weights, se3_geodesic_loss
 
 
