@@ -1,7 +1,7 @@
 """MkDocs hooks: the API pages' source layout and the generated command-line reference.
 
-The ``svr`` namespace is installed from four folders (``svr/``, ``models/``, ``sampling/``,
-``reconstruction/``; see ``[tool.setuptools.package-dir]`` in pyproject.toml), so mkdocstrings,
+The ``svr`` namespace is installed from several folders (``svr/``, ``models/``, ``sampling/``,
+...; ``[tool.setuptools.package-dir]`` in pyproject.toml, read here), so mkdocstrings,
 which reads the source statically, would not find ``svr.models`` under ``svr/``. ``on_config``
 therefore copies the Python files into the installed layout in a temporary folder and points the
 Python handler at it. ``on_page_markdown`` replaces the marker in ``cli.md`` by the help of every
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -19,7 +20,15 @@ from pathlib import Path
 from mkdocs.plugins import event_priority
 
 REPO = Path(__file__).resolve().parents[1]
-SUBPACKAGES = ("models", "sampling", "reconstruction")
+SUBPACKAGES = tuple(
+    folder
+    for name, folder in re.findall(
+        r'^"(svr\.\w+)"\s*=\s*"(\w+)"',
+        (REPO / "pyproject.toml").read_text().split("[tool.setuptools.package-dir]", 1)[1],
+        flags=re.MULTILINE,
+    )
+)
+"""The top-level folders installed as ``svr`` subpackages (pyproject.toml's package-dir)."""
 CLI_MARKER = "<!-- svr-cli-reference -->"
 HELP_WIDTH = "100"
 

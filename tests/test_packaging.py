@@ -12,6 +12,7 @@ import venv
 from pathlib import Path
 
 import pytest
+from layout import subpackage_folders
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -124,12 +125,7 @@ LAYERS = {
     "masking": ("svr", "svr.sampling", "svr.models", "svr.reconstruction", "svr.masking"),
 }
 UPPER = ("svr.sampling", "svr.models", "svr.reconstruction", "svr.masking", "svr.apps", "svr.cli")
-FOLDERS = {
-    "sampling": "svr.sampling",
-    "models": "svr.models",
-    "reconstruction": "svr.reconstruction",
-    "masking": "svr.masking",
-}
+FOLDERS = {folder: name for name, folder in subpackage_folders().items()}
 """The repository's top-level folders installed as subpackages of ``svr`` (pyproject.toml)."""
 
 
@@ -144,6 +140,9 @@ def _layer(path: Path) -> str | None:
 
 def test_layers_import_only_downwards():
     import ast
+
+    assert set(LAYERS) - {"core"} == set(FOLDERS), "every installed folder has a layer"
+    assert set(UPPER) >= set(FOLDERS.values())
 
     bad = []
     for path in sorted(REPO.glob("*/**/*.py")):

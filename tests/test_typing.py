@@ -1,9 +1,9 @@
 """The package type-checks: ``mypy -p svr`` (configured in pyproject.toml) reports no errors.
 
 mypy cannot follow the editable install's import hook, so the check runs on a copy of the installed
-layout made of symbolic links: ``svr/`` with ``models/``, ``sampling/`` and ``reconstruction/`` as
-``svr/models`` and so on. The cache lives in the repository's git-ignored ``.mypy_cache``, so
-repeated runs are fast.
+layout made of symbolic links: ``svr/`` with ``models/``, ``sampling/``, ``reconstruction/`` and
+``masking/`` (pyproject.toml's package-dir) as ``svr/models`` and so on. The cache lives in the
+repository's git-ignored ``.mypy_cache``, so repeated runs are fast.
 """
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-SUBPACKAGES = ("models", "sampling", "reconstruction")
+from layout import REPO, subpackage_folders
+
+SUBPACKAGES = tuple(subpackage_folders().values())
 
 
 def _installed_layout(root: Path) -> None:
