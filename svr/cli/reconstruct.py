@@ -23,11 +23,11 @@ from svr.cli.common import (
     check_outputs,
     check_thickness_count,
     non_negative_float,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
 )
-from svr.errors import ConfigFieldError
 from svr.files import atomic_write_text
 
 if TYPE_CHECKING:
@@ -405,10 +405,15 @@ _OPTIONS = {
     "converged_mm": "--converged-mm",
     "sr_iterations": "--sr-iterations",
     "svr_iterations": "--svr-iterations",
+    "robust": "--no-robust",
     "ncc_threshold": "--ncc-threshold",
     "seed": "--seed",
+    "bias_correction": "--bias-correction",
+    "auto_mask": "--auto-masks",
+    "fuse_masks": "--fuse-masks",
 }
-"""The option behind each ReconstructionConfig field that the command sets."""
+"""The option behind each field of the StackConfig and ReconstructionConfig that the command sets
+(:func:`~svr.cli.common.option_errors`)."""
 
 
 def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, ReconstructionConfig]:
@@ -435,12 +440,12 @@ def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, Re
         raise CliError("--fuse-masks: needs --auto-masks network")
     if args.fuse_masks:
         check_fusion_count(count)
-    stack_config = StackConfig(
-        bias_correction=args.bias_correction,
-        auto_mask=args.auto_masks,
-        fuse_masks=args.fuse_masks,
-    )
-    try:
+    with option_errors(_OPTIONS):
+        stack_config = StackConfig(
+            bias_correction=args.bias_correction,
+            auto_mask=args.auto_masks,
+            fuse_masks=args.fuse_masks,
+        )
         config = ReconstructionConfig(
             output_resolution_mm=args.output_resolution,
             registration=args.registration,
@@ -455,9 +460,6 @@ def build_configs(args: argparse.Namespace, count: int) -> tuple[StackConfig, Re
             ncc_threshold=args.ncc_threshold,
             seed=args.seed,
         )
-    except ConfigFieldError as err:
-        option = _OPTIONS.get(err.field, err.field)
-        raise CliError(f"{option} must be {err.expected}, got {err.value}") from err
     return stack_config, config
 
 
