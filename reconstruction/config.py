@@ -143,7 +143,7 @@ class ReconstructionConfig:
         for name in ("converged_deg", "converged_mm"):
             check_number(owner, name, getattr(self, name), ge=0)
         check_fraction(owner, "converged_fraction", self.converged_fraction, include_one=False)
-        background = check_range(owner, "background_mm", self.background_mm, ge=0)
+        check_range(owner, "background_mm", self.background_mm, ge=0)
         for name, minimum in (
             ("svr_levels", 1),
             ("svr_iterations", 1),
@@ -152,21 +152,13 @@ class ReconstructionConfig:
             ("seed", 0),
         ):
             check_int(owner, name, getattr(self, name), minimum=minimum)
-        sr_iterations = check_int_tuple(
-            owner, "sr_iterations", self.sr_iterations, minimum=1, allow_empty=False
-        )
-        group_sizes = check_int_tuple(owner, "group_sizes", self.group_sizes, minimum=1)
-        regularization = check_number_tuple(
-            owner, "regularization", self.regularization, ge=0, allow_empty=False
-        )
+        check_int_tuple(owner, "sr_iterations", self.sr_iterations, minimum=1, allow_empty=False)
+        check_int_tuple(owner, "group_sizes", self.group_sizes, minimum=1)
+        check_number_tuple(owner, "regularization", self.regularization, ge=0, allow_empty=False)
         for name in ("robust", "recapture"):
             check_bool(owner, name, getattr(self, name))
         check_number(owner, "ncc_threshold", self.ncc_threshold, ge=-1, le=1)
         check_fraction(owner, "cnn_min_support", self.cnn_min_support)
-        object.__setattr__(self, "background_mm", background)
-        object.__setattr__(self, "sr_iterations", sr_iterations)
-        object.__setattr__(self, "group_sizes", group_sizes)
-        object.__setattr__(self, "regularization", regularization)
 
 
 @dataclass(frozen=True)

@@ -94,7 +94,7 @@ class SliceAugmentConfig:
         for name in ("scale_prob", "gamma_prob", "bias_prob", "noise_prob"):
             check_fraction(owner, name, getattr(self, name))
         for name in ("scale_range", "gamma_range"):
-            object.__setattr__(self, name, check_range(owner, name, getattr(self, name), gt=0))
+            check_range(owner, name, getattr(self, name), gt=0)
         check_int(owner, "bias_order", self.bias_order, minimum=1)
         for name in ("bias_coefficient_max", "noise_sigma_max"):
             check_number(owner, name, getattr(self, name), ge=0)

@@ -137,10 +137,8 @@ class SliceDatasetConfig:
     def __post_init__(self) -> None:
         owner = "SliceDatasetConfig"
         check_instance(owner, "slice", self.slice, SliceConfig)
-        ranges = {
-            name: check_range(owner, name, getattr(self, name), gt=0, allow_none=True)
-            for name in ("thickness_range_mm", "spacing_range_mm", "scale_range")
-        }
+        for name in ("thickness_range_mm", "spacing_range_mm", "scale_range"):
+            check_range(owner, name, getattr(self, name), gt=0, allow_none=True)
         check_choice(owner, "rotation", self.rotation, get_args(RotationSampling))
         for name in ("angle_range_deg", "tz_range_mm", "shift_mm", "deform_mm"):
             check_number(owner, name, getattr(self, name), ge=0)
@@ -153,8 +151,6 @@ class SliceDatasetConfig:
         check_int(owner, "batch_size", self.batch_size, minimum=1)
         check_int(owner, "num_batches", self.num_batches, minimum=1, allow_none=True)
         check_int(owner, "seed", self.seed, minimum=0)
-        for name, value in ranges.items():
-            object.__setattr__(self, name, value)
 
 
 def _mask_image(volume: CanonicalVolume) -> Image:

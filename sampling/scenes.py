@@ -120,28 +120,27 @@ class SceneConfig:
         owner = "SceneConfig"
         for name in ("extent_mm", "spacing_mm"):
             check_number(owner, name, getattr(self, name), gt=0)
-        ranges = {
-            name: check_range(owner, name, getattr(self, name), gt=0)
-            for name in (
-                "brain_scale",
-                "gamma",
-                "csf_mm",
-                "skull_mm",
-                "scalp_mm",
-                "fluid_margin_mm",
-                "abdomen_margin_mm",
-                "maternal_smoothness_mm",
-                "csf_intensity",
-                "skull_intensity",
-                "tissue_intensity",
-                "distractor_mm",
-                "body_scale",
-            )
-        }
-        for name, least in (("maternal_labels", 1), ("distractors", 0)):
-            ranges[name] = check_range(
+        for name in (
+            "brain_scale",
+            "gamma",
+            "csf_mm",
+            "skull_mm",
+            "scalp_mm",
+            "fluid_margin_mm",
+            "abdomen_margin_mm",
+            "maternal_smoothness_mm",
+            "csf_intensity",
+            "skull_intensity",
+            "tissue_intensity",
+            "distractor_mm",
+            "body_scale",
+        ):
+            check_range(owner, name, getattr(self, name), gt=0)
+        for name, least in (("maternal_labels", 1), ("distractors", 0)):  # also lists, as before
+            value = check_range(
                 owner, name, getattr(self, name), ge=least, integer=True, allow_list=True
             )
+            object.__setattr__(self, name, value)
         for name in ("texture", "irregularity"):
             check_number(owner, name, getattr(self, name), ge=0)
         for name in ("intracranial_mask", "skull_in_mask", "face", "spinal_cord"):
@@ -150,8 +149,6 @@ class SceneConfig:
             raise ConfigFieldError(
                 owner, "skull_in_mask", "False without 'intracranial_mask'", self.skull_in_mask
             )
-        for name, value in ranges.items():
-            object.__setattr__(self, name, value)
 
 
 def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:

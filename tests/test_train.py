@@ -313,7 +313,8 @@ def test_cli_trains_on_the_paper_grid(volume_files, tmp_path, capsys):
     assert run["pose_sampling"] == "grid" and run["grid"] == dataclasses.asdict(EulerGridConfig())
     uniform = [*args, "--pose-sampling", "grid", "--rotation", "uniform", "--overwrite"]
     assert main(uniform) == 1
-    assert "'data.rotation' must be 'euler'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--rotation must be 'euler' for grid pose sampling, got uniform" in err
 
 
 def test_cli_errors(tmp_path, capsys):
