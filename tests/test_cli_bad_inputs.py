@@ -945,6 +945,7 @@ def _cases() -> list[Case]:
         ],
         "demo": [("--seed", "-1", "--seed must be an integer >= 0, got -1")],
         "demo-loss": [],
+        "bids": [("--ncc-threshold", "2", "sub-01: --ncc-threshold must be in [-1, 1], got 2.0")],
     }
     library_values["reconstruct"] = library_values["register"]
     for command, values in library_values.items():
