@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
 from svr.errors import ConfigFieldError
 from svr.models.segmentation import SegmentationConfig
-from svr.sampling._validation import is_finite_number
+from svr.validation import (
+    check_bool,
+    check_choice,
+    check_fraction,
+    check_instance,
+    check_int,
+    check_number,
+    is_finite_number,
+    is_integer,
+)
 
 __all__ = ["AUTO_MASKS", "AutoMask", "BrainMaskConfig", "MaskFusionConfig", "MaskingConfig"]
 
@@ -71,74 +79,41 @@ class BrainMaskConfig:
     regrow_mm: float = 0.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.localiser_tiles, bool):
-            raise ValueError(
-                "BrainMaskConfig: 'localiser_tiles' must be true or false, "
-                f"got {self.localiser_tiles!r}"
-            )
-        for name in ("localiser_mm", "segmenter_mm"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (isinstance(value, (int, float)) and value > 0):
-                raise ValueError(f"BrainMaskConfig: '{name}' must be a number > 0, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"BrainMaskConfig: '{name}' must be finite, got {value!r}")
+        owner = "BrainMaskConfig"
+        check_bool(owner, "localiser_tiles", self.localiser_tiles)
+        check_number(owner, "localiser_mm", self.localiser_mm, gt=0)
+        check_number(owner, "segmenter_mm", self.segmenter_mm, gt=0)
+        check_instance(owner, "localiser", self.localiser, SegmentationConfig)
+        check_instance(owner, "segmenter", self.segmenter, SegmentationConfig)
         if self.localiser.in_channels != 1:
-            raise ValueError(
-                "BrainMaskConfig: 'localiser.in_channels' must be 1, "
-                f"got {self.localiser.in_channels!r}"
-            )
+            raise ConfigFieldError(owner, "localiser.in_channels", "1", self.localiser.in_channels)
         if self.segmenter.in_channels % 2 != 1:
-            raise ValueError(
-                "BrainMaskConfig: 'segmenter.in_channels' must be odd (a slice and as many "
-                f"neighbours on either side), got {self.segmenter.in_channels!r}"
+            raise ConfigFieldError(
+                owner,
+                "segmenter.in_channels",
+                "odd (a slice and as many neighbours on either side)",
+                self.segmenter.in_channels,
             )
         for name, net in (("localiser", self.localiser), ("segmenter", self.segmenter)):
-            size = getattr(self, f"{name}_size")
-            step = 2**net.depth
-            if isinstance(size, bool) or not isinstance(size, int) or size < step or size % step:
-                raise ValueError(
-                    f"BrainMaskConfig: '{name}_size' must be a positive multiple of {step} "
-                    f"(2 ** {name}.depth), got {size!r}"
-                )
-        if not 0 < self.threshold < 1:
-            raise ValueError(
-                f"BrainMaskConfig: 'threshold' must be in (0, 1), got {self.threshold!r}"
-            )
-        if self.slice_margin is not None and (
-            isinstance(self.slice_margin, bool)
-            or not (isinstance(self.slice_margin, int) and self.slice_margin >= 0)
-        ):
-            raise ValueError(
-                "BrainMaskConfig: 'slice_margin' must be an integer >= 0 or null, "
-                f"got {self.slice_margin!r}"
-            )
-        radius, regrow = self.opening_mm, self.regrow_mm
-        if radius is not None and not (is_finite_number(radius) and radius > 0):
-            raise ValueError(
-                f"BrainMaskConfig: 'opening_mm' must be a finite number > 0 or null, got {radius!r}"
-            )
-        if not (is_finite_number(regrow) and regrow >= 0):
-            raise ValueError(
-                f"BrainMaskConfig: 'regrow_mm' must be a finite number >= 0, got {regrow!r}"
-            )
-        if not self.min_volume_ml >= 0:
-            raise ValueError(
-                f"BrainMaskConfig: 'min_volume_ml' must be >= 0, got {self.min_volume_ml!r}"
-            )
+            size, step = getattr(self, f"{name}_size"), 2**net.depth
+            check_int(owner, f"{name}_size", size, minimum=step)
+            if size % step:
+                expected = f"a positive multiple of {step} (2 ** {name}.depth)"
+                raise ConfigFieldError(owner, f"{name}_size", expected, size)
+        check_number(owner, "threshold", self.threshold, gt=0, lt=1)
+        check_int(owner, "slice_margin", self.slice_margin, minimum=0, allow_none=True)
+        check_number(owner, "opening_mm", self.opening_mm, gt=0, allow_none=True)
+        check_number(owner, "regrow_mm", self.regrow_mm, ge=0)
+        check_number(owner, "min_volume_ml", self.min_volume_ml, ge=0)
         if not (is_finite_number(self.max_volume_ml) and self.max_volume_ml > self.min_volume_ml):
-            raise ValueError(
-                "BrainMaskConfig: 'max_volume_ml' must be a finite number > 'min_volume_ml' "
-                f"({self.min_volume_ml!r}), got {self.max_volume_ml!r}"
+            raise ConfigFieldError(
+                owner,
+                "max_volume_ml",
+                f"a finite number > 'min_volume_ml' ({self.min_volume_ml!r})",
+                self.max_volume_ml,
             )
-        if not (is_finite_number(self.max_stack_fraction) and 0 < self.max_stack_fraction <= 1):
-            raise ValueError(
-                "BrainMaskConfig: 'max_stack_fraction' must be in (0, 1], "
-                f"got {self.max_stack_fraction!r}"
-            )
-        if not 0 < self.percentile <= 100:
-            raise ValueError(
-                f"BrainMaskConfig: 'percentile' must be in (0, 100], got {self.percentile!r}"
-            )
+        check_fraction(owner, "max_stack_fraction", self.max_stack_fraction, include_zero=False)
+        check_number(owner, "percentile", self.percentile, gt=0, le=100)
 
     @property
     def segmenter_context(self) -> int:
@@ -196,26 +171,20 @@ class MaskFusionConfig:
     psf_samples: int = 5
 
     def __post_init__(self) -> None:
-        def fail(name: str, expected: str) -> None:
-            raise ConfigFieldError("MaskFusionConfig", name, expected, getattr(self, name))
-
-        for name in ("resolution_mm", "registration_mm"):
-            if not (is_finite_number(getattr(self, name)) and getattr(self, name) > 0):
-                fail(name, "a finite number > 0")
-        if not (is_finite_number(self.footprint_mm) and self.footprint_mm >= 0):
-            fail("footprint_mm", "a finite number >= 0")
-        if not (is_finite_number(self.threshold) and 0 < self.threshold < 1):
-            fail("threshold", "in (0, 1)")
+        owner = "MaskFusionConfig"
+        check_number(owner, "resolution_mm", self.resolution_mm, gt=0)
+        check_number(owner, "registration_mm", self.registration_mm, gt=0)
+        check_number(owner, "footprint_mm", self.footprint_mm, ge=0)
+        check_number(owner, "threshold", self.threshold, gt=0, lt=1)
         limit = min(self.threshold, 1 - self.threshold)
         if not (is_finite_number(self.own_margin) and 0 <= self.own_margin < limit):
-            fail("own_margin", "in [0, min(threshold, 1 - threshold))")
-        if not (is_finite_number(self.min_agreement) and 0 <= self.min_agreement <= 1):
-            fail("min_agreement", "in [0, 1]")
+            raise ConfigFieldError(
+                owner, "own_margin", "in [0, min(threshold, 1 - threshold))", self.own_margin
+            )
+        check_fraction(owner, "min_agreement", self.min_agreement)
         samples = self.psf_samples
-        if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-            fail("psf_samples", "an odd integer >= 1")
-        if samples % 2 == 0:
-            fail("psf_samples", "an odd integer >= 1")
+        if not (is_integer(samples) and samples >= 1 and samples % 2 == 1):
+            raise ConfigFieldError(owner, "psf_samples", "an odd integer >= 1", samples)
 
 
 @dataclass(frozen=True)
@@ -242,15 +211,9 @@ class MaskingConfig:
     fusion: MaskFusionConfig = field(default_factory=MaskFusionConfig)
 
     def __post_init__(self) -> None:
-        if self.method not in AUTO_MASKS:
-            raise ConfigFieldError(
-                "MaskingConfig", "method", f"one of {', '.join(AUTO_MASKS)}", self.method
-            )
-        if not isinstance(self.fuse, bool):
-            raise ConfigFieldError("MaskingConfig", "fuse", "true or false", self.fuse)
+        owner = "MaskingConfig"
+        check_choice(owner, "method", self.method, AUTO_MASKS)
+        check_bool(owner, "fuse", self.fuse)
         if self.fuse and self.method != "network":
-            raise ConfigFieldError(
-                "MaskingConfig", "fuse", "false unless method='network'", self.fuse
-            )
-        if not isinstance(self.fusion, MaskFusionConfig):
-            raise ConfigFieldError("MaskingConfig", "fusion", "a MaskFusionConfig", self.fusion)
+            raise ConfigFieldError(owner, "fuse", "false unless method='network'", self.fuse)
+        check_instance(owner, "fusion", self.fusion, MaskFusionConfig)

@@ -42,6 +42,7 @@ from svr.models.segmentation import BrainUNet, SegmentationConfig
 from svr.sampling.scenes import SceneConfig, make_scene
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_fraction, check_int, check_number
 
 __all__ = [
     "BrainMaskTrainingConfig",
@@ -85,26 +86,13 @@ class BrainMaskTrainingConfig:
     intensity_curves: float = 0.0
 
     def __post_init__(self) -> None:
+        owner = "BrainMaskTrainingConfig"
         for name in ("cases", "steps", "batch_size", "checkpoint_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(
-                    f"BrainMaskTrainingConfig: '{name}' must be an integer >= 1, got {value!r}"
-                )
-        if not 0 <= self.intensity_curves <= 1:
-            raise ValueError(
-                "BrainMaskTrainingConfig: 'intensity_curves' must be in [0, 1], "
-                f"got {self.intensity_curves!r}"
-            )
-        if not 0 <= self.bare_fraction <= 1:
-            raise ValueError(
-                "BrainMaskTrainingConfig: 'bare_fraction' must be in [0, 1], "
-                f"got {self.bare_fraction!r}"
-            )
-        if not self.learning_rate > 0:
-            raise ValueError(
-                f"BrainMaskTrainingConfig: 'learning_rate' must be > 0, got {self.learning_rate!r}"
-            )
+            check_int(owner, name, getattr(self, name), minimum=1)
+        check_fraction(owner, "intensity_curves", self.intensity_curves)
+        check_fraction(owner, "bare_fraction", self.bare_fraction)
+        check_number(owner, "learning_rate", self.learning_rate, gt=0)
+        check_int(owner, "seed", self.seed, minimum=0)
 
 
 @dataclass

@@ -29,6 +29,8 @@ from typing import Literal, cast, get_args
 import torch
 from torch import Tensor, nn
 
+from svr.validation import check_choice, check_int, check_number
+
 BackboneName = Literal["resnet", "inception"]
 """Names of the backbone families."""
 
@@ -37,10 +39,6 @@ BACKBONE_NAMES: tuple[str, ...] = get_args(BackboneName)
 
 MIN_WIDTH = 8
 """Smallest ``width``: an inception module splits its channels eight ways."""
-
-
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -55,7 +53,7 @@ class BackboneConfig:
         dropout: Dropout probability on the pooled features, in ``[0, 1)``.
 
     Raises:
-        ValueError: Naming the field, for a value of the wrong type or out of range.
+        ConfigFieldError: Naming the field, for a value of the wrong type or out of range.
     """
 
     name: BackboneName = "resnet"
@@ -65,20 +63,13 @@ class BackboneConfig:
     dropout: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.name not in BACKBONE_NAMES:
-            raise ValueError(
-                f"BackboneConfig: 'name' must be one of {BACKBONE_NAMES}, got {self.name!r}"
-            )
-        for field, minimum in (("width", MIN_WIDTH), ("depth", 1), ("blocks", 1)):
-            value = getattr(self, field)
-            if not (_is_int(value) and value >= minimum):
-                raise ValueError(
-                    f"BackboneConfig: '{field}' must be an integer >= {minimum}, got {value!r}"
-                )
-        p = self.dropout
-        if not (isinstance(p, int | float) and not isinstance(p, bool) and 0.0 <= p < 1.0):
-            raise ValueError(f"BackboneConfig: 'dropout' must be a number in [0, 1), got {p!r}")
-        object.__setattr__(self, "dropout", float(p))
+        owner = "BackboneConfig"
+        check_choice(owner, "name", self.name, BACKBONE_NAMES)
+        check_int(owner, "width", self.width, minimum=MIN_WIDTH)
+        check_int(owner, "depth", self.depth, minimum=1)
+        check_int(owner, "blocks", self.blocks, minimum=1)
+        check_number(owner, "dropout", self.dropout, ge=0, lt=1)
+        object.__setattr__(self, "dropout", float(self.dropout))
 
     @property
     def out_features(self) -> int:

@@ -46,6 +46,7 @@ from svr.image_metrics import mse, ncc, psnr, ssim
 from svr.metrics import nearest_orbit_member, pose_errors
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_instance, check_number
 
 log = logging.getLogger(__name__)
 
@@ -90,18 +91,18 @@ class EvalConfig:
             the prediction.
         data_range: Intensity span for PSNR and SSIM, or ``None`` for the 99.9th percentile of
             the ground-truth slices.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     slice: SliceConfig
     data_range: float | None = None
 
     def __post_init__(self) -> None:
-        if self.data_range is not None and not (
-            math.isfinite(self.data_range) and self.data_range > 0
-        ):
-            raise ValueError(
-                f"EvalConfig: 'data_range' must be finite and > 0 or None, got {self.data_range}"
-            )
+        check_instance("EvalConfig", "slice", self.slice, SliceConfig)
+        check_number("EvalConfig", "data_range", self.data_range, gt=0, allow_none=True)
 
 
 def _check_poses(poses: object, name: str) -> Tensor:

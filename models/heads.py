@@ -31,8 +31,6 @@ bound such as ``pi tanh(r / pi)`` would slow learning of the rotations by nearly
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
 
@@ -40,27 +38,13 @@ from svr.geometry import ANCHOR_HALF_SIZE_MM, matrix_to_quat, quat_to_rotvec, ro
 from svr.geometry._validation import check_tensor
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
 from svr.representation_registry import REPRESENTATIONS, Representation, get_representation
+from svr.validation import check_int, check_number
 
 SE3_ROTATIONS = ("rotvec", "6d")
 """Rotation parameterisations of the ``"se3"`` head's linear layer."""
 
 _SE3_6D_LAYER = "rotation6d_translation"
 """The representation whose layout the ``"6d"`` rotation of an ``"se3"`` head's layer takes."""
-
-
-def check_length(value: object, owner: str, name: str) -> None:
-    """Check that ``value`` is a finite number > 0 (a length in mm, not a bool).
-
-    Raises:
-        ValueError: Naming ``owner`` and the field ``name``.
-    """
-    if not (
-        isinstance(value, int | float)
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-        and value > 0
-    ):
-        raise ValueError(f"{owner}: '{name}' must be a finite number > 0, got {value!r}")
 
 
 class PoseHead(nn.Module):
@@ -93,13 +77,10 @@ class PoseHead(nn.Module):
         rotation: str = "rotvec",
     ) -> None:
         super().__init__()
-        if isinstance(in_features, bool) or not isinstance(in_features, int) or in_features < 1:
-            raise ValueError(
-                f"PoseHead: 'in_features' must be an integer >= 1, got {in_features!r}"
-            )
+        check_int("PoseHead", "in_features", in_features, minimum=1)
         entry = get_representation(representation, "PoseHead")
-        check_length(translation_scale_mm, "PoseHead", "translation_scale_mm")
-        check_length(anchor_half_size_mm, "PoseHead", "anchor_half_size_mm")
+        check_number("PoseHead", "translation_scale_mm", translation_scale_mm, gt=0)
+        check_number("PoseHead", "anchor_half_size_mm", anchor_half_size_mm, gt=0)
         if rotation not in SE3_ROTATIONS or (rotation != "rotvec" and representation != "se3"):
             raise ValueError(
                 f"PoseHead: 'rotation' must be one of {', '.join(SE3_ROTATIONS)} ('6d' for the "

@@ -18,13 +18,21 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from svr.errors import ConfigFieldError
 from svr.geometry import ANCHOR_HALF_SIZE_MM
 from svr.geometry.mirror import ReflectionPlane, check_planes
 from svr.losses import DEFAULT_LENGTH_SCALE_MM, validate_metric_weights
 from svr.losses.orbit import orbit_min_loss
 from svr.models.backbones import BackboneConfig, build_backbone
-from svr.models.heads import SE3_ROTATIONS, PoseHead, check_length
+from svr.models.heads import SE3_ROTATIONS, PoseHead
 from svr.representation_registry import REPRESENTATIONS, Representation, get_representation
+from svr.validation import (
+    check_choice,
+    check_instance,
+    check_instance_tuple,
+    check_int_tuple,
+    check_number,
+)
 
 MIN_INPUT_SIZE = 32
 """Smallest height and width (pixels) of ``ModelConfig.input_size``."""
@@ -51,7 +59,7 @@ class ModelConfig:
             (:mod:`svr.reconstruction.cnn_init`) and evaluation reports errors up to the twin.
 
     Raises:
-        ValueError: Naming the field, for a value of the wrong type or out of range.
+        ConfigFieldError: Naming the field, for a value of the wrong type or out of range.
     """
 
     backbone: BackboneConfig = dataclasses.field(default_factory=BackboneConfig)
@@ -64,41 +72,29 @@ class ModelConfig:
     symmetry_planes: tuple[ReflectionPlane, ...] = ()
 
     def __post_init__(self) -> None:
-        if not isinstance(self.backbone, BackboneConfig):
-            raise ValueError(
-                "ModelConfig: 'backbone' must be a BackboneConfig, got "
-                f"{type(self.backbone).__name__}"
-            )
-        get_representation(self.representation, "ModelConfig")
-        size = self.input_size
-        ok = isinstance(size, tuple | list) and len(size) == 2
-        if not (ok and all(type(n) is int and n >= MIN_INPUT_SIZE for n in size)):
-            raise ValueError(
-                f"ModelConfig: 'input_size' must be two integers >= {MIN_INPUT_SIZE} (H, W), "
-                f"got {size!r}"
-            )
-        object.__setattr__(self, "input_size", tuple(size))
+        owner = "ModelConfig"
+        check_instance(owner, "backbone", self.backbone, BackboneConfig)
+        check_choice(owner, "representation", self.representation, tuple(REPRESENTATIONS))
+        size = check_int_tuple(
+            owner, "input_size", self.input_size, length=2, minimum=MIN_INPUT_SIZE, allow_list=True
+        )
         for name in ("spacing_mm", "translation_scale_mm", "anchor_half_size_mm"):
-            check_length(getattr(self, name), "ModelConfig", name)
+            check_number(owner, name, getattr(self, name), gt=0)
             object.__setattr__(self, name, float(getattr(self, name)))
         if self.se3_rotation not in SE3_ROTATIONS or (
             self.se3_rotation != "rotvec" and self.representation != "se3"
         ):
-            raise ValueError(
-                f"ModelConfig: 'se3_rotation' must be one of {', '.join(SE3_ROTATIONS)} ('6d' "
-                f"with the 'se3' representation only), got {self.se3_rotation!r}"
-            )
-        planes = self.symmetry_planes
-        if not isinstance(planes, tuple | list):
-            raise ValueError(
-                f"ModelConfig: 'symmetry_planes' must be a tuple of planes, got {planes!r}"
-            )
-        object.__setattr__(
-            self,
-            "symmetry_planes",
-            tuple(ReflectionPlane.from_dict(p) if isinstance(p, dict) else p for p in planes),
+            listed = ", ".join(map(repr, SE3_ROTATIONS))
+            expected = f"one of {listed} ('6d' with the 'se3' representation only)"
+            raise ConfigFieldError(owner, "se3_rotation", expected, self.se3_rotation)
+        planes: object = self.symmetry_planes
+        if isinstance(planes, tuple | list):  # planes read from JSON are dicts
+            planes = [ReflectionPlane.from_dict(p) if isinstance(p, dict) else p for p in planes]
+        planes = check_instance_tuple(
+            owner, "symmetry_planes", planes, ReflectionPlane, allow_list=True
         )
-        check_planes(self.symmetry_planes, "ModelConfig")
+        object.__setattr__(self, "input_size", size)
+        object.__setattr__(self, "symmetry_planes", planes)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-serialisable form of the fields.

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from svr.validation import check_int
+
 __all__ = ["BrainUNet", "SegmentationConfig", "parameter_bytes"]
 
 
@@ -39,11 +41,7 @@ class SegmentationConfig:
 
     def __post_init__(self) -> None:
         for name in ("width", "depth", "in_channels"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(
-                    f"SegmentationConfig: '{name}' must be an integer >= 1, got {value!r}"
-                )
+            check_int("SegmentationConfig", name, getattr(self, name), minimum=1)
 
 
 def _block(channels_in: int, channels_out: int) -> nn.Sequential:

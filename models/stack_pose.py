@@ -31,12 +31,13 @@ import math
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal, NamedTuple, get_args
 
 import torch
 from scipy.ndimage import gaussian_filter
 from torch import Tensor, nn
 
+from svr.errors import ConfigFieldError
 from svr.geometry import (
     rotation_angle,
     se3_compose,
@@ -53,9 +54,10 @@ from svr.models.checkpoint import (
 )
 from svr.models.heads import PoseHead
 from svr.models.pretrained import stack_pose_model_path
-from svr.representation_registry import Representation, get_representation
+from svr.representation_registry import REPRESENTATIONS, Representation
 from svr.sampling.blocks import BlockGrid, block_inputs, coarsen_stack, stack_frame
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_choice, check_int, check_number, check_number_tuple
 
 __all__ = [
     "STACK_POSE_MODEL",
@@ -92,6 +94,10 @@ class StackPoseConfig:
             (:data:`svr.representation_registry.REPRESENTATIONS`): ``"se3"`` (the rotation vector
             and translation, trained with the SE(3) geodesic loss on the final pose: the shipped
             model) or a baseline trained with its own loss on the residual.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range (``representation`` other than ``"se3"`` with the ``"coords"`` head).
     """
 
     head: Head = "regress"
@@ -103,31 +109,19 @@ class StackPoseConfig:
     representation: Representation = "se3"
 
     def __post_init__(self) -> None:
-        if self.head not in ("regress", "coords"):
-            raise ValueError(
-                f"StackPoseConfig: 'head' must be regress or coords, got {self.head!r}"
-            )
-        get_representation(self.representation, "StackPoseConfig")
-        if self.head == "coords" and self.representation != "se3":
-            raise ValueError(
-                "StackPoseConfig: 'representation' must be se3 with the coords head, "
-                f"got {self.representation!r}"
-            )
-        for name, low in (("width", 4), ("grid_size", 16)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueError(
-                    f"StackPoseConfig: '{name}' must be an int >= {low}, got {value!r}"
-                )
-        if self.grid_size % 8:
-            raise ValueError(
-                f"StackPoseConfig: 'grid_size' must be a multiple of 8, got {self.grid_size}"
-            )
+        owner = "StackPoseConfig"
+        check_choice(owner, "head", self.head, get_args(Head))
+        check_choice(owner, "representation", self.representation, tuple(REPRESENTATIONS))
+        check_int(owner, "width", self.width, minimum=4)
+        check_int(owner, "grid_size", self.grid_size, minimum=16)
         for name in ("grid_spacing_mm", "in_plane_mm", "translation_scale_mm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(
-                    f"StackPoseConfig: '{name}' must be > 0, got {getattr(self, name)}"
-                )
+            check_number(owner, name, getattr(self, name), gt=0)
+        if self.grid_size % 8:
+            raise ConfigFieldError(owner, "grid_size", "a multiple of 8", self.grid_size)
+        if self.head == "coords" and self.representation != "se3":
+            raise ConfigFieldError(
+                owner, "representation", "se3 with the coords head", self.representation
+            )
 
     @property
     def grid(self) -> BlockGrid:
@@ -287,6 +281,10 @@ class AtlasFitConfig:
         blur_mm: Gaussian blur (standard deviation, mm) of the atlas at each level, coarse first.
         iterations: L-BFGS iterations per level, >= 1.
         max_points: Most mask voxels used (an even subsample of the rest), >= 100.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     blur_mm: tuple[float, ...] = (4.0, 2.0)
@@ -294,24 +292,13 @@ class AtlasFitConfig:
     max_points: int = 20000
 
     def __post_init__(self) -> None:
-        if not self.blur_mm or any(not b >= 0 for b in self.blur_mm):
-            raise ValueError(f"AtlasFitConfig: 'blur_mm' must be values >= 0, got {self.blur_mm}")
-        if (
-            isinstance(self.iterations, bool)
-            or not isinstance(self.iterations, int)
-            or self.iterations < 1
-        ):
-            raise ValueError(
-                f"AtlasFitConfig: 'iterations' must be an int >= 1, got {self.iterations!r}"
-            )
-        if (
-            isinstance(self.max_points, bool)
-            or not isinstance(self.max_points, int)
-            or self.max_points < 100
-        ):
-            raise ValueError(
-                f"AtlasFitConfig: 'max_points' must be an int >= 100, got {self.max_points!r}"
-            )
+        owner = "AtlasFitConfig"
+        blur = check_number_tuple(
+            owner, "blur_mm", self.blur_mm, ge=0, allow_empty=False, allow_list=True
+        )
+        check_int(owner, "iterations", self.iterations, minimum=1)
+        check_int(owner, "max_points", self.max_points, minimum=100)
+        object.__setattr__(self, "blur_mm", blur)
 
 
 def _mask_samples(stack: Image, mask: Tensor, max_points: int) -> tuple[Tensor, Tensor]:

@@ -53,6 +53,7 @@ from svr.sampling.blocks import (
 )
 from svr.sampling.motion import Trajectory
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_fraction, check_instance, check_int, check_number, is_integer
 
 __all__ = [
     "StackPoseTrainingConfig",
@@ -97,6 +98,10 @@ class StackPoseTrainingConfig:
         checkpoint_every: Steps between checkpoints.
         seed: Seed of every random draw.
         stacks: The ranges the training stacks are drawn from.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     steps: int = 14000
@@ -115,6 +120,7 @@ class StackPoseTrainingConfig:
     stacks: TrainingStackConfig = field(default_factory=TrainingStackConfig)
 
     def __post_init__(self) -> None:
+        owner = "StackPoseTrainingConfig"
         for name in (
             "steps",
             "stacks_per_step",
@@ -122,22 +128,15 @@ class StackPoseTrainingConfig:
             "checkpoint_every",
             "max_subset",
         ):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(
-                    f"StackPoseTrainingConfig: '{name}' must be an int >= 1, got {value!r}"
-                )
+            check_int(owner, name, getattr(self, name), minimum=1)
         for name in ("positive_fraction", "subset_fraction"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueError(
-                    f"StackPoseTrainingConfig: '{name}' must be in [0, 1], "
-                    f"got {getattr(self, name)}"
-                )
+            check_fraction(owner, name, getattr(self, name))
         for name in ("learning_rate", "max_start_deg"):
-            if not getattr(self, name) > 0:
-                raise ValueError(
-                    f"StackPoseTrainingConfig: '{name}' must be > 0, got {getattr(self, name)}"
-                )
+            check_number(owner, name, getattr(self, name), gt=0)
+        for name in ("start_shift_mm", "score_weight", "coords_weight"):
+            check_number(owner, name, getattr(self, name), ge=0)
+        check_int(owner, "seed", self.seed)
+        check_instance(owner, "stacks", self.stacks, TrainingStackConfig)
 
 
 def _random_axis(n: int, generator: torch.Generator) -> Tensor:
@@ -382,7 +381,7 @@ def train_stack_pose(
     """
     if not volumes:
         raise ValueError("train_stack_pose(): 'volumes' is empty")
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 0:
+    if not (is_integer(workers) and workers >= 0):
         raise ValueError(f"train_stack_pose(): 'workers' must be an int >= 0, got {workers!r}")
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal, cast
+from typing import Literal, cast, get_args
 
 import torch
 import torch.distributed as dist
@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
+from svr.errors import ConfigFieldError
 from svr.files import OutputExistsError
 from svr.models.checkpoint import (
     checkpoint_name,
@@ -45,8 +46,25 @@ from svr.models.training_log import TrainingLog
 from svr.sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
 from svr.sampling.poses import DEFAULT_EULER_GRID, EulerGridConfig
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import (
+    check_bool,
+    check_choice,
+    check_instance,
+    check_instance_tuple,
+    check_int,
+    check_number,
+    check_number_tuple,
+    check_str,
+)
 
 log = logging.getLogger(__name__)
+
+OptimizerName = Literal["adamw", "sgd"]
+"""The optimisers of :class:`OptimConfig`."""
+Schedule = Literal["cosine", "constant"]
+"""The learning-rate schedules of :class:`OptimConfig`."""
+PoseSampling = Literal["random", "grid"]
+"""How :class:`TrainConfig` draws the poses of its slices."""
 
 
 @dataclass(frozen=True)
@@ -59,27 +77,25 @@ class OptimConfig:
         weight_decay: Decoupled weight decay, >= 0.
         schedule: ``"cosine"`` (to 0 at the last step) or ``"constant"``, after a linear warm-up.
         warmup_steps: Linear warm-up steps, >= 0.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
-    name: Literal["adamw", "sgd"] = "adamw"
+    name: OptimizerName = "adamw"
     lr: float = 1e-3
     weight_decay: float = 1e-4
-    schedule: Literal["cosine", "constant"] = "cosine"
+    schedule: Schedule = "cosine"
     warmup_steps: int = 100
 
     def __post_init__(self) -> None:
-        if self.name not in ("adamw", "sgd"):
-            raise ValueError(f"OptimConfig: 'name' must be 'adamw' or 'sgd', got {self.name!r}")
-        if self.schedule not in ("cosine", "constant"):
-            raise ValueError(
-                f"OptimConfig: 'schedule' must be 'cosine' or 'constant', got {self.schedule!r}"
-            )
-        if not self.lr > 0:
-            raise ValueError(f"OptimConfig: 'lr' must be > 0, got {self.lr}")
-        if not self.weight_decay >= 0:
-            raise ValueError(f"OptimConfig: 'weight_decay' must be >= 0, got {self.weight_decay}")
-        if self.warmup_steps < 0:
-            raise ValueError(f"OptimConfig: 'warmup_steps' must be >= 0, got {self.warmup_steps}")
+        owner = "OptimConfig"
+        check_choice(owner, "name", self.name, get_args(OptimizerName))
+        check_number(owner, "lr", self.lr, gt=0)
+        check_number(owner, "weight_decay", self.weight_decay, ge=0)
+        check_choice(owner, "schedule", self.schedule, get_args(Schedule))
+        check_int(owner, "warmup_steps", self.warmup_steps, minimum=0)
 
 
 @dataclass(frozen=True)
@@ -110,6 +126,11 @@ class TrainConfig:
         grid: The Euler grid of ``pose_sampling="grid"`` (default: the paper's).
         symmetry_report: How ``model.symmetry_planes`` were chosen
             (:func:`svr.sampling.mirror_planes.resolve_symmetry`), recorded in checkpoints.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range, or for settings that disagree (named by their path, e.g.
+            ``data.representation``).
     """
 
     output_dir: str
@@ -126,40 +147,53 @@ class TrainConfig:
     amp: bool = False
     seed: int = 0
     data_sources: tuple[str, ...] = ()
-    pose_sampling: Literal["random", "grid"] = "random"
+    pose_sampling: PoseSampling = "random"
     grid: EulerGridConfig = DEFAULT_EULER_GRID
     symmetry_report: dict | None = None
 
     def __post_init__(self) -> None:
-        if self.pose_sampling not in ("random", "grid"):
-            raise ValueError(
-                "TrainConfig: 'pose_sampling' must be 'random' or 'grid', "
-                f"got {self.pose_sampling!r}"
-            )
-        if self.pose_sampling == "grid" and self.data.rotation != "euler":
-            raise ValueError(
-                "TrainConfig: 'pose_sampling' 'grid' samples Euler angles; 'data.rotation' must "
-                f"be 'euler', got {self.data.rotation!r}"
-            )
+        owner = "TrainConfig"
+        check_str(owner, "output_dir", self.output_dir)
+        check_instance(owner, "model", self.model, ModelConfig)
+        check_instance(owner, "data", self.data, SliceDatasetConfig)
+        check_instance(owner, "optim", self.optim, OptimConfig)
         for name in ("steps", "checkpoint_every", "keep_checkpoints", "log_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"TrainConfig: '{name}' must be >= 1, got {getattr(self, name)}")
-        if self.workers < 0:
-            raise ValueError(f"TrainConfig: 'workers' must be >= 0, got {self.workers}")
-        if self.data.representation != self.model.representation:
-            raise ValueError(
-                "TrainConfig: 'data.representation' "
-                f"({self.data.representation!r}) must equal 'model.representation' "
-                f"({self.model.representation!r})"
+            check_int(owner, name, getattr(self, name), minimum=1)
+        weights = check_number_tuple(
+            owner,
+            "metric_weights",
+            self.metric_weights,
+            length=(6, 36),
+            allow_list=True,
+            allow_none=True,
+        )
+        check_int(owner, "workers", self.workers, minimum=0)
+        check_str(owner, "device", self.device)
+        check_bool(owner, "amp", self.amp)
+        check_int(owner, "seed", self.seed)
+        sources = check_instance_tuple(
+            owner, "data_sources", self.data_sources, str, allow_list=True
+        )
+        check_choice(owner, "pose_sampling", self.pose_sampling, get_args(PoseSampling))
+        check_instance(owner, "grid", self.grid, EulerGridConfig)
+        check_instance(owner, "symmetry_report", self.symmetry_report, dict, allow_none=True)
+        if self.pose_sampling == "grid" and self.data.rotation != "euler":
+            raise ConfigFieldError(
+                owner, "data.rotation", "'euler' for grid pose sampling", self.data.rotation
             )
-        if self.metric_weights is not None:
-            if self.model.representation != "se3":
-                raise ValueError("TrainConfig: 'metric_weights' only applies to the se3 loss")
-            if len(self.metric_weights) not in (6, 36):
-                raise ValueError(
-                    "TrainConfig: 'metric_weights' must have 6 or 36 numbers, "
-                    f"got {len(self.metric_weights)}"
-                )
+        if self.data.representation != self.model.representation:
+            raise ConfigFieldError(
+                owner,
+                "data.representation",
+                f"equal to 'model.representation' ({self.model.representation!r})",
+                self.data.representation,
+            )
+        if weights is not None and self.model.representation != "se3":
+            raise ConfigFieldError(
+                owner, "metric_weights", "None unless the representation is 'se3'", weights
+            )
+        object.__setattr__(self, "metric_weights", weights)
+        object.__setattr__(self, "data_sources", sources)
 
     def weights_tensor(self) -> Tensor | None:
         """Z as a (6,) or (6, 6) float32 tensor, or ``None``."""

@@ -2,15 +2,23 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from torch import Tensor
 
-from svr.errors import ConfigFieldError
 from svr.image import Image
 from svr.reconstruction.convergence import RoundRecord
 from svr.reconstruction.slices import SliceSet
+from svr.validation import (
+    check_bool,
+    check_choice,
+    check_fraction,
+    check_int,
+    check_int_tuple,
+    check_number,
+    check_number_tuple,
+    check_range,
+)
 
 __all__ = ["REGISTRATIONS", "SCHEDULES", "ReconstructionConfig", "ReconstructionResult"]
 
@@ -122,45 +130,22 @@ class ReconstructionConfig:
         return FIXED_ROUNDS if self.schedule == "fixed" else ADAPTIVE_MAX_ROUNDS
 
     def __post_init__(self) -> None:
-        def fail(name: str, expected: str) -> None:
-            raise ConfigFieldError("ReconstructionConfig", name, expected, getattr(self, name))
-
-        def is_int(value: object, minimum: int) -> bool:
-            return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
-
-        def is_number(value: object) -> bool:
-            return (
-                isinstance(value, int | float)
-                and not isinstance(value, bool)
-                and math.isfinite(value)
-            )
-
-        for name in ("output_resolution_mm", "edge_delta", "cnn_max_deviation_deg"):
-            if not (is_number(getattr(self, name)) and getattr(self, name) > 0):
-                fail(name, "a finite number > 0")
-        if not (is_number(self.cnn_max_deviation_mm) and self.cnn_max_deviation_mm > 0):
-            fail("cnn_max_deviation_mm", "a finite number > 0")
-        if self.registration not in REGISTRATIONS:
-            fail("registration", f"one of {', '.join(REGISTRATIONS)}")
-        if self.template is not None and not is_int(self.template, 0):
-            fail("template", "None or a stack index >= 0")
-        if self.schedule not in SCHEDULES:
-            fail("schedule", f"one of {', '.join(SCHEDULES)}")
-        if self.outer_iterations is not None and not is_int(self.outer_iterations, 1):
-            fail("outer_iterations", "None or an integer >= 1")
-        for name in ("converged_deg", "converged_mm"):
-            if not (is_number(getattr(self, name)) and getattr(self, name) >= 0):
-                fail(name, "a finite number >= 0")
-        if not (is_number(self.converged_fraction) and 0 <= self.converged_fraction < 1):
-            fail("converged_fraction", "in [0, 1)")
-        band = self.background_mm
-        if not (
-            isinstance(band, tuple)
-            and len(band) == 2
-            and all(is_number(v) and v >= 0 for v in band)
-            and band[0] <= band[1]
+        owner = "ReconstructionConfig"
+        for name in (
+            "output_resolution_mm",
+            "edge_delta",
+            "cnn_max_deviation_deg",
+            "cnn_max_deviation_mm",
         ):
-            fail("background_mm", "a tuple (inner, outer) of numbers with 0 <= inner <= outer")
+            check_number(owner, name, getattr(self, name), gt=0)
+        check_choice(owner, "registration", self.registration, REGISTRATIONS)
+        check_int(owner, "template", self.template, minimum=0, allow_none=True)
+        check_choice(owner, "schedule", self.schedule, SCHEDULES)
+        check_int(owner, "outer_iterations", self.outer_iterations, minimum=1, allow_none=True)
+        for name in ("converged_deg", "converged_mm"):
+            check_number(owner, name, getattr(self, name), ge=0)
+        check_fraction(owner, "converged_fraction", self.converged_fraction, include_one=False)
+        check_range(owner, "background_mm", self.background_mm, ge=0)
         for name, minimum in (
             ("svr_levels", 1),
             ("svr_iterations", 1),
@@ -168,31 +153,14 @@ class ReconstructionConfig:
             ("min_slice_pixels", 0),
             ("seed", 0),
         ):
-            if not is_int(getattr(self, name), minimum):
-                fail(name, f"an integer >= {minimum}")
-        if not (
-            isinstance(self.sr_iterations, tuple)
-            and self.sr_iterations
-            and all(is_int(v, 1) for v in self.sr_iterations)
-        ):
-            fail("sr_iterations", "a non-empty tuple of integers >= 1")
-        if not (
-            isinstance(self.group_sizes, tuple) and all(is_int(v, 1) for v in self.group_sizes)
-        ):
-            fail("group_sizes", "a tuple of integers >= 1")
-        if not (
-            isinstance(self.regularization, tuple)
-            and self.regularization
-            and all(is_number(v) and v >= 0 for v in self.regularization)
-        ):
-            fail("regularization", "a non-empty tuple of finite numbers >= 0")
+            check_int(owner, name, getattr(self, name), minimum=minimum)
+        check_int_tuple(owner, "sr_iterations", self.sr_iterations, minimum=1, allow_empty=False)
+        check_int_tuple(owner, "group_sizes", self.group_sizes, minimum=1)
+        check_number_tuple(owner, "regularization", self.regularization, ge=0, allow_empty=False)
         for name in ("robust", "recapture"):
-            if not isinstance(getattr(self, name), bool):
-                fail(name, "a bool")
-        if not (is_number(self.ncc_threshold) and -1 <= self.ncc_threshold <= 1):
-            fail("ncc_threshold", "in [-1, 1]")
-        if not (is_number(self.cnn_min_support) and 0 <= self.cnn_min_support <= 1):
-            fail("cnn_min_support", "in [0, 1]")
+            check_bool(owner, name, getattr(self, name))
+        check_number(owner, "ncc_threshold", self.ncc_threshold, ge=-1, le=1)
+        check_fraction(owner, "cnn_min_support", self.cnn_min_support)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from svr.image import sample_channels
 from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur
 from svr.reconstruction.slices import SliceSet
 from svr.reconstruction.superres import output_grid, scattered_data_approximation
+from svr.validation import check_int, check_number
 
 __all__ = [
     "STACK_REGISTRATION",
@@ -53,6 +54,10 @@ class RegistrationConfig:
         levels: Resolution levels, coarse to fine (>= 1).
         iterations: Levenberg-Marquardt steps per level (>= 0).
         damping: Initial Marquardt damping (relative to the diagonal of the normal matrix).
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     levels: int = 3
@@ -60,11 +65,10 @@ class RegistrationConfig:
     damping: float = 1e-2
 
     def __post_init__(self) -> None:
-        if self.levels < 1 or self.iterations < 0 or not self.damping > 0:
-            raise ValueError(
-                "RegistrationConfig: need levels >= 1, iterations >= 0 and damping > 0, got "
-                f"{self.levels}, {self.iterations}, {self.damping}"
-            )
+        owner = "RegistrationConfig"
+        check_int(owner, "levels", self.levels, minimum=1)
+        check_int(owner, "iterations", self.iterations, minimum=0)
+        check_number(owner, "damping", self.damping, gt=0)
 
 
 def slice_ncc(

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from svr.image import Image, stack_slice_poses
+from svr.validation import check_choice
 
 __all__ = ["SliceSet", "Stack", "array_poses", "extract_slices", "plane_poses"]
 
@@ -96,8 +97,7 @@ class SliceSet:
                 f"SliceSet: 'images' must be (N, H, W), got {tuple(self.images.shape)}"
             )
         n = self.images.shape[0]
-        if self.frame not in FRAMES:
-            raise ValueError(f"SliceSet: 'frame' must be one of {FRAMES}, got {self.frame!r}")
+        check_choice("SliceSet", "frame", self.frame, FRAMES)
         for name, shape in (
             ("masks", tuple(self.images.shape)),
             ("spacing_mm", (n, 2)),

@@ -46,6 +46,7 @@ from svr.image import (
     mask_on_grid,
 )
 from svr.reconstruction.slices import Stack
+from svr.validation import check_bool, check_int, check_int_tuple, check_number
 
 __all__ = [
     "StackConfig",
@@ -82,19 +83,19 @@ class StackConfig:
     n4_iterations: tuple[int, ...] = (50, 50, 50, 50)
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.crop_margin_mm) and self.crop_margin_mm >= 0):
-            raise ValueError(
-                f"StackConfig: 'crop_margin_mm' must be >= 0, got {self.crop_margin_mm}"
-            )
-        if self.n4_shrink_factor < 1:
-            raise ValueError(
-                f"StackConfig: 'n4_shrink_factor' must be >= 1, got {self.n4_shrink_factor}"
-            )
-        if not self.n4_iterations or min(self.n4_iterations) < 1:
-            raise ValueError(
-                "StackConfig: 'n4_iterations' must be a nonempty tuple of positive counts, "
-                f"got {self.n4_iterations}"
-            )
+        owner = "StackConfig"
+        check_number(owner, "crop_margin_mm", self.crop_margin_mm, ge=0)
+        check_bool(owner, "bias_correction", self.bias_correction)
+        check_int(owner, "n4_shrink_factor", self.n4_shrink_factor, minimum=1)
+        iterations = check_int_tuple(
+            owner,
+            "n4_iterations",
+            self.n4_iterations,
+            minimum=1,
+            allow_empty=False,
+            allow_list=True,
+        )
+        object.__setattr__(self, "n4_iterations", iterations)
 
 
 def load_stacks(

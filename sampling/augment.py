@@ -42,27 +42,13 @@ import torch
 from torch import Tensor
 
 from svr.geometry import so3_exp
-from svr.sampling._validation import check_positive_range, is_finite_number
+from svr.validation import check_fraction, check_int, check_number, check_range, is_integer
 
 NOISE_REFERENCE_PERCENTILE = 99.0
 """Percentile (nearest rank) of ``|x|`` over a slice that the relative Rician noise level
 multiplies."""
 
 _SEED_HIGH = 2**63 - 1
-
-
-def _check_probability(value: float, name: str) -> None:
-    if isinstance(value, bool) or not (isinstance(value, int | float) and 0.0 <= value <= 1.0):
-        raise ValueError(
-            f"SliceAugmentConfig: '{name}' must be a probability in [0, 1], got {value!r}"
-        )
-
-
-def _check_non_negative(value: float, name: str) -> None:
-    if not (is_finite_number(value) and value >= 0):
-        raise ValueError(
-            f"SliceAugmentConfig: '{name}' must be a finite number >= 0, got {value!r}"
-        )
 
 
 @dataclass(frozen=True)
@@ -90,7 +76,7 @@ class SliceAugmentConfig:
             (a fraction of the slice's 99th intensity percentile), >= 0. Default 0.03.
 
     Raises:
-        ValueError: On construction, naming the field, if a value is out of its range.
+        ConfigFieldError: On construction, naming the field, if a value is out of its range.
     """
 
     scale_prob: float = 0.5
@@ -104,20 +90,14 @@ class SliceAugmentConfig:
     noise_sigma_max: float = 0.03
 
     def __post_init__(self) -> None:
+        owner = "SliceAugmentConfig"
         for name in ("scale_prob", "gamma_prob", "bias_prob", "noise_prob"):
-            _check_probability(getattr(self, name), name)
-        check_positive_range(self.scale_range, "SliceAugmentConfig", "scale_range")
-        check_positive_range(self.gamma_range, "SliceAugmentConfig", "gamma_range")
-        if (
-            isinstance(self.bias_order, bool)
-            or not isinstance(self.bias_order, int)
-            or self.bias_order < 1
-        ):
-            raise ValueError(
-                f"SliceAugmentConfig: 'bias_order' must be an integer >= 1, got {self.bias_order!r}"
-            )
-        _check_non_negative(self.bias_coefficient_max, "bias_coefficient_max")
-        _check_non_negative(self.noise_sigma_max, "noise_sigma_max")
+            check_fraction(owner, name, getattr(self, name))
+        for name in ("scale_range", "gamma_range"):
+            check_range(owner, name, getattr(self, name), gt=0)
+        check_int(owner, "bias_order", self.bias_order, minimum=1)
+        for name in ("bias_coefficient_max", "noise_sigma_max"):
+            check_number(owner, name, getattr(self, name), ge=0)
 
 
 @dataclass(frozen=True)
@@ -211,7 +191,7 @@ def draw_augment_params(
             f"draw_augment_params(): 'generator' must be a torch.Generator, "
             f"got {type(generator).__name__}"
         )
-    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 0:
+    if not (is_integer(batch) and batch >= 0):
         raise ValueError(
             f"draw_augment_params(): 'batch' must be a non-negative integer, got {batch!r}"
         )

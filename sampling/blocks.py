@@ -28,6 +28,7 @@ from svr.image import Image, intensity_scale, sample_channels, stack_slice_poses
 from svr.sampling.motion import Trajectory
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_fraction, check_int, check_number, check_range
 
 __all__ = [
     "BlockGrid",
@@ -52,6 +53,10 @@ class BlockGrid:
         spacing_mm: Voxel spacing (mm); ``size * spacing_mm`` must hold a fetal brain.
         in_plane_mm: Stacks finer than this in-plane are averaged down to about it first
             (:func:`coarsen_stack`), so that every stack is sampled alike.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     size: int = 32
@@ -59,11 +64,9 @@ class BlockGrid:
     in_plane_mm: float = 2.0
 
     def __post_init__(self) -> None:
-        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 4:
-            raise ValueError(f"BlockGrid: 'size' must be an int >= 4, got {self.size!r}")
+        check_int("BlockGrid", "size", self.size, minimum=4)
         for name in ("spacing_mm", "in_plane_mm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"BlockGrid: '{name}' must be > 0, got {getattr(self, name)}")
+            check_number("BlockGrid", name, getattr(self, name), gt=0)
 
     def points(self, dtype: torch.dtype = torch.float64) -> Tensor:
         """(size, size, size, 3) grid points in mm about the origin, (x, y, z) = array (i, j, k)."""
@@ -195,6 +198,11 @@ class TrainingStackConfig:
         signal_void_probability: Chance per slice of a signal void.
         mask_change_px: Largest number of pixels the mask is grown or shrunk by, in-plane.
         gamma: (low, high) of the intensity exponent.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a range that is not
+            ``(low, high)`` with ``low <= high`` (``0 < low`` for sizes and factors,
+            ``0 <= low`` for strengths) or a value out of range.
     """
 
     thickness_mm: tuple[float, float] = (2.0, 5.0)
@@ -206,6 +214,18 @@ class TrainingStackConfig:
     signal_void_probability: float = 0.1
     mask_change_px: int = 2
     gamma: tuple[float, float] = (0.7, 1.4)
+
+    def __post_init__(self) -> None:
+        owner = "TrainingStackConfig"
+        for name in ("thickness_mm", "spacing_ratio", "gamma"):  # sizes and factors
+            value = check_range(owner, name, getattr(self, name), gt=0, allow_list=True)
+            object.__setattr__(self, name, value)
+        for name in ("motion_scale", "noise", "bias_field"):  # strengths
+            value = check_range(owner, name, getattr(self, name), ge=0, allow_list=True)
+            object.__setattr__(self, name, value)
+        check_number(owner, "in_plane_mm", self.in_plane_mm, gt=0)
+        check_fraction(owner, "signal_void_probability", self.signal_void_probability)
+        check_int(owner, "mask_change_px", self.mask_change_px, minimum=0)
 
 
 @dataclass(frozen=True)

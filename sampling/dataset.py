@@ -32,7 +32,7 @@ import itertools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import torch
@@ -40,8 +40,7 @@ from torch import Tensor
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
 from svr.image import Image
-from svr.representation_registry import Representation, get_representation
-from svr.sampling._validation import check_positive_range, is_finite_number
+from svr.representation_registry import REPRESENTATIONS, Representation, get_representation
 from svr.sampling.augment import SliceAugmentConfig, apply_augment, draw_augment_params, shift_poses
 from svr.sampling.deform import DEFAULT_CONTROL_POINTS, random_displacement
 from svr.sampling.poses import (
@@ -54,6 +53,16 @@ from svr.sampling.poses import (
 )
 from svr.sampling.slicer import SliceConfig, brain_fraction, sample_slices
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import (
+    check_bool,
+    check_choice,
+    check_fraction,
+    check_instance,
+    check_int,
+    check_number,
+    check_range,
+    is_integer,
+)
 
 DEFAULT_MIN_BRAIN_FRACTION = 0.02
 """Default of the empty-slice rule: at least 2 % of a slice's pixels inside the brain mask.
@@ -61,21 +70,6 @@ DEFAULT_MIN_BRAIN_FRACTION = 0.02
 With the default 128 x 128 slices at 1 mm that is about 330 mm^2 of brain: slices that only graze
 the brain are dropped, while a young fetal brain (a mid-slice of ~15 % of the field of view) keeps
 most of its off-centre slices."""
-
-
-def _check_fraction(value: float, owner: str) -> None:
-    if not (is_finite_number(value) and 0.0 <= value <= 1.0):
-        raise ValueError(f"{owner}: 'min_brain_fraction' must be in [0, 1], got {value!r}")
-
-
-def _check_int(value: int | None, name: str, minimum: int, allow_none: bool = False) -> None:
-    if allow_none and value is None:
-        return
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(
-            f"SliceDatasetConfig: '{name}' must be an integer >= {minimum}"
-            f"{' or None' if allow_none else ''}, got {value!r}"
-        )
 
 
 @dataclass(frozen=True)
@@ -118,7 +112,7 @@ class SliceDatasetConfig:
         seed: Seed of the stream, >= 0.
 
     Raises:
-        ValueError: On construction, naming the field, if a value is invalid.
+        ConfigFieldError: On construction, naming the field, if a value is invalid.
     """
 
     slice: SliceConfig = field(default_factory=SliceConfig)
@@ -142,34 +136,21 @@ class SliceDatasetConfig:
 
     def __post_init__(self) -> None:
         owner = "SliceDatasetConfig"
-        if not isinstance(self.slice, SliceConfig):
-            raise ValueError(
-                f"{owner}: 'slice' must be a SliceConfig, got {type(self.slice).__name__}"
-            )
+        check_instance(owner, "slice", self.slice, SliceConfig)
         for name in ("thickness_range_mm", "spacing_range_mm", "scale_range"):
-            check_positive_range(getattr(self, name), "SliceDatasetConfig", name, allow_none=True)
-        if self.rotation not in ("euler", "uniform"):
-            raise ValueError(
-                f"{owner}: 'rotation' must be 'euler' or 'uniform', got {self.rotation!r}"
-            )
+            check_range(owner, name, getattr(self, name), gt=0, allow_none=True)
+        check_choice(owner, "rotation", self.rotation, get_args(RotationSampling))
         for name in ("angle_range_deg", "tz_range_mm", "shift_mm", "deform_mm"):
-            value = getattr(self, name)
-            if not (is_finite_number(value) and value >= 0):
-                raise ValueError(f"{owner}: '{name}' must be a finite number >= 0, got {value!r}")
-        _check_fraction(self.min_brain_fraction, owner)
-        _check_int(self.max_resample_rounds, "max_resample_rounds", 1)
-        _check_int(self.deform_control_points, "deform_control_points", 2)
-        if not isinstance(self.mix_volumes, bool):
-            raise ValueError(f"{owner}: 'mix_volumes' must be a bool, got {self.mix_volumes!r}")
-        get_representation(self.representation, owner)
-        if self.augment is not None and not isinstance(self.augment, SliceAugmentConfig):
-            raise ValueError(
-                f"{owner}: 'augment' must be a SliceAugmentConfig or None, "
-                f"got {type(self.augment).__name__}"
-            )
-        _check_int(self.batch_size, "batch_size", 1)
-        _check_int(self.num_batches, "num_batches", 1, allow_none=True)
-        _check_int(self.seed, "seed", 0)
+            check_number(owner, name, getattr(self, name), ge=0)
+        check_fraction(owner, "min_brain_fraction", self.min_brain_fraction)
+        check_int(owner, "max_resample_rounds", self.max_resample_rounds, minimum=1)
+        check_int(owner, "deform_control_points", self.deform_control_points, minimum=2)
+        check_bool(owner, "mix_volumes", self.mix_volumes)
+        check_choice(owner, "representation", self.representation, tuple(REPRESENTATIONS))
+        check_instance(owner, "augment", self.augment, SliceAugmentConfig, allow_none=True)
+        check_int(owner, "batch_size", self.batch_size, minimum=1)
+        check_int(owner, "num_batches", self.num_batches, minimum=1, allow_none=True)
+        check_int(owner, "seed", self.seed, minimum=0)
 
 
 def _mask_image(volume: CanonicalVolume) -> Image:
@@ -252,7 +233,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         Raises:
             ValueError: If ``epoch`` is not a non-negative integer.
         """
-        if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        if not (is_integer(epoch) and epoch >= 0):
             raise ValueError(
                 f"SliceStream.set_epoch(): 'epoch' must be an integer >= 0, got {epoch!r}"
             )
@@ -293,7 +274,7 @@ class SliceStream(IterableDataset[dict[str, Tensor]]):
         """
         epoch = self.epoch if epoch is None else epoch
         for name, value in (("index", index), ("epoch", epoch)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            if not (is_integer(value) and value >= 0):
                 raise ValueError(
                     f"SliceStream.batch(): '{name}' must be an integer >= 0, got {value!r}"
                 )
@@ -535,12 +516,9 @@ class EulerGridDataset(Dataset[tuple[Tensor, Tensor]]):
         chunk_size: int = 4096,
     ) -> None:
         super().__init__()
-        _check_fraction(min_brain_fraction, "EulerGridDataset")
+        check_fraction("EulerGridDataset", "min_brain_fraction", min_brain_fraction)
         get_representation(representation, "EulerGridDataset")
-        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
-            raise ValueError(
-                f"EulerGridDataset: 'chunk_size' must be an integer >= 1, got {chunk_size!r}"
-            )
+        check_int("EulerGridDataset", "chunk_size", chunk_size, minimum=1)
         self.volume = volume
         self.slice_config = SliceConfig() if slice_config is None else slice_config
         self.representation = representation

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from svr.geometry import hat
 from svr.image import Image, voxel_to_world
-from svr.sampling._validation import is_finite_number
+from svr.validation import is_finite_number, is_integer
 
 DEFAULT_CONTROL_POINTS = 5
 """Control points per axis: about 27-38 mm apart over the atlas volumes (108-151 mm across)."""
@@ -92,11 +92,7 @@ def random_displacement(
     """
     if not (is_finite_number(std_mm) and std_mm >= 0):
         raise ValueError(f"random_displacement(): 'std_mm' must be a number >= 0, got {std_mm!r}")
-    if (
-        isinstance(control_points, bool)
-        or not isinstance(control_points, int)
-        or control_points < 2
-    ):
+    if not (is_integer(control_points) and control_points >= 2):
         raise ValueError(
             "random_displacement(): 'control_points' must be an integer >= 2, "
             f"got {control_points!r}"

@@ -87,7 +87,15 @@ from scipy import ndimage
 from scipy.interpolate import make_interp_spline
 from scipy.spatial import cKDTree
 
+from svr.errors import ConfigFieldError
 from svr.image import Image
+from svr.validation import (
+    check_fraction,
+    check_int,
+    check_int_tuple,
+    check_number,
+    is_finite_number,
+)
 
 
 class PhantomLabel(IntEnum):
@@ -192,9 +200,10 @@ class PhantomConfig:
         seed: Seed (>= 0) of the folding pattern.
 
     Raises:
-        ValueError: Naming the field, for a non-positive or non-integer size, a non-positive or
-            non-finite spacing or length, folding outside [0, 1], a negative seed, or a brain
-            (with its CSF and a two-voxel margin) that does not fit in the field of view.
+        ConfigFieldError: Naming the field, for a non-positive or non-integer size, a
+            non-positive or non-finite spacing or length, folding outside [0, 1], a negative seed,
+            or a brain (with its CSF and a two-voxel margin) that does not fit in the field of view
+            (naming ``brain_length_mm``). NumPy numbers are accepted (stored as Python numbers).
     """
 
     shape: tuple[int, int, int] = (128, 128, 128)
@@ -204,43 +213,37 @@ class PhantomConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        shape = tuple(self.shape)
-        if len(shape) != 3 or not all(_is_int(n) and n > 0 for n in shape):
-            raise ValueError(
-                f"PhantomConfig: 'shape' must be three positive integers, got {self.shape!r}"
-            )
-        object.__setattr__(self, "shape", tuple(int(n) for n in shape))
+        owner = "PhantomConfig"
+        for name in ("shape", "spacing_mm", "brain_length_mm", "folding", "seed"):
+            object.__setattr__(self, name, _plain(getattr(self, name)))
+        shape = check_int_tuple(owner, "shape", self.shape, length=3, minimum=1, allow_list=True)
         for name in ("spacing_mm", "brain_length_mm"):
-            value = getattr(self, name)
-            if not (_is_real(value) and math.isfinite(value) and value > 0):
-                raise ValueError(
-                    f"PhantomConfig: '{name}' must be a positive finite number, got {value!r}"
-                )
-        if not (_is_real(self.folding) and 0.0 <= self.folding <= 1.0):
-            raise ValueError(f"PhantomConfig: 'folding' must be in [0, 1], got {self.folding!r}")
-        if not (_is_int(self.seed) and self.seed >= 0):
-            raise ValueError(
-                f"PhantomConfig: 'seed' must be a non-negative integer, got {self.seed!r}"
-            )
+            check_number(owner, name, getattr(self, name), gt=0)
+        check_fraction(owner, "folding", self.folding)
+        check_int(owner, "seed", self.seed, minimum=0)
+        object.__setattr__(self, "shape", shape)
         need = required_field_of_view_mm(self.brain_length_mm, self.spacing_mm)
         for axis, (n, needed) in enumerate(zip(self.shape, need, strict=True)):
             have = (n - 1) * self.spacing_mm
             if have < needed:
-                raise ValueError(
-                    f"PhantomConfig: the brain does not fit in the field of view: "
-                    f"'brain_length_mm'={self.brain_length_mm} needs {needed:.1f} mm along axis "
-                    f"{axis} but 'shape'[{axis}]={n} x 'spacing_mm'={self.spacing_mm} spans "
-                    f"{have:.1f} mm; enlarge 'shape' or 'spacing_mm' or shorten "
-                    f"'brain_length_mm'"
+                raise ConfigFieldError(
+                    owner,
+                    "brain_length_mm",
+                    f"short enough for the field of view (the brain does not fit: it needs "
+                    f"{needed:.1f} mm along axis {axis} but 'shape'[{axis}]={n} x "
+                    f"'spacing_mm'={self.spacing_mm} spans {have:.1f} mm; enlarge 'shape' or "
+                    f"'spacing_mm' or shorten 'brain_length_mm')",
+                    self.brain_length_mm,
                 )
 
 
-def _is_int(value: object) -> bool:
-    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+def _plain(value: object) -> object:
+    """NumPy scalars and arrays as Python numbers and lists (the phantom accepts them)."""
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    if isinstance(value, tuple | list):
+        return [_plain(item) for item in value]
+    return value
 
 
 def required_field_of_view_mm(brain_length_mm: float, spacing_mm: float) -> tuple[float, ...]:
@@ -279,7 +282,7 @@ def gestational_age_config(weeks: float, **overrides: Any) -> PhantomConfig:
     Raises:
         ValueError: If ``weeks`` is outside [20, 38] or not finite, or the configuration is bad.
     """
-    if not (_is_real(weeks) and GA_WEEKS[0] <= weeks <= GA_WEEKS[-1]):
+    if not (is_finite_number(_plain(weeks)) and GA_WEEKS[0] <= weeks <= GA_WEEKS[-1]):
         raise ValueError(
             f"gestational_age_config(): 'weeks' must be in [{GA_WEEKS[0]:g}, "
             f"{GA_WEEKS[-1]:g}], got {weeks!r}"
@@ -290,7 +293,7 @@ def gestational_age_config(weeks: float, **overrides: Any) -> PhantomConfig:
         **overrides,
     }
     length, spacing = fields["brain_length_mm"], fields.get("spacing_mm", PhantomConfig.spacing_mm)
-    valid = all(_is_real(v) and math.isfinite(v) and v > 0 for v in (length, spacing))
+    valid = all(is_finite_number(_plain(v)) and v > 0 for v in (length, spacing))
     if "shape" not in fields and valid:
         voxels = max(required_field_of_view_mm(length, spacing)) / spacing + 1.0
         n = 128 + 16 * max(0, math.ceil((voxels - 128) / 16))

@@ -26,6 +26,7 @@ from typing import Literal, get_args
 import torch
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     euler_to_matrix,
@@ -37,6 +38,7 @@ from svr.image import Image
 from svr.representation_registry import Representation, get_representation
 from svr.sampling.slicer import SliceConfig, brain_fraction
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_number, is_integer
 
 RotationSampling = Literal["euler", "uniform"]
 """How :func:`random_slice_poses` draws rotations."""
@@ -47,18 +49,17 @@ _MULTIPLE_TOLERANCE = 1e-9
 
 def _grid_half_count(range_name: str, range_value: float, step_name: str, step: float) -> int:
     """Number ``n`` of steps in ``[0, range]`` (the axis has ``2 n + 1`` values), validated."""
-    if not (math.isfinite(step) and step > 0):
-        raise ValueError(f"EulerGridConfig: '{step_name}' must be finite and > 0, got {step}")
-    if not (math.isfinite(range_value) and range_value >= 0):
-        raise ValueError(
-            f"EulerGridConfig: '{range_name}' must be finite and >= 0, got {range_value}"
-        )
+    owner = "EulerGridConfig"
+    check_number(owner, step_name, step, gt=0)
+    check_number(owner, range_name, range_value, ge=0)
     ratio = range_value / step
     count = round(ratio)
     if abs(ratio - count) > _MULTIPLE_TOLERANCE:
-        raise ValueError(
-            f"EulerGridConfig: '{range_name}' ({range_value}) must be a multiple of "
-            f"'{step_name}' ({step}) to within {_MULTIPLE_TOLERANCE:g} steps"
+        raise ConfigFieldError(
+            owner,
+            range_name,
+            f"a multiple of '{step_name}' ({step}) to within {_MULTIPLE_TOLERANCE:g} steps",
+            range_value,
         )
     return count
 
@@ -83,8 +84,9 @@ class EulerGridConfig:
             of ``tz_step_mm`` (to within 1e-9 steps).
 
     Raises:
-        ValueError: On construction, naming the field, if a step is not finite and positive, a
-            range is not finite and non-negative, or a range is not a multiple of its step.
+        ConfigFieldError: On construction, naming the field, if a step is not finite and
+            positive, a range is not finite and non-negative, or a range is not a multiple of its
+            step.
     """
 
     angle_step_deg: float = 18.0
@@ -224,7 +226,7 @@ def iter_euler_grid_poses(
         ValueError: If ``chunk_size`` is not a positive integer.
         TypeError: If ``dtype`` is not a floating-point dtype.
     """
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size <= 0:
+    if not (is_integer(chunk_size) and chunk_size > 0):
         raise ValueError(
             f"iter_euler_grid_poses(): 'chunk_size' must be a positive integer, got {chunk_size!r}"
         )
@@ -330,7 +332,7 @@ def random_slice_poses(
             "random_slice_poses(): 'generator' must be a torch.Generator, got "
             f"{type(generator).__name__}"
         )
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+    if not (is_integer(n) and n >= 0):
         raise ValueError(f"random_slice_poses(): 'n' must be a non-negative integer, got {n!r}")
     _check_range(angle_range_deg, "angle_range_deg")
     _check_range(tz_range_mm, "tz_range_mm")
@@ -428,7 +430,7 @@ def draw_validation_poses(
             ``max_rounds``; or if ``max_rounds`` rounds give fewer than ``num_slices`` poses
             (the message starts with ``"only <count> of <num_slices> slices"``).
     """
-    if isinstance(num_slices, bool) or not isinstance(num_slices, int) or num_slices < 1:
+    if not (is_integer(num_slices) and num_slices >= 1):
         raise ValueError(f"draw_validation_poses(): 'num_slices' must be >= 1, got {num_slices!r}")
     if not 0 <= min_brain_fraction < 1:
         raise ValueError(

@@ -34,10 +34,11 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from svr.errors import ConfigFieldError
 from svr.geometry import quat_to_matrix
 from svr.image import Image, sample_world, voxel_centres
-from svr.sampling._validation import check_positive_range, is_finite_number
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import check_bool, check_number, check_range, is_integer
 
 __all__ = ["SceneConfig", "make_scene"]
 
@@ -88,7 +89,7 @@ class SceneConfig:
             at the skull base. Needs the brain in RAS orientation.
 
     Raises:
-        ValueError: On construction, naming the field, for an invalid value.
+        ConfigFieldError: On construction, naming the field, for an invalid value.
     """
 
     extent_mm: float = 320.0
@@ -116,12 +117,9 @@ class SceneConfig:
     spinal_cord: bool = False
 
     def __post_init__(self) -> None:
+        owner = "SceneConfig"
         for name in ("extent_mm", "spacing_mm"):
-            value = getattr(self, name)
-            if not (is_finite_number(value) and value > 0):
-                raise ValueError(
-                    f"SceneConfig: '{name}' must be a finite number > 0, got {value!r}"
-                )
+            check_number(owner, name, getattr(self, name), gt=0)
         for name in (
             "brain_scale",
             "gamma",
@@ -137,25 +135,20 @@ class SceneConfig:
             "distractor_mm",
             "body_scale",
         ):
-            check_positive_range(getattr(self, name), "SceneConfig", name)
-        for name, least in (("maternal_labels", 1), ("distractors", 0)):
-            low, high = getattr(self, name)
-            if not (isinstance(low, int) and isinstance(high, int) and least <= low <= high):
-                raise ValueError(
-                    f"SceneConfig: '{name}' must be integers (low, high) with {least} <= low <= "
-                    f"high, got {getattr(self, name)!r}"
-                )
+            check_range(owner, name, getattr(self, name), gt=0)
+        for name, least in (("maternal_labels", 1), ("distractors", 0)):  # also lists, as before
+            value = check_range(
+                owner, name, getattr(self, name), ge=least, integer=True, allow_list=True
+            )
+            object.__setattr__(self, name, value)
         for name in ("texture", "irregularity"):
-            value = getattr(self, name)
-            if not (is_finite_number(value) and value >= 0):
-                raise ValueError(f"SceneConfig: '{name}' must be a number >= 0, got {value!r}")
-        if self.skull_in_mask and not self.intracranial_mask:
-            raise ValueError("SceneConfig: 'skull_in_mask' needs 'intracranial_mask'")
+            check_number(owner, name, getattr(self, name), ge=0)
         for name in ("intracranial_mask", "skull_in_mask", "face", "spinal_cord"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(
-                    f"SceneConfig: '{name}' must be true or false, got {getattr(self, name)!r}"
-                )
+            check_bool(owner, name, getattr(self, name))
+        if self.skull_in_mask and not self.intracranial_mask:
+            raise ConfigFieldError(
+                owner, "skull_in_mask", "False without 'intracranial_mask'", self.skull_in_mask
+            )
 
 
 def _uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
@@ -346,7 +339,7 @@ def make_scene(
         ValueError: If ``seed`` is negative.
     """
     cfg = SceneConfig() if config is None else config
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+    if not (is_integer(seed) and seed >= 0):
         raise ValueError(f"make_scene(): 'seed' must be an integer >= 0, got {seed!r}")
     rng = np.random.default_rng(seed)
     n = math.ceil(cfg.extent_mm / cfg.spacing_mm)

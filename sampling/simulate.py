@@ -25,17 +25,17 @@ import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from svr.errors import ConfigFieldError
 from svr.files import atomic_directory
 from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti, voxel_to_world
-from svr.sampling._validation import is_finite_number
 from svr.sampling.motion import (
     Trajectory,
     load_trajectories,
@@ -44,6 +44,15 @@ from svr.sampling.motion import (
 )
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume
+from svr.validation import (
+    check_bool,
+    check_choice,
+    check_fraction,
+    check_int,
+    check_number,
+    check_range,
+    check_str,
+)
 
 Orientation = Literal["orthogonal", "oblique", "random"]
 Motion = Literal["trajectories", "random_walk", "none"]
@@ -92,6 +101,11 @@ class SimulationConfig:
             stack) by an angle drawn uniformly in this range (degrees) about a random axis, on
             top of the motion. ``(0, 0)`` (default) for no turn.
         seed: Seed of every random choice.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range, for ``grazing_ratio`` without ``mask_fraction``, and for no
+            ``motion_path`` with ``"trajectories"``.
     """
 
     num_stacks: int = 3
@@ -118,66 +132,43 @@ class SimulationConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        positive = ("num_stacks", "thickness_mm", "in_plane_mm", "interleave", "slice_time_s")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(
-                    f"SimulationConfig: '{name}' must be > 0, got {getattr(self, name)}"
-                )
-        non_negative = (
+        owner = "SimulationConfig"
+        check_int(owner, "num_stacks", self.num_stacks, minimum=1)
+        check_choice(owner, "orientations", self.orientations, get_args(Orientation))
+        for name in ("thickness_mm", "in_plane_mm", "slice_time_s"):
+            check_number(owner, name, getattr(self, name), gt=0)
+        check_number(owner, "spacing_mm", self.spacing_mm, gt=0, allow_none=True)
+        check_int(owner, "interleave", self.interleave, minimum=1)
+        check_choice(owner, "motion", self.motion, get_args(Motion))
+        check_str(owner, "motion_path", self.motion_path, allow_none=True)
+        for name in (
             "margin_mm",
             "motion_scale",
             "random_walk_rotation_deg",
             "random_walk_translation_mm",
             "noise",
             "bias_field",
-        )
-        for name in non_negative:
-            if not getattr(self, name) >= 0:
-                raise ValueError(
-                    f"SimulationConfig: '{name}' must be >= 0, got {getattr(self, name)}"
-                )
-        if self.spacing_mm is not None and not self.spacing_mm > 0:
-            raise ValueError(f"SimulationConfig: 'spacing_mm' must be > 0, got {self.spacing_mm}")
-        if not 0 <= self.signal_void_probability <= 1:
-            raise ValueError(
-                "SimulationConfig: 'signal_void_probability' must be in [0, 1], got "
-                f"{self.signal_void_probability}"
-            )
-        if self.orientations not in ("orthogonal", "oblique", "random"):
-            raise ValueError(
-                "SimulationConfig: 'orientations' must be orthogonal, oblique or "
-                f"random, got {self.orientations!r}"
-            )
-        if self.motion not in ("trajectories", "random_walk", "none"):
-            raise ValueError(
-                "SimulationConfig: 'motion' must be trajectories, random_walk or none, "
-                f"got {self.motion!r}"
-            )
-        fraction = self.mask_fraction
-        if fraction is not None and not (is_finite_number(fraction) and 0 < fraction < 1):
-            raise ValueError(
-                f"SimulationConfig: 'mask_fraction' must be in (0, 1) or None, got {fraction!r}"
-            )
-        ratio = self.grazing_ratio
-        if ratio is not None and not (is_finite_number(ratio) and 0 < ratio <= 1):
-            raise ValueError(
-                f"SimulationConfig: 'grazing_ratio' must be in (0, 1] or None, got {ratio!r}"
-            )
-        if ratio is not None and fraction is None:
-            raise ValueError("SimulationConfig: 'grazing_ratio' needs 'mask_fraction'")
-        if self.motion == "trajectories" and self.motion_path is None:
-            raise ValueError("SimulationConfig: motion='trajectories' needs 'motion_path'")
-        turn = self.stack_turn_deg
-        if not (
-            len(turn) == 2
-            and all(is_finite_number(a) for a in turn)
-            and 0 <= turn[0] <= turn[1] <= 180
         ):
-            raise ValueError(
-                "SimulationConfig: 'stack_turn_deg' must be (low, high) with "
-                f"0 <= low <= high <= 180, got {turn!r}"
+            check_number(owner, name, getattr(self, name), ge=0)
+        check_fraction(owner, "signal_void_probability", self.signal_void_probability)
+        for name in ("random_placement", "in_plane_psf"):
+            check_bool(owner, name, getattr(self, name))
+        fraction, ratio = self.mask_fraction, self.grazing_ratio
+        check_fraction(
+            owner, "mask_fraction", fraction, include_zero=False, include_one=False, allow_none=True
+        )
+        check_fraction(owner, "grazing_ratio", ratio, include_zero=False, allow_none=True)
+        turn = check_range(
+            owner, "stack_turn_deg", self.stack_turn_deg, ge=0, le=180, allow_list=True
+        )
+        check_int(owner, "seed", self.seed)
+        if ratio is not None and fraction is None:
+            raise ConfigFieldError(owner, "grazing_ratio", "None without 'mask_fraction'", ratio)
+        if self.motion == "trajectories" and self.motion_path is None:
+            raise ConfigFieldError(
+                owner, "motion_path", "a trajectory file with motion 'trajectories'", None
             )
+        object.__setattr__(self, "stack_turn_deg", turn)
 
     @property
     def slice_spacing_mm(self) -> float:

@@ -24,9 +24,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.geometry import vector_to_se3
 from svr.geometry._validation import check_tensor
 from svr.image import Image, sample_channels, sample_grid, world_to_grid
+from svr.validation import check_bool, check_choice, check_int, check_int_tuple, check_number
 
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 IN_PLANE_PSF_FWHM = 1.2067  # in-plane PSF FWHM in units of the pixel spacing (NeSVoR)
@@ -45,6 +47,10 @@ class SliceConfig:
         in_plane_psf: Also integrate over the in-plane Gaussian PSF.
         psf_samples: Gauss-Hermite nodes per PSF axis (odd, >= 1).
         mode: ``"bilinear"`` (trilinear) or ``"nearest"`` interpolation.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     size: tuple[int, int] = (128, 128)
@@ -55,22 +61,16 @@ class SliceConfig:
     mode: str = "bilinear"
 
     def __post_init__(self) -> None:
-        if len(self.size) != 2 or min(self.size) < 1:
-            raise ValueError(f"SliceConfig: 'size' must be two positive ints, got {self.size}")
-        if not self.spacing_mm > 0:
-            raise ValueError(f"SliceConfig: 'spacing_mm' must be > 0, got {self.spacing_mm}")
-        if self.thickness_mm is not None and not self.thickness_mm > 0:
-            raise ValueError(
-                f"SliceConfig: 'thickness_mm' must be > 0 or None, got {self.thickness_mm}"
-            )
-        if self.psf_samples < 1 or self.psf_samples % 2 == 0:
-            raise ValueError(
-                f"SliceConfig: 'psf_samples' must be odd and >= 1, got {self.psf_samples}"
-            )
-        if self.mode not in ("bilinear", "nearest"):
-            raise ValueError(
-                f"SliceConfig: 'mode' must be 'bilinear' or 'nearest', got {self.mode!r}"
-            )
+        owner = "SliceConfig"
+        size = check_int_tuple(owner, "size", self.size, length=2, minimum=1, allow_list=True)
+        check_number(owner, "spacing_mm", self.spacing_mm, gt=0)
+        check_number(owner, "thickness_mm", self.thickness_mm, gt=0, allow_none=True)
+        check_bool(owner, "in_plane_psf", self.in_plane_psf)
+        check_int(owner, "psf_samples", self.psf_samples, minimum=1)
+        if self.psf_samples % 2 == 0:
+            raise ConfigFieldError(owner, "psf_samples", "an odd integer >= 1", self.psf_samples)
+        check_choice(owner, "mode", self.mode, ("bilinear", "nearest"))
+        object.__setattr__(self, "size", size)
 
 
 def pose_matrices(poses: Tensor, func: str = "pose_matrices") -> Tensor:

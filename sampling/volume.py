@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from svr.image import DEFAULT_PERCENTILE, Image, ImageError, load_nifti, voxel_to_world
+from svr.validation import is_integer
 
 
 @dataclass(frozen=True)
@@ -240,7 +241,7 @@ def downsample_volume(volume: CanonicalVolume, factor: int) -> CanonicalVolume:
     Returns:
         The coarser volume.
     """
-    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+    if not (is_integer(factor) and factor >= 1):
         raise ValueError(f"downsample_volume(): 'factor' must be an int >= 1, got {factor!r}")
     if factor == 1:
         return volume

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from svr.files import atomic_write_text
 from svr.geometry import se3_to_vector, vector_to_se3
+from svr.validation import check_choice
 
 VECTOR_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
 MATRIX_COLUMNS = tuple(f"m{i}{j}" for i in range(3) for j in range(4))
@@ -54,8 +55,7 @@ class PoseTable:
             raise ValueError(
                 "PoseTable: 'files', 'slice_indices' and 'poses' must have one entry per slice"
             )
-        if self.frame not in FRAMES:
-            raise ValueError(f"PoseTable: 'frame' must be one of {FRAMES}, got {self.frame!r}")
+        check_choice("PoseTable", "frame", self.frame, FRAMES)
 
 
 def _rows(

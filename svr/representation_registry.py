@@ -53,6 +53,7 @@ from svr.geometry.mirror import ReflectionPlane
 from svr.losses.baselines import anchor_point_loss, posenet_loss, rotation_6d_loss
 from svr.losses.orbit import symmetric_se3_geodesic_loss
 from svr.losses.se3 import se3_geodesic_loss
+from svr.validation import check_bool, check_callable, check_int, check_str
 
 Representation = Literal["se3", "quat_translation", "anchor_points", "rotation6d_translation"]
 """Names of the registered representations, for type hints (the same as :data:`REPRESENTATIONS`'s
@@ -100,7 +101,8 @@ class PoseRepresentation:
             ``encode`` with :func:`svr.losses.orbit.orbit_min_loss`.
 
     Raises:
-        ValueError: On construction, naming the field, for an empty name or a size < 1.
+        ConfigFieldError: On construction, naming the field, for an empty name, a size < 1 or a
+            converter that is not callable.
     """
 
     name: Representation
@@ -114,16 +116,15 @@ class PoseRepresentation:
     orbit_loss: OrbitLossFactory | None = None
 
     def __post_init__(self) -> None:
-        for field in ("name", "cli_name"):
-            value = getattr(self, field)
-            if not (isinstance(value, str) and value):
-                raise ValueError(
-                    f"PoseRepresentation: '{field}' must be a non-empty string, got {value!r}"
-                )
-        if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 1:
-            raise ValueError(
-                f"PoseRepresentation: 'size' must be an integer >= 1, got {self.size!r}"
-            )
+        owner = "PoseRepresentation"
+        check_str(owner, "name", self.name)
+        check_str(owner, "cli_name", self.cli_name)
+        check_int(owner, "size", self.size, minimum=1)
+        for name in ("encode", "decode", "loss", "output_scale"):
+            check_callable(owner, name, getattr(self, name))
+        check_bool(owner, "metric_weights", self.metric_weights)
+        if self.orbit_loss is not None:
+            check_callable(owner, "orbit_loss", self.orbit_loss)
 
 
 def _translation_scale(size: int) -> ScaleFactory:

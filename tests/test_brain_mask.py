@@ -386,14 +386,14 @@ def test_canvas_rejects_bad_shapes():
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("localiser_mm", 0.0, "'localiser_mm' must be a number > 0"),
+        ("localiser_mm", 0.0, "'localiser_mm' must be a finite number > 0"),
         ("segmenter_mm", float("nan"), "'segmenter_mm'"),
         ("localiser_size", 100, "'localiser_size' must be a positive multiple of 16"),
         ("threshold", 1.0, "'threshold' must be in"),
         ("min_volume_ml", -1.0, "'min_volume_ml'"),
         ("percentile", 0.0, "'percentile'"),
-        ("localiser_tiles", "yes", "'localiser_tiles' must be true or false"),
-        ("slice_margin", -1, "'slice_margin' must be an integer >= 0 or null"),
+        ("localiser_tiles", "yes", "'localiser_tiles' must be a bool"),
+        ("slice_margin", -1, "'slice_margin' must be None or an integer >= 0"),
         ("max_volume_ml", 5.0, "'max_volume_ml' must be a finite number > 'min_volume_ml'"),
         ("max_volume_ml", float("inf"), "'max_volume_ml'"),
         ("max_stack_fraction", 0.0, "'max_stack_fraction' must be in"),
@@ -895,7 +895,7 @@ def test_clean_up_opening_cuts_a_leak_and_a_bridged_piece_and_keeps_the_head():
 
 def test_config_names_a_bad_opening_radius():
     for bad in (0.0, -1.0, float("inf"), True, "8"):
-        with pytest.raises(ValueError, match="'opening_mm' must be a finite number > 0 or null"):
+        with pytest.raises(ValueError, match="'opening_mm' must be None or a finite number > 0"):
             BrainMaskConfig(opening_mm=bad)
     assert BrainMaskConfig(opening_mm=8).opening_mm == 8
     for bad in (-1.0, float("nan"), None, False):

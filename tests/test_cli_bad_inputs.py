@@ -887,18 +887,28 @@ def _cases() -> list[Case]:
                     code=2,
                 )
             )
+    # Values argparse accepts and a configuration refuses: the message names the option
+    # (svr.cli.common.option_errors), says what it accepts and repeats the value.
     library_values = {
         "simulate": [
-            ("--noise", "-1", "'noise' must be >= 0"),
-            ("--noise", "inf", "--noise"),
-            ("--motion-scale", "nan", "--motion-scale must be a finite number, got nan"),
-            ("--rotation-deg", "-1", "'random_walk_rotation_deg' must be >= 0"),
-            ("--rotation-deg", "inf", "--rotation-deg"),
-            ("--translation-mm", "-1", "'random_walk_translation_mm' must be >= 0"),
-            ("--translation-mm", "inf", "--translation-mm"),
-            ("--bias-field", "-0.5", "'bias_field' must be >= 0"),
-            ("--bias-field", "inf", "--bias-field"),
-            ("--signal-voids", "1.5", "'signal_void_probability' must be in [0, 1]"),
+            ("--noise", "-1", "--noise must be a finite number >= 0, got -1.0"),
+            ("--noise", "inf", "--noise must be a finite number >= 0, got inf"),
+            ("--motion-scale", "nan", "--motion-scale must be a finite number >= 0, got nan"),
+            ("--rotation-deg", "-1", "--rotation-deg must be a finite number >= 0, got -1.0"),
+            ("--rotation-deg", "inf", "--rotation-deg must be a finite number >= 0"),
+            ("--translation-mm", "-1", "--translation-mm must be a finite number >= 0"),
+            ("--translation-mm", "inf", "--translation-mm must be a finite number >= 0"),
+            ("--bias-field", "-0.5", "--bias-field must be a finite number >= 0, got -0.5"),
+            ("--bias-field", "inf", "--bias-field must be a finite number >= 0"),
+            ("--signal-voids", "1.5", "--signal-voids must be in [0, 1], got 1.5"),
+            ("--stack-turn-deg", "10", "5", "--stack-turn-deg must be a tuple (low, high)"),
+            (
+                "--stack-turn-deg",
+                "0",
+                "270",
+                "--stack-turn-deg must be a tuple (low, high) of finite numbers with "
+                "0 <= low <= high <= 180, got 0.0 270.0",
+            ),
         ],
         "sample": [
             ("--min-brain-fraction", "-0.1", "--min-brain-fraction must be in [0, 1)"),
@@ -906,24 +916,36 @@ def _cases() -> list[Case]:
             ("--min-brain-fraction", "nan", "--min-brain-fraction must be in [0, 1)"),
         ],
         "train": [
-            ("--warmup-steps", "-1", "'warmup_steps' must be >= 0"),
-            ("--workers", "-1", "'workers' must be >= 0"),
-            ("--weight-decay", "-1", "'weight_decay' must be >= 0"),
-            ("--weight-decay", "inf", "--weight-decay"),
-            ("--shift-mm", "-1", "'shift_mm' must be a finite number >= 0"),
-            ("--shift-mm", "inf", "'shift_mm' must be a finite number >= 0"),
-            ("--thickness-range", "3", "1", "thickness_range"),
-            ("--metric-weights", "1", "2", "3", "'metric_weights'"),
+            ("--warmup-steps", "-1", "--warmup-steps must be an integer >= 0, got -1"),
+            ("--workers", "-1", "--workers must be an integer >= 0, got -1"),
+            ("--weight-decay", "-1", "--weight-decay must be a finite number >= 0, got -1.0"),
+            ("--weight-decay", "inf", "--weight-decay must be a finite number >= 0, got inf"),
+            ("--shift-mm", "-1", "--shift-mm must be a finite number >= 0, got -1.0"),
+            ("--shift-mm", "inf", "--shift-mm must be a finite number >= 0"),
+            ("--deform-mm", "-2", "--deform-mm must be a finite number >= 0, got -2.0"),
+            ("--thickness-range", "3", "1", "--thickness-range must be a tuple (low, high)"),
+            ("--size", "16", "--size must be a tuple of 2 integers >= 32, got 16 16"),
+            ("--width", "4", "--width must be an integer >= 8, got 4"),
+            ("--seed", "-1", "--seed must be an integer >= 0, got -1"),
+            ("--metric-weights", "1", "2", "3", "--metric-weights must be a tuple of 6 or 36"),
             ("--metric-weights", "1", "1", "1", "1", "1", "-1", "--metric-weights"),
-            ("--metric-weights", "1", "1", "1", "1", "1", "nan", "--metric-weights"),
+            ("--metric-weights", "1", "1", "1", "1", "1", "nan", "--metric-weights must be"),
+            ("--pose-sampling", "grid", "--rotation", "uniform", "--rotation must be 'euler'"),
+        ],
+        "train-stack-pose": [
+            ("--width", "2", "--width must be an integer >= 4, got 2"),
+            ("--head", "coords", "--loss", "anchor", "--loss must be se3 with the coords head"),
         ],
         "evaluate": [("--min-brain-fraction", "1.5", "--min-brain-fraction must be in [0, 1)")],
         "register": [
             ("--template", "-1", "--template -1: must be a stack index"),
-            ("--ncc-threshold", "nan", "--ncc-threshold must be in [-1, 1]"),
+            ("--ncc-threshold", "nan", "--ncc-threshold must be in [-1, 1], got nan"),
+            ("--ncc-threshold", "2", "--ncc-threshold must be in [-1, 1], got 2.0"),
+            ("--seed", "-1", "--seed must be an integer >= 0, got -1"),
         ],
-        "demo": [],
+        "demo": [("--seed", "-1", "--seed must be an integer >= 0, got -1")],
         "demo-loss": [],
+        "bids": [("--ncc-threshold", "2", "sub-01: --ncc-threshold must be in [-1, 1], got 2.0")],
     }
     library_values["reconstruct"] = library_values["register"]
     for command, values in library_values.items():

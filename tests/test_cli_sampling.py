@@ -165,8 +165,14 @@ def test_builtin_phantom_is_the_default_input(tmp_path):
             ],
             "missing.nii.gz: no such file",
         ),
-        (["simulate", "--output-dir", "OUT", "--motion", "trajectories"], "'motion_path'"),
-        (["simulate", "--output-dir", "OUT", "--noise", "-1"], "'noise' must be >= 0"),
+        (
+            ["simulate", "--output-dir", "OUT", "--motion", "trajectories"],
+            "--motion-path must be a trajectory file with motion 'trajectories', got None",
+        ),
+        (
+            ["simulate", "--output-dir", "OUT", "--noise", "-1"],
+            "--noise must be a finite number >= 0, got -1.0",
+        ),
         (["sample", "--num-slices", "2"], "nothing to write"),
         (
             ["sample", "--output-preview", "OUT", "--min-brain-fraction", "1.5"],

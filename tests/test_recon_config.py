@@ -9,21 +9,22 @@ import pytest
 from svr.errors import ConfigFieldError
 from svr.reconstruction.config import REGISTRATIONS, SCHEDULES, ReconstructionConfig
 
+BACKGROUND = "a tuple (low, high) of finite numbers with 0 <= low <= high"
 BAD = [
     ("output_resolution_mm", 0.0, "a finite number > 0"),
     ("output_resolution_mm", float("nan"), "a finite number > 0"),
-    ("registration", "learned", f"one of {', '.join(REGISTRATIONS)}"),
-    ("template", -1, "None or a stack index >= 0"),
-    ("template", 1.5, "None or a stack index >= 0"),
+    ("registration", "learned", f"one of {', '.join(map(repr, REGISTRATIONS))}"),
+    ("template", -1, "None or an integer >= 0"),
+    ("template", 1.5, "None or an integer >= 0"),
     ("outer_iterations", 0, "None or an integer >= 1"),
     ("outer_iterations", True, "None or an integer >= 1"),
-    ("schedule", "fast", f"one of {', '.join(SCHEDULES)}"),
+    ("schedule", "fast", f"one of {', '.join(map(repr, SCHEDULES))}"),
     ("converged_deg", -0.1, "a finite number >= 0"),
     ("converged_mm", float("nan"), "a finite number >= 0"),
     ("converged_fraction", 1.0, "in [0, 1)"),
-    ("background_mm", (3.0, 2.0), "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
-    ("background_mm", (2.0,), "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
-    ("background_mm", [2.0, 5.0], "a tuple (inner, outer) of numbers with 0 <= inner <= outer"),
+    ("background_mm", (3.0, 2.0), BACKGROUND),
+    ("background_mm", (2.0,), BACKGROUND),
+    ("background_mm", [2.0, 5.0], BACKGROUND),
     ("recapture", 1, "a bool"),
     ("svr_levels", 0, "an integer >= 1"),
     ("svr_iterations", 0, "an integer >= 1"),

@@ -321,7 +321,7 @@ def test_argument_errors(tmp_path):
         StackConfig(crop_margin_mm=-1.0)
     with pytest.raises(ValueError, match="n4_shrink_factor"):
         StackConfig(n4_shrink_factor=0)
-    with pytest.raises(ValueError, match="'method' must be one of network, otsu, got 'unet'"):
+    with pytest.raises(ValueError, match="'method' must be one of 'network', 'otsu', got 'unet'"):
         MaskingConfig(method="unet")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="'fuse' must be false unless method='network'"):
         MaskingConfig(method="otsu", fuse=True)

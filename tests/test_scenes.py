@@ -165,7 +165,9 @@ def test_skull_in_mask_adds_the_skull_shell_only(brain):
     """The same scene; the intracranial mask grows by the skull shell (one dark value)."""
     values = _added_by(brain, {"intracranial_mask": True}, {"skull_in_mask": True})
     assert float(values.min()) == float(values.max()) <= 0.3  # the skull's intensity, one value
-    with pytest.raises(ValueError, match="'skull_in_mask' needs 'intracranial_mask'"):
+    with pytest.raises(
+        ValueError, match="'skull_in_mask' must be False without 'intracranial_mask'"
+    ):
         SceneConfig(skull_in_mask=True)
 
 

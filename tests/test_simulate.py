@@ -232,7 +232,7 @@ def test_write_case_refuses_to_overwrite(brain, tmp_path):
         ({"mask_fraction": 0.2, "grazing_ratio": 0.0}, "'grazing_ratio'"),
         ({"mask_fraction": 0.2, "grazing_ratio": 1.5}, "'grazing_ratio'"),
         ({"mask_fraction": 0.2, "grazing_ratio": float("nan")}, "'grazing_ratio'"),
-        ({"grazing_ratio": 0.5}, "'grazing_ratio' needs 'mask_fraction'"),
+        ({"grazing_ratio": 0.5}, "'grazing_ratio' must be None without 'mask_fraction'"),
     ],
 )
 def test_config_validation(kwargs, message):

@@ -107,7 +107,7 @@ def test_reflection_plane_validation_and_json():
     assert p.angle_to_deg(SAGITTAL) == 0.0
     with pytest.raises(ValueError, match="'normal' must be non-zero"):
         ReflectionPlane((0.0, 0.0, 0.0))
-    with pytest.raises(ValueError, match="'normal' must be three finite numbers"):
+    with pytest.raises(ValueError, match="'normal' must be a tuple of 3 finite numbers"):
         ReflectionPlane((1.0, math.nan, 0.0))
     with pytest.raises(ValueError, match="'offset_mm' must be a finite number"):
         ReflectionPlane((1.0, 0.0, 0.0), math.inf)

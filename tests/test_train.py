@@ -187,13 +187,17 @@ def test_train_step_is_one_gradient_step(volume):
 
 
 def test_config_validation(tmp_path):
-    with pytest.raises(ValueError, match=r"must equal 'model\.representation'"):
+    with pytest.raises(
+        ValueError, match=r"'data\.representation' must be equal to 'model\.representation'"
+    ):
         TrainConfig(
             output_dir=str(tmp_path),
             model=ModelConfig(representation="se3"),
             data=SliceDatasetConfig(representation="anchor_points"),
         )
-    with pytest.raises(ValueError, match="'metric_weights' only applies"):
+    with pytest.raises(
+        ValueError, match="'metric_weights' must be None unless the representation is 'se3'"
+    ):
         TrainConfig(
             output_dir=str(tmp_path),
             model=ModelConfig(representation="anchor_points"),
@@ -202,7 +206,7 @@ def test_config_validation(tmp_path):
         )
     with pytest.raises(ValueError, match="'steps'"):
         TrainConfig(output_dir=str(tmp_path), steps=0)
-    with pytest.raises(ValueError, match="'pose_sampling' must be 'random' or 'grid'"):
+    with pytest.raises(ValueError, match="'pose_sampling' must be one of 'random', 'grid'"):
         TrainConfig(output_dir=str(tmp_path), pose_sampling="lattice")
     with pytest.raises(ValueError, match=r"'data\.rotation' must be 'euler'"):
         TrainConfig(
@@ -309,7 +313,8 @@ def test_cli_trains_on_the_paper_grid(volume_files, tmp_path, capsys):
     assert run["pose_sampling"] == "grid" and run["grid"] == dataclasses.asdict(EulerGridConfig())
     uniform = [*args, "--pose-sampling", "grid", "--rotation", "uniform", "--overwrite"]
     assert main(uniform) == 1
-    assert "'data.rotation' must be 'euler'" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--rotation must be 'euler' for grid pose sampling, got uniform" in err
 
 
 def test_cli_errors(tmp_path, capsys):

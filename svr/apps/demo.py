@@ -74,6 +74,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.files import atomic_directory
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_log
 from svr.geometry.averaging import robust_mean_pose
@@ -98,6 +99,7 @@ from svr.sampling.phantom import gestational_age_config, make_phantom, required_
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.slicer import SliceConfig
 from svr.sampling.volume import CanonicalVolume, canonicalize
+from svr.validation import check_instance, check_instance_tuple
 
 __all__ = [
     "DEMO_REGISTRATIONS",
@@ -135,7 +137,8 @@ class DemoConfig:
         registrations: The reconstructions to run, in order: ``"stack"`` and/or ``"cnn"``.
 
     Raises:
-        ValueError: If ``registrations`` is empty, repeats one, or names an unknown one.
+        ConfigFieldError: If ``registrations`` is empty, repeats one, or names an unknown one, or
+            a nested configuration is not one.
     """
 
     simulation: SimulationConfig
@@ -144,11 +147,17 @@ class DemoConfig:
     registrations: tuple[str, ...] = DEMO_REGISTRATIONS
 
     def __post_init__(self) -> None:
-        regs = tuple(self.registrations)
+        owner = "DemoConfig"
+        check_instance(owner, "simulation", self.simulation, SimulationConfig)
+        check_instance(owner, "reconstruction", self.reconstruction, ReconstructionConfig)
+        check_instance(owner, "train", self.train, TrainConfig)
+        regs = check_instance_tuple(
+            owner, "registrations", self.registrations, str, allow_list=True
+        )
         if not regs or len(set(regs)) != len(regs) or not set(regs) <= set(DEMO_REGISTRATIONS):
-            raise ValueError(
-                f"DemoConfig: 'registrations' must be distinct values of {DEMO_REGISTRATIONS}, "
-                f"got {self.registrations!r}"
+            listed = ", ".join(repr(name) for name in DEMO_REGISTRATIONS)
+            raise ConfigFieldError(
+                owner, "registrations", f"distinct values of {listed}", self.registrations
             )
         object.__setattr__(self, "registrations", regs)
 

@@ -23,6 +23,7 @@ from svr.geometry import ANCHOR_HALF_SIZE_MM
 from svr.losses import DEFAULT_LENGTH_SCALE_MM
 from svr.metrics import pose_errors
 from svr.representation_registry import REPRESENTATIONS, PoseRepresentation
+from svr.validation import check_bool, check_int, check_number, check_str
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,10 @@ class LossDemoConfig:
         seed: Seed of the target poses.
         device: Torch device to run on.
         progress: Show a progress bar.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value of the wrong type or
+            out of range.
     """
 
     num_poses: int = 512
@@ -48,9 +53,13 @@ class LossDemoConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("num_poses", "steps", "learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"LossDemoConfig: '{name}' must be > 0, got {getattr(self, name)}")
+        owner = "LossDemoConfig"
+        check_int(owner, "num_poses", self.num_poses, minimum=1)
+        check_int(owner, "steps", self.steps, minimum=1)
+        check_number(owner, "learning_rate", self.learning_rate, gt=0)
+        check_int(owner, "seed", self.seed)
+        check_str(owner, "device", self.device)
+        check_bool(owner, "progress", self.progress)
 
 
 @dataclass(frozen=True)

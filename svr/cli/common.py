@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+
+from svr.errors import ConfigFieldError
 
 if TYPE_CHECKING:
     from svr.sampling.volume import CanonicalVolume
@@ -182,23 +184,36 @@ def check_fusion_count(count: int) -> None:
         )
 
 
-def check_finite(args: argparse.Namespace, *options: str) -> None:
-    """Refuse NaN and infinite values of float options that the library checks only for sign.
+@contextmanager
+def option_errors(options: Mapping[str, str]) -> Iterator[None]:
+    """Report a bad configuration value as the command-line option that set it.
+
+    Wrap the construction of a command's configurations: a
+    :class:`~svr.errors.ConfigFieldError` raised meanwhile becomes a :class:`CliError` that
+    names the option, e.g. ``--steps must be an integer >= 1, got 0``.
 
     Args:
-        args: The parsed options.
-        options: Long option names (``"--noise"``); a ``None`` value (not given) or a list of
-            numbers is accepted.
+        options: Configuration field -> the option that sets it (``{"steps": "--steps"}``). A
+            key ``"Owner.field"`` (``"OptimConfig.name"``) applies to that configuration class
+            only and comes first. A field that no option sets keeps the library's message, which
+            names the configuration and the field.
 
     Raises:
-        CliError: Naming the first option with a non-finite value.
+        CliError: In place of a :class:`~svr.errors.ConfigFieldError`.
     """
-    for option in options:
-        value = getattr(args, option[2:].replace("-", "_"))
-        values = value if isinstance(value, (list, tuple)) else [value]
-        for number in values:
-            if number is not None and not math.isfinite(number):
-                raise CliError(f"{option} must be a finite number, got {number}")
+    try:
+        yield
+    except ConfigFieldError as err:
+        option = options.get(f"{err.owner}.{err.field}", options.get(err.field))
+        if option is None:
+            raise CliError(str(err)) from err
+        value, expected = err.value, err.expected
+        if value is not None:  # an option given has a value: "None or ..." is for the library
+            expected = expected.removeprefix("None or ")
+        shown = str(value)
+        if isinstance(value, tuple | list) and value:
+            shown = " ".join(map(str, value))  # as the values are typed on the command line
+        raise CliError(f"{option} must be {expected}, got {shown}") from err
 
 
 def check_run_folder(path: str, option: str = "--output-dir") -> Path:

@@ -18,6 +18,7 @@ from svr.cli.common import (
     add_common_options,
     add_volume_options,
     load_input_volume,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -189,18 +190,34 @@ def format_scores(result: DemoResult) -> str:
     return "\n".join(lines)
 
 
+_OPTIONS = {
+    "seed": "--seed",
+    "registrations": "--registration",
+    "TrainConfig.steps": "--train-steps",
+    "OptimConfig.warmup_steps": "--train-steps",
+    "TrainConfig.checkpoint_every": "--train-steps",
+    "num_poses": "--num-poses",
+    "LossDemoConfig.steps": "--steps",
+    "learning_rate": "--learning-rate",
+    "device": "--device",
+}
+"""The option behind each configuration field the demo sets, in either mode
+(:func:`~svr.cli.common.option_errors`)."""
+
+
 def _run_loss_demo(args: argparse.Namespace) -> int:
     if args.output is not None:
         check_output_path(args.output, args.overwrite)
     defaults = LossDemoConfig()
-    config = LossDemoConfig(
-        num_poses=args.num_poses or defaults.num_poses,
-        steps=args.steps or defaults.steps,
-        learning_rate=args.learning_rate or defaults.learning_rate,
-        seed=args.seed,
-        device=resolve_device(args.device),
-        progress=not args.quiet,
-    )
+    with option_errors(_OPTIONS):
+        config = LossDemoConfig(
+            num_poses=args.num_poses or defaults.num_poses,
+            steps=args.steps or defaults.steps,
+            learning_rate=args.learning_rate or defaults.learning_rate,
+            seed=args.seed,
+            device=resolve_device(args.device),
+            progress=not args.quiet,
+        )
     from svr.sampling.poses import random_slice_poses
 
     targets = random_slice_poses(config.num_poses, torch.Generator().manual_seed(config.seed))
@@ -233,12 +250,13 @@ def run(args: argparse.Namespace) -> int:
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
     if model != TRAIN_MODEL and args.train_steps is not None:
         log.warning("--train-steps is used only with --model train; ignoring it")
-    config = demo_config(
-        quick=args.quick,
-        seed=args.seed,
-        train_steps=args.train_steps,
-        registrations=("stack", "cnn") if registration == "cnn" else ("stack",),
-    )
+    with option_errors(_OPTIONS):
+        config = demo_config(
+            quick=args.quick,
+            seed=args.seed,
+            train_steps=args.train_steps,
+            registrations=("stack", "cnn") if registration == "cnn" else ("stack",),
+        )
     if args.quick and args.input_volume is None and args.input_mask is None:
         volume, source = quick_phantom(args.phantom_ga)
     else:

@@ -20,6 +20,7 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     add_rotation_option,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -288,6 +289,10 @@ def _poses_csv(data: list[_VolumeSlices], predicted: dict[str, torch.Tensor]) ->
     return buffer.getvalue()
 
 
+_OPTIONS = {"thickness_mm": "--thickness"}
+"""The option behind each SliceConfig field it sets (:func:`~svr.cli.common.option_errors`)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr evaluate``."""
     from svr.files import atomic_write_text, check_output_path
@@ -301,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
     named = _parse_checkpoint_specs(args.checkpoints)
     methods = [_load_method(name, spec, device) for name, spec in named]
     size, spacing = _common_geometry(methods)
-    config = SliceConfig(size=size, spacing_mm=spacing, thickness_mm=args.thickness)
+    with option_errors(_OPTIONS):  # size and spacing are the models'
+        config = SliceConfig(size=size, spacing_mm=spacing, thickness_mm=args.thickness)
     volumes, sources = _volumes(args)
 
     generator = torch.Generator().manual_seed(args.seed)

@@ -23,11 +23,11 @@ from svr.cli.common import (
     check_outputs,
     check_thickness_count,
     non_negative_float,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
 )
-from svr.errors import ConfigFieldError
 from svr.files import atomic_write_text
 
 if TYPE_CHECKING:
@@ -411,10 +411,15 @@ _OPTIONS = {
     "converged_mm": "--converged-mm",
     "sr_iterations": "--sr-iterations",
     "svr_iterations": "--svr-iterations",
+    "robust": "--no-robust",
     "ncc_threshold": "--ncc-threshold",
     "seed": "--seed",
+    "bias_correction": "--bias-correction",
+    "MaskingConfig.method": "--auto-masks",
+    "MaskingConfig.fuse": "--fuse-masks",
 }
-"""The option behind each ReconstructionConfig field that the command sets."""
+"""The option behind each field of the StackConfig and ReconstructionConfig that the command sets
+(:func:`~svr.cli.common.option_errors`)."""
 
 
 class Settings(NamedTuple):
@@ -453,9 +458,9 @@ def build_configs(args: argparse.Namespace, count: int) -> Settings:
         raise CliError("--fuse-masks: needs --auto-masks network")
     if args.fuse_masks:
         check_fusion_count(count)
-    masking = MaskingConfig(method=args.auto_masks, fuse=args.fuse_masks)
-    stack_config = StackConfig(bias_correction=args.bias_correction)
-    try:
+    with option_errors(_OPTIONS):
+        masking = MaskingConfig(method=args.auto_masks, fuse=args.fuse_masks)
+        stack_config = StackConfig(bias_correction=args.bias_correction)
         config = ReconstructionConfig(
             output_resolution_mm=args.output_resolution,
             registration=args.registration,
@@ -470,9 +475,6 @@ def build_configs(args: argparse.Namespace, count: int) -> Settings:
             ncc_threshold=args.ncc_threshold,
             seed=args.seed,
         )
-    except ConfigFieldError as err:
-        option = _OPTIONS.get(err.field, err.field)
-        raise CliError(f"{option} must be {err.expected}, got {err.value}") from err
     return Settings(masking, stack_config, config)
 
 

@@ -16,6 +16,7 @@ from svr.cli.common import (
     add_common_options,
     add_volume_options,
     load_input_volume,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -105,6 +106,10 @@ def _preview_png(slices: torch.Tensor, path: str, overwrite: bool) -> None:
     atomic_write_bytes(path, iio.imwrite("<bytes>", image, extension=".png"), overwrite)
 
 
+_OPTIONS = {"size": "--size", "spacing_mm": "--spacing", "thickness_mm": "--thickness"}
+"""The option behind each SliceConfig field (:func:`~svr.cli.common.option_errors`)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr sample``."""
     from svr.image import Image, save_nifti
@@ -122,9 +127,10 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     volume, source = load_input_volume(args)
     volume = volume.to(device)
-    config = SliceConfig(
-        size=(args.size, args.size), spacing_mm=args.spacing, thickness_mm=args.thickness
-    )
+    with option_errors(_OPTIONS):
+        config = SliceConfig(
+            size=(args.size, args.size), spacing_mm=args.spacing, thickness_mm=args.thickness
+        )
     generator = torch.Generator().manual_seed(args.seed)
     kind = _POSE_DRAWS[args.poses]
     try:

@@ -16,6 +16,7 @@ from svr.cli.common import (
     check_fusion_count,
     check_outputs,
     check_thickness_count,
+    option_errors,
     positive_float,
     resolve_device,
 )
@@ -103,6 +104,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
+_OPTIONS = {"thicknesses": "--thicknesses"}
+"""The option behind the mask-fusion settings it passes (:func:`~svr.cli.common.option_errors`)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
     from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
@@ -144,14 +149,15 @@ def run(args: argparse.Namespace) -> int:
     if args.fuse_masks:
         began = time.perf_counter()
         names = [str(path) for path in args.input_stacks]
-        fused = fuse_stack_masks(
-            stacks,
-            masks,
-            args.thicknesses,
-            names,
-            device=device,
-            probabilities=[result.probability for result in results],
-        )
+        with option_errors(_OPTIONS):
+            fused = fuse_stack_masks(
+                stacks,
+                masks,
+                args.thicknesses,
+                names,
+                device=device,
+                probabilities=[result.probability for result in results],
+            )
         masks = fused.masks
         log.info("mask fusion: %.2f s", time.perf_counter() - began)
     for path, out, mask in zip(args.input_stacks, args.output_stack_masks, masks, strict=True):

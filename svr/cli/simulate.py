@@ -8,8 +8,8 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     add_volume_options,
-    check_finite,
     load_input_volume,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -142,35 +142,57 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
+_OPTIONS = {
+    "num_stacks": "--num-stacks",
+    "orientations": "--orientations",
+    "thickness_mm": "--thickness",
+    "spacing_mm": "--slice-spacing",
+    "in_plane_mm": "--in-plane-resolution",
+    "in_plane_psf": "--in-plane-psf",
+    "interleave": "--interleave",
+    "slice_time_s": "--slice-time",
+    "motion": "--motion",
+    "motion_path": "--motion-path",
+    "motion_scale": "--motion-scale",
+    "random_walk_rotation_deg": "--rotation-deg",
+    "random_walk_translation_mm": "--translation-mm",
+    "noise": "--noise",
+    "bias_field": "--bias-field",
+    "signal_void_probability": "--signal-voids",
+    "random_placement": "--no-random-placement",
+    "stack_turn_deg": "--stack-turn-deg",
+    "seed": "--seed",
+}
+"""The option behind each SimulationConfig field (:func:`~svr.cli.common.option_errors`)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr simulate``."""
     from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 
     check_output_path(args.output_dir, args.overwrite)
-    check_finite(
-        args, "--motion-scale", "--rotation-deg", "--translation-mm", "--noise", "--bias-field"
-    )
-    config = SimulationConfig(
-        num_stacks=args.num_stacks,
-        orientations=args.orientations,
-        thickness_mm=args.thickness,
-        spacing_mm=args.slice_spacing,
-        in_plane_mm=args.in_plane_resolution,
-        in_plane_psf=args.in_plane_psf,
-        interleave=args.interleave,
-        slice_time_s=args.slice_time,
-        motion=args.motion.replace("-", "_"),
-        motion_path=args.motion_path,
-        motion_scale=args.motion_scale,
-        random_walk_rotation_deg=args.rotation_deg,
-        random_walk_translation_mm=args.translation_mm,
-        noise=args.noise,
-        bias_field=args.bias_field,
-        signal_void_probability=args.signal_voids,
-        random_placement=not args.no_random_placement,
-        stack_turn_deg=(args.stack_turn_deg[0], args.stack_turn_deg[1]),
-        seed=args.seed,
-    )
+    with option_errors(_OPTIONS):
+        config = SimulationConfig(
+            num_stacks=args.num_stacks,
+            orientations=args.orientations,
+            thickness_mm=args.thickness,
+            spacing_mm=args.slice_spacing,
+            in_plane_mm=args.in_plane_resolution,
+            in_plane_psf=args.in_plane_psf,
+            interleave=args.interleave,
+            slice_time_s=args.slice_time,
+            motion=args.motion.replace("-", "_"),
+            motion_path=args.motion_path,
+            motion_scale=args.motion_scale,
+            random_walk_rotation_deg=args.rotation_deg,
+            random_walk_translation_mm=args.translation_mm,
+            noise=args.noise,
+            bias_field=args.bias_field,
+            signal_void_probability=args.signal_voids,
+            random_placement=not args.no_random_placement,
+            stack_turn_deg=(args.stack_turn_deg[0], args.stack_turn_deg[1]),
+            seed=args.seed,
+        )
     device = resolve_device(args.device)
     volume, source = load_input_volume(args)
     case = simulate_case(volume, config, progress=not args.quiet, device=device)

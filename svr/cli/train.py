@@ -13,8 +13,8 @@ from svr.cli.common import (
     HelpFormatter,
     add_common_options,
     add_rotation_option,
-    check_finite,
     check_run_folder,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -179,6 +179,46 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
+_OPTIONS = {
+    "output_dir": "--output-dir",
+    "BackboneConfig.name": "--backbone",
+    "width": "--width",
+    "depth": "--depth",
+    "representation": "--loss",
+    "data.representation": "--loss",
+    "input_size": "--size",
+    "size": "--size",
+    "spacing_mm": "--spacing",
+    "se3_rotation": "--se3-rotation",
+    "symmetry_planes": "--symmetry",
+    "thickness_range_mm": "--thickness-range",
+    "spacing_range_mm": "--spacing-range",
+    "rotation": "--rotation",
+    "data.rotation": "--rotation",
+    "shift_mm": "--shift-mm",
+    "scale_range": "--scale-range",
+    "deform_mm": "--deform-mm",
+    "batch_size": "--batch-size",
+    "OptimConfig.name": "--optimizer",
+    "lr": "--lr",
+    "weight_decay": "--weight-decay",
+    "schedule": "--schedule",
+    "warmup_steps": "--warmup-steps",
+    "steps": "--steps",
+    "metric_weights": "--metric-weights",
+    "checkpoint_every": "--checkpoint-every",
+    "keep_checkpoints": "--keep-checkpoints",
+    "log_every": "--log-every",
+    "workers": "--workers",
+    "device": "--device",
+    "amp": "--amp",
+    "seed": "--seed",
+    "pose_sampling": "--pose-sampling",
+}
+"""The option behind each configuration field that ``svr train`` sets
+(:func:`~svr.cli.common.option_errors`)."""
+
+
 def _volumes(args: argparse.Namespace) -> tuple[list, list[str]]:
     """The training volumes named by the options, and a name for each."""
     from svr.sampling.volume import VolumeSourceError, atlas_volume_paths, load_volumes
@@ -230,49 +270,49 @@ def run(args: argparse.Namespace) -> int:
     from svr.sampling.slicer import SliceConfig
 
     check_run_folder(args.output_dir)
-    check_finite(args, "--weight-decay", "--metric-weights")
     representation = representations_by_cli_name()[args.loss].name
     size = (args.size, args.size)
-    config = TrainConfig(
-        output_dir=args.output_dir,
-        model=ModelConfig(
-            backbone=BackboneConfig(name=args.backbone, width=args.width, depth=args.depth),
-            representation=representation,
-            input_size=size,
-            spacing_mm=args.spacing,
-            se3_rotation=args.se3_rotation if representation == "se3" else "rotvec",
-        ),
-        data=SliceDatasetConfig(
-            slice=SliceConfig(size=size, spacing_mm=args.spacing),
-            thickness_range_mm=tuple(args.thickness_range) if args.thickness_range else None,
-            spacing_range_mm=tuple(args.spacing_range) if args.spacing_range else None,
-            rotation=args.rotation,
-            shift_mm=args.shift_mm,
-            representation=representation,
-            augment=SliceAugmentConfig() if args.augment else None,
-            scale_range=tuple(args.scale_range) if args.scale_range else None,
-            deform_mm=args.deform_mm,
-            batch_size=args.batch_size,
+    with option_errors(_OPTIONS):
+        config = TrainConfig(
+            output_dir=args.output_dir,
+            model=ModelConfig(
+                backbone=BackboneConfig(name=args.backbone, width=args.width, depth=args.depth),
+                representation=representation,
+                input_size=size,
+                spacing_mm=args.spacing,
+                se3_rotation=args.se3_rotation if representation == "se3" else "rotvec",
+            ),
+            data=SliceDatasetConfig(
+                slice=SliceConfig(size=size, spacing_mm=args.spacing),
+                thickness_range_mm=tuple(args.thickness_range) if args.thickness_range else None,
+                spacing_range_mm=tuple(args.spacing_range) if args.spacing_range else None,
+                rotation=args.rotation,
+                shift_mm=args.shift_mm,
+                representation=representation,
+                augment=SliceAugmentConfig() if args.augment else None,
+                scale_range=tuple(args.scale_range) if args.scale_range else None,
+                deform_mm=args.deform_mm,
+                batch_size=args.batch_size,
+                seed=args.seed,
+            ),
+            optim=OptimConfig(
+                name=args.optimizer,
+                lr=args.lr,
+                weight_decay=args.weight_decay,
+                schedule=args.schedule,
+                warmup_steps=args.warmup_steps,
+            ),
+            steps=args.steps,
+            metric_weights=tuple(args.metric_weights) if args.metric_weights else None,
+            checkpoint_every=args.checkpoint_every,
+            keep_checkpoints=args.keep_checkpoints,
+            log_every=args.log_every,
+            workers=args.workers,
+            device=resolve_device(args.device),
+            amp=args.amp,
             seed=args.seed,
-        ),
-        optim=OptimConfig(
-            name=args.optimizer,
-            lr=args.lr,
-            weight_decay=args.weight_decay,
-            schedule=args.schedule,
-            warmup_steps=args.warmup_steps,
-        ),
-        steps=args.steps,
-        metric_weights=tuple(args.metric_weights) if args.metric_weights else None,
-        checkpoint_every=args.checkpoint_every,
-        keep_checkpoints=args.keep_checkpoints,
-        log_every=args.log_every,
-        workers=args.workers,
-        device=resolve_device(args.device),
-        amp=args.amp,
-        seed=args.seed,
-        pose_sampling=args.pose_sampling,
-    )
+            pose_sampling=args.pose_sampling,
+        )
     if config.metric_weights is not None:
         try:
             loss_function(representation, config.weights_tensor())
@@ -282,12 +322,13 @@ def run(args: argparse.Namespace) -> int:
     planes, report = resolve_symmetry(args.symmetry, volumes, sources)
     if not args.quiet:
         print(_symmetry_summary(report), file=sys.stderr)
-    config = dataclasses.replace(
-        config,
-        model=dataclasses.replace(config.model, symmetry_planes=planes),
-        data_sources=tuple(sources),
-        symmetry_report=report,
-    )
+    with option_errors(_OPTIONS):
+        config = dataclasses.replace(
+            config,
+            model=dataclasses.replace(config.model, symmetry_planes=planes),
+            data_sources=tuple(sources),
+            symmetry_report=report,
+        )
     try:
         result = train(
             config,

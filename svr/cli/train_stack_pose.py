@@ -14,6 +14,7 @@ from svr.cli.common import (
     add_common_options,
     check_run_folder,
     non_negative_int,
+    option_errors,
     positive_float,
     positive_int,
     resolve_device,
@@ -128,6 +129,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     add_common_options(p)
 
 
+_OPTIONS = {
+    "head": "--head",
+    "width": "--width",
+    "representation": "--loss",
+    "steps": "--steps",
+    "learning_rate": "--learning-rate",
+    "checkpoint_every": "--checkpoint-every",
+    "seed": "--seed",
+}
+"""The option behind each StackPoseConfig and StackPoseTrainingConfig field it sets
+(:func:`~svr.cli.common.option_errors`)."""
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
@@ -179,16 +193,15 @@ def run(args: argparse.Namespace) -> int:
                 )
         init = start.state_dict()
     else:
-        try:
+        with option_errors(_OPTIONS):
             model = StackPoseConfig(**asked)
-        except ValueError as err:
-            raise CliError(str(err)) from err
-    training = StackPoseTrainingConfig(
-        steps=args.steps,
-        learning_rate=args.learning_rate,
-        checkpoint_every=args.checkpoint_every,
-        seed=args.seed,
-    )
+    with option_errors(_OPTIONS):
+        training = StackPoseTrainingConfig(
+            steps=args.steps,
+            learning_rate=args.learning_rate,
+            checkpoint_every=args.checkpoint_every,
+            seed=args.seed,
+        )
     if torch.device(device).type == "cpu":
         torch.set_num_threads(1)  # one process per core trains fastest (measured)
     began = time.time()

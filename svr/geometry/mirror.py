@@ -29,8 +29,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from svr.errors import ConfigFieldError
 from svr.geometry._validation import check_tensor
 from svr.geometry.se3 import se3_to_vector, vector_to_se3
+from svr.validation import check_number, check_number_tuple
 
 SLICE_FLIP = (1.0, 1.0, -1.0)
 """``D``: the diagonal of the slice-frame reflection that fixes the slice plane."""
@@ -46,7 +48,7 @@ class ReflectionPlane:
         offset_mm: Signed distance of the plane from the canonical origin along ``normal``, mm.
 
     Raises:
-        ValueError: If ``normal`` is not three finite numbers of non-zero length, or
+        ConfigFieldError: If ``normal`` is not three finite numbers of non-zero length, or
             ``offset_mm`` is not finite.
     """
 
@@ -54,20 +56,12 @@ class ReflectionPlane:
     offset_mm: float = 0.0
 
     def __post_init__(self) -> None:
-        n = self.normal
-        if not (
-            isinstance(n, tuple | list)
-            and len(n) == 3
-            and all(isinstance(v, int | float) and math.isfinite(v) for v in n)
-        ):
-            raise ValueError(f"ReflectionPlane: 'normal' must be three finite numbers, got {n!r}")
+        owner = "ReflectionPlane"
+        n = check_number_tuple(owner, "normal", self.normal, length=3, allow_list=True)
+        check_number(owner, "offset_mm", self.offset_mm)
         length = math.sqrt(sum(float(v) ** 2 for v in n))
         if length < 1e-12:
-            raise ValueError(f"ReflectionPlane: 'normal' must be non-zero, got {n!r}")
-        if not (isinstance(self.offset_mm, int | float) and math.isfinite(self.offset_mm)):
-            raise ValueError(
-                f"ReflectionPlane: 'offset_mm' must be a finite number, got {self.offset_mm!r}"
-            )
+            raise ConfigFieldError(owner, "normal", "non-zero", self.normal)
         unit = [float(v) / length for v in n]
         sign = 1.0 if max(unit, key=abs) > 0 else -1.0
         object.__setattr__(self, "normal", tuple(sign * v for v in unit))
