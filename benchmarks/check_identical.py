@@ -156,10 +156,11 @@ def compare(before: Path, after: Path, results: Path | None) -> int:
         same = other == hashes
         same_all &= same
         count = sum(len(v) if isinstance(v, dict) else 1 for v in hashes.values())
-        lines.append(
-            f"| {name} | {count} | {'yes' if same else 'NO'} | {a['seconds'][name]:.0f} | "
-            f"{b['seconds'][name]:.0f} |"
-        )
+        times = [
+            f"{t:.0f}" if math.isfinite(t) else "n/a"
+            for t in (a["seconds"][name], b["seconds"][name])
+        ]
+        lines.append(f"| {name} | {count} | {'yes' if same else 'NO'} | {times[0]} | {times[1]} |")
     text = "\n".join(lines)
     print(text)
     if results is not None:
