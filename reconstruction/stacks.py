@@ -58,6 +58,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+_NO_MASKS = (
+    "'{what}' is None: give one mask per stack; stacks without masks get them from the masking "
+    "stage first (svr.masking.auto_masks)"
+)
 _SHEAR_TOLERANCE = 1e-3  # |cos| of the angle between the in-plane axes treated as orthogonal
 
 
@@ -129,6 +133,8 @@ def load_stacks(
         ValueError: If there are no stacks, the number of masks or thicknesses does not match
             the number of stacks, or a thickness is not a positive number.
     """
+    if mask_paths is None:
+        raise ValueError(_NO_MASKS.format(what="mask_paths"))
     if len(mask_paths) != len(stack_paths):
         raise ValueError(_count_mismatch("masks", len(mask_paths), len(stack_paths)))
     images = [load_nifti(path) for path in stack_paths]
@@ -171,6 +177,8 @@ def prepare_stacks(
             thickness that is not a positive number.
     """
     config = StackConfig() if config is None else config
+    if masks is None:
+        raise ValueError(_NO_MASKS.format(what="masks"))
     count = len(images)
     if count == 0:
         raise ValueError("no stacks given")

@@ -308,6 +308,10 @@ def test_argument_errors(tmp_path):
     good, good_mask, _ = _good(tmp_path)
     with pytest.raises(ValueError, match="no stacks"):
         load_stacks([], [])
+    with pytest.raises(ValueError, match=r"'mask_paths' is None: .*svr.masking.auto_masks"):
+        load_stacks([good], None)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"'masks' is None: .*svr.masking.auto_masks"):
+        prepare_stacks([load_nifti(good)], None)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="no stacks"):
         auto_masks([])
     with pytest.raises(ValueError, match="got 1 masks for 2 stacks"):
