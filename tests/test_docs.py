@@ -12,9 +12,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from layout import subpackage_folders
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGE_FOLDERS = ("svr", "models", "sampling", "reconstruction")
+PACKAGE_FOLDERS = ("svr", *subpackage_folders().values())
 README_MAX_LINES = 230
 # Names of files that only exist in the development workspace, never in a user's clone.
 WORKSPACE_REFERENCES = re.compile(r"DESIGN\.md|\.\./shared\b")

@@ -36,17 +36,18 @@ def test_subpackages_live_in_the_svr_namespace():
 
 
 def test_imports_beside_unrelated_models_and_sampling_packages(tmp_path):
-    for name in ("models", "sampling", "reconstruction"):
+    for name in subpackage_folders().values():
         (tmp_path / name).mkdir()
         (tmp_path / name / "__init__.py").write_text(f"OWNER = 'user {name}'\n")
     script = textwrap.dedent(
         """
-        import models, sampling, reconstruction
-        import svr.models.predict, svr.sampling.dataset, svr.reconstruction.pipeline
+        import models, sampling, reconstruction, masking
+        import svr.models.predict, svr.sampling.dataset, svr.reconstruction.pipeline, svr.masking
         from svr.models.predict import load_pose_model
         assert models.OWNER == "user models", models.__file__
         assert sampling.OWNER == "user sampling", sampling.__file__
         assert reconstruction.OWNER == "user reconstruction", reconstruction.__file__
+        assert masking.OWNER == "user masking", masking.__file__
         load_pose_model("default")
         print(svr.models.predict.__file__)
         """
@@ -93,8 +94,9 @@ def test_wheel_installs_into_a_fresh_venv_and_runs(tmp_path):
     ).strip()
     (Path(site) / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     installed = sorted(p.name for p in Path(site).iterdir())
-    for name in ("models", "sampling", "reconstruction"):
+    for name in subpackage_folders().values():
         assert name not in installed
+        assert (Path(site) / "svr" / name / "__init__.py").is_file()
     for model in ("default", "brain_mask", "stack_pose"):
         for name in ("config.json", "model.safetensors", "README.md"):
             assert (Path(site) / "svr" / "models" / "pretrained" / model / name).is_file()
