@@ -59,7 +59,7 @@ class BrainMaskConfig:
             opened mask (mm, >= 0) are kept too.
 
     Raises:
-        ValueError: On construction, naming the field, for an invalid value.
+        ConfigFieldError: On construction, naming the field and what it accepts.
     """
 
     localiser_mm: float = 3.0
@@ -159,7 +159,7 @@ class MaskFusionConfig:
         psf_samples: Nodes of the through-plane PSF (odd).
 
     Raises:
-        ValueError: On construction, naming the field, for an invalid value.
+        ConfigFieldError: On construction, naming the field and what it accepts.
     """
 
     resolution_mm: float = 1.0

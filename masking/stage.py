@@ -18,7 +18,7 @@ from svr.masking.fuse import fuse_stack_masks
 from svr.masking.network import BrainMasker, load_brain_masker
 from svr.masking.otsu import otsu_mask
 from svr.masking.segment import segment_stack
-from svr.reconstruction.stacks import check_stack, slice_thicknesses
+from svr.reconstruction.stacks import check_stack
 
 __all__ = ["auto_masks"]
 
@@ -73,7 +73,6 @@ def auto_masks(
             for n, (image, name) in enumerate(zip(images, names, strict=True))
         ]
     else:
-        widths = slice_thicknesses(thicknesses, images, names) if config.fuse else None
         networks = (
             masker
             if isinstance(masker, BrainMasker)
@@ -89,7 +88,7 @@ def auto_masks(
             fused = fuse_stack_masks(
                 images,
                 brains,
-                widths,
+                thicknesses,
                 names,
                 config.fusion,
                 device=device,

@@ -32,7 +32,7 @@ class SegmentationConfig:
             slice's neighbours as channels).
 
     Raises:
-        ValueError: On construction, naming the field, for a value below 1.
+        ConfigFieldError: On construction, naming the field, for a value below 1.
     """
 
     width: int = 16
