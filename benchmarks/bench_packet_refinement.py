@@ -11,6 +11,11 @@ slice starts at its stack's pose. Then:
 * ``classical``: nothing more before reconstruction: the slice-to-volume registration rounds of
   ``reconstruct`` (adaptive schedule) start from the stacks' poses.
 
+With ``--oracle``, the same reconstruction also starts from perfect estimates at each level (the
+bounds on what any initialisation can give): every stack at the robust mean of its slices' true
+poses (a perfect stack estimator), every packet at that of its own slices (a perfect packet
+estimator), and every slice at its true pose.
+
 Measured: the slices' pose errors against the truth (up to one global rigid transform, the
 robust mean of ``T_i o P_i^-1``, so that only how the slices sit relative to each other counts)
 at the start and after the learned packet step, and the reconstruction from each start
@@ -27,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -42,7 +48,7 @@ from bench_common import (
     true_slice_poses,
 )
 
-from svr.geometry import se3_compose, se3_inverse
+from svr.geometry import se3_compose, se3_inverse, vector_to_se3
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import save_nifti
 from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
@@ -85,6 +91,46 @@ def relative_errors(truth: torch.Tensor, poses: torch.Tensor) -> tuple[np.ndarra
     ).numpy()
 
 
+def oracle_starts(
+    truth: torch.Tensor,
+    scanner: torch.Tensor,
+    ids: torch.Tensor,
+    slice_k: torch.Tensor,
+    packets: int,
+) -> list[tuple[str, torch.Tensor]]:
+    """Starts from perfect stack, packet and slice estimates (labels end with the level's name).
+
+    A group's perfect rigid estimate is the robust mean of ``T_i o S_i^-1`` over its slices (``T``
+    the true canonical poses, ``S`` the scanner poses): the one transform that best places the
+    group as acquired.
+    """
+    out = []
+    for level in ("stack", "packet"):
+        poses = torch.empty_like(truth)
+        key = ids * packets + (slice_k % packets if level == "packet" else 0)
+        for value in torch.unique(key).tolist():
+            members = key == value
+            frame = robust_mean_pose(se3_compose(truth[members], se3_inverse(scanner[members])))
+            poses[members] = se3_compose(frame[None], scanner[members])
+        out.append((f"SVR from perfect {level}", poses))
+    out.append(("SVR from perfect slice", truth.clone()))
+    return out
+
+
+def perturbed(truth: torch.Tensor, deg: float, seed: int) -> torch.Tensor:
+    """The true poses each moved by ``deg`` degrees (random axis) and ``0.4 deg`` mm."""
+    gen = torch.Generator().manual_seed(seed)
+    n = truth.shape[0]
+    axis = torch.nn.functional.normalize(
+        torch.randn(n, 3, generator=gen, dtype=torch.float64), dim=1
+    )
+    shift = torch.nn.functional.normalize(
+        torch.randn(n, 3, generator=gen, dtype=torch.float64), dim=1
+    )
+    move = vector_to_se3(torch.cat([axis * math.radians(deg), shift * 0.4 * deg], dim=1))
+    return se3_compose(truth, move)
+
+
 def describe(rot: np.ndarray, cen: np.ndarray) -> str:
     return (
         f"median {np.median(rot):.1f} deg (p90 {np.percentile(rot, 90):.1f}), "
@@ -105,6 +151,17 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "bench-packets")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--results", type=Path, default=None)
+    parser.add_argument(
+        "--oracle", action="store_true", help="also start from perfect stack/packet/slice poses"
+    )
+    parser.add_argument(
+        "--oracle-deg",
+        type=float,
+        nargs="*",
+        default=[],
+        help="with --oracle, also from the true slice poses each moved by this rotation (random "
+        "axis) and 0.4 mm per degree (random direction)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -142,8 +199,19 @@ def main() -> int:
             rot, cen = relative_errors(truth, poses)
             row.append(f"- {label}: {describe(rot, cen)}")
         row.append(f"- stack poses and packet refinement took {packet_s:.1f} s")
-        for label, poses in (("classical SVR from the stack poses", start),
-                             ("SVR from the learned packets", learned)):  # fmt: skip
+        starts = [("classical SVR from the stack poses", start),
+                  ("SVR from the learned packets", learned)]  # fmt: skip
+        if args.oracle:
+            oracles = oracle_starts(truth, scanner, ids, slices.slice_indices.cpu(), args.packets)
+            oracles += [
+                (f"SVR from slices-{deg:g}deg perturbed", perturbed(truth, deg, seed=i))
+                for i, deg in enumerate(args.oracle_deg)
+            ]
+            for label, poses in oracles:
+                rot, cen = relative_errors(truth, poses)
+                row.append(f"- start of {label}: {describe(rot, cen)}")
+            starts += oracles
+        for label, poses in starts:
             began = time.perf_counter()
             result = reconstruct(
                 stacks,
@@ -153,7 +221,7 @@ def main() -> int:
                 progress=False,
             )
             seconds = time.perf_counter() - began
-            path = args.out / f"{case.name}-{label.split()[0]}.nii.gz"
+            path = args.out / f"{case.name}-{'-'.join(label.split()[-2:])}.nii.gz"
             save_nifti(result.volume, path, overwrite=True)
             score = run_scorer(args.scorer, path, case)
             rot, cen = relative_errors(truth, result.slices.poses)
