@@ -67,6 +67,7 @@ __all__ = [
     "StackPoseNet",
     "StackPoseOutput",
     "atlas_agreement",
+    "atlas_levels",
     "estimate_stack_pose",
     "fit_to_atlas",
     "load_stack_pose_model",
@@ -313,6 +314,23 @@ def _mask_samples(stack: Image, mask: Tensor, max_points: int) -> tuple[Tensor, 
     return voxel_to_world(stack.affine, idx), values
 
 
+def atlas_levels(atlas: CanonicalVolume, config: AtlasFitConfig | None = None) -> list[Image]:
+    """The blurred copies of an atlas that :func:`fit_to_atlas` registers to, coarse first.
+
+    Computing them once and passing them to several fits saves the blurring (about 1 s for a
+    0.8 mm atlas) in each.
+
+    Args:
+        atlas: The atlas brain in canonical space.
+        config: The fit's settings (their ``blur_mm``; default :class:`AtlasFitConfig`).
+
+    Returns:
+        One image per level of ``config.blur_mm``.
+    """
+    config = config or AtlasFitConfig()
+    return [_blurred(atlas, sigma) for sigma in config.blur_mm]
+
+
 def _blurred(atlas: CanonicalVolume, sigma_mm: float) -> Image:
     if sigma_mm <= 0:
         return atlas.image
@@ -355,6 +373,7 @@ def fit_to_atlas(
     frame: Tensor,
     atlas: CanonicalVolume,
     config: AtlasFitConfig | None = None,
+    levels: list[Image] | None = None,
 ) -> tuple[Tensor, float]:
     """Refine a stack's frame by rigid registration of its masked voxels to an atlas (NCC).
 
@@ -367,17 +386,28 @@ def fit_to_atlas(
         frame: (4, 4) starting frame (scanner mm -> canonical mm).
         atlas: A brain of about the same age in canonical space.
         config: Levels and iterations.
+        levels: The atlas's blurred copies for ``config`` (:func:`atlas_levels`), or ``None`` to
+            make them here.
 
     Returns:
         The refined (4, 4) float64 frame and its NCC with the atlas at the finest level.
+
+    Raises:
+        ValueError: If ``levels`` does not have one image per level of ``config.blur_mm``.
     """
     config = config or AtlasFitConfig()
+    if levels is None:
+        levels = atlas_levels(atlas, config)
+    if len(levels) != len(config.blur_mm):
+        raise ValueError(
+            f"fit_to_atlas(): 'levels' must have {len(config.blur_mm)} images (one per blur "
+            f"level), got {len(levels)}"
+        )
     points, values = _mask_samples(stack, mask, config.max_points)
     start = points @ frame[:3, :3].T.double() + frame[:3, 3].double()
     params = torch.zeros(6, dtype=torch.float64, requires_grad=True)
     ncc = 0.0
-    for sigma in config.blur_mm:
-        level = _blurred(atlas, sigma)
+    for level in levels:
         optimiser = torch.optim.LBFGS(
             [params], lr=1.0, max_iter=config.iterations, line_search_fn="strong_wolfe"
         )

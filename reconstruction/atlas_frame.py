@@ -1,15 +1,19 @@
-"""The reconstructed volume brought into an atlas's frame: rigid registration with flips tested.
+"""The reconstructed volume brought into an atlas's frame: rigid registration from many starts.
 
 A learned or per-stack canonical frame is only as good as its estimate (a few degrees, a few
-millimetres, or a half turn if a brain looked the same either way). :func:`align_to_atlas`
-registers the finished volume rigidly to an atlas of about the same age, from the frame it is in
-and from that frame turned by 180 degrees about each axis, and keeps the best fit (NCC over the
-volume's brain mask) for the orientation. The origin is then put at the centroid of the volume's
-own brain mask, which is what canonical space means (``docs/conventions.md``): an atlas of a
-neighbouring age or another cohort differs in shape, and its fit pulled the centre by about 5 mm on
-sb28-moderate, where the mask's centroid does not depend on it. Everything is relabelled in that
-frame: the volume's and mask's affines and every slice pose. Nothing is resampled, so the volume's
-values are unchanged.
+millimetres, a half turn if a brain looked the same either way, or tens of degrees on a real scan
+whose stacks the model was unsure of). :func:`align_to_atlas` registers the finished volume rigidly
+to an atlas of about the same age from several starts: the frame it is in, that frame turned by 180
+degrees about each axis, and the 8 frames of the volume's own brain-mask principal axes
+(:func:`svr.models.stack_pose.mask_axis_hypotheses`; a whole reconstructed brain's axes are far
+more reliable than a stack's), so that the result does not depend on how good the start was. Each
+start is fitted coarsely; the stack-pose model, where it is confident of one of the fitted frames,
+chooses among them, the atlas's NCC otherwise; the winner is fitted finely. The origin is then put
+at the centroid of the volume's own brain mask, which is what canonical space means
+(``docs/conventions.md``): an atlas of a neighbouring age or another cohort differs in shape, and
+its fit pulled the centre by about 5 mm on sb28-moderate, where the mask's centroid does not depend
+on it. Everything is relabelled in that frame: the volume's and mask's affines and every slice
+pose. Nothing is resampled, so the volume's values are unchanged.
 """
 
 from __future__ import annotations
@@ -23,12 +27,19 @@ from torch import Tensor
 
 from svr.geometry import rotation_angle, se3_compose, so3_exp
 from svr.image import Image, voxel_to_world
-from svr.models.stack_pose import AtlasFitConfig, StackPoseNet, fit_to_atlas, refine_frames
+from svr.models.stack_pose import (
+    AtlasFitConfig,
+    StackPoseNet,
+    atlas_levels,
+    fit_to_atlas,
+    mask_axis_hypotheses,
+    refine_frames,
+)
 from svr.reconstruction.config import ReconstructionResult
 from svr.sampling.blocks import coarsen_stack
 from svr.sampling.volume import CanonicalVolume
 
-__all__ = ["FLIPS", "align_to_atlas", "atlas_transform"]
+__all__ = ["COARSE_FIT", "FLIPS", "NCC_MARGIN", "align_to_atlas", "atlas_transform"]
 
 log = logging.getLogger(__name__)
 
@@ -45,60 +56,82 @@ def _flip(axis: str) -> Tensor:
     return out
 
 
+NCC_MARGIN = 0.05
+"""Fitted starts whose NCC is this close to the best one's are left for the model to choose from."""
+
+COARSE_FIT = AtlasFitConfig(blur_mm=(4.0, 2.0), iterations=15, max_points=4000)
+"""The fit of every start: fewer iterations and a subsample of the mask, enough to rank them (a
+single 4 mm level is not: on a smooth brain, wrong frames reach a higher NCC there)."""
+
+
 def atlas_transform(
     volume: Image,
     mask: Tensor,
     atlas: CanonicalVolume,
     config: AtlasFitConfig | None = None,
     model: StackPoseNet | None = None,
-    max_fit_turn_deg: float = 15.0,
 ) -> tuple[Tensor, str, dict[str, float]]:
     """The rigid transform from a volume's frame to an atlas's canonical frame.
 
-    Without a model, each start (:data:`FLIPS`) is fitted to the atlas and the best NCC wins.
-    With a stack-pose model, the model scores the starts (the volume seen in each; the flips of
-    a young brain's smooth atlas can fit almost equally well, 0.429 and 0.429 on a GA 23 case),
-    and the atlas fit from the winner is kept if it turns it by at most ``max_fit_turn_deg``.
+    Every start (the volume's frame and its :data:`FLIPS`, then the 8 principal-axis frames of its
+    brain mask, named ``"axes0"``..``"axes7"``) is fitted to the atlas with :data:`COARSE_FIT`.
+    The fitted frames whose NCC is within :data:`NCC_MARGIN` of the best are the candidates. With
+    a stack-pose model whose best score over them is positive (it sees a brain in canonical pose
+    in one of them), the best-scored candidate wins: on young brains whose smooth atlas fits two
+    flips almost equally well (0.429 and 0.429 on a GA 23 case) the model tells them apart.
+    Otherwise (no model, or a model unsure of every candidate, as on a real scan unlike its
+    training data) the best NCC wins. The winner is then fitted with ``config``.
 
     Args:
-        volume: The volume (its world frame about the canonical one).
-        mask: Its brain mask on its grid.
+        volume: The volume (its world frame anywhere; best about the canonical one).
+        mask: Its (I, J, K) bool brain mask on its grid, at least 4 voxels.
         atlas: The atlas brain in canonical space.
-        config: The fit's settings.
-        model: A stack-pose network to choose among the flips, or ``None``.
-        max_fit_turn_deg: With a model, the largest turn the atlas fit may make.
+        config: The final fit's settings (default :class:`AtlasFitConfig`).
+        model: A stack-pose network to choose among the fitted starts, or ``None``.
 
     Returns:
-        ``(G, flip, scores)``: the (4, 4) float64 transform (volume world -> atlas canonical:
+        ``(G, start, scores)``: the (4, 4) float64 transform (volume world -> atlas canonical:
         the fitted rotation, and the translation that puts the mask's centroid at the origin),
-        the start hypothesis that won (:data:`FLIPS`) and each start's score (the NCC it reached,
-        or the model's logit).
+        the start that won, and each start's score (where the model chose: its logit for the
+        candidates and ``-inf`` for the rest; otherwise the coarse fit's NCC).
+
+    Raises:
+        ValueError: If the mask has fewer than 4 voxels.
     """
-    best, best_flip, nccs = None, "none", {}
-    if model is None:
-        for axis in FLIPS:
-            transform, ncc = fit_to_atlas(volume, mask, _flip(axis), atlas, config)
-            nccs[axis] = ncc
-            if best is None or ncc > nccs[best_flip]:
-                best, best_flip = transform, axis
-    else:
-        image, fractions = coarsen_stack(volume, mask, model.config.in_plane_mm)
-        starts = torch.stack([_flip(axis) for axis in FLIPS])
-        _, scores = refine_frames(model, image, fractions, starts, iterations=0)
-        nccs = {axis: float(score) for axis, score in zip(FLIPS, scores, strict=True)}
-        best_flip = FLIPS[int(torch.argmax(scores))]
-        start = _flip(best_flip)
-        fitted, _ = fit_to_atlas(volume, mask, start, atlas, config)
-        turn = math.degrees(rotation_angle(fitted, start))
-        best = fitted if turn <= max_fit_turn_deg else start
-        if turn > max_fit_turn_deg:
-            log.info("atlas frame: the atlas fit turned %.0f deg; kept the stacks' frame", turn)
-    assert best is not None
     idx = torch.nonzero(mask).to(torch.float64)
-    centroid = voxel_to_world(volume.affine.to(torch.float64), idx).mean(0)
+    if len(idx) < 4:
+        raise ValueError("atlas_transform(): 'mask' has fewer than 4 voxels")
+    points = voxel_to_world(volume.affine.to(torch.float64), idx)
+    names = list(FLIPS) + [f"axes{i}" for i in range(8)]
+    starts = torch.cat([torch.stack([_flip(axis) for axis in FLIPS]), mask_axis_hypotheses(points)])
+    levels = atlas_levels(atlas, COARSE_FIT)
+    fitted, nccs = [], []
+    for start in starts:
+        frame, ncc = fit_to_atlas(volume, mask, start, atlas, COARSE_FIT, levels)
+        fitted.append(frame)
+        nccs.append(ncc)
+    frames = torch.stack(fitted)
+    scores = torch.tensor(nccs, dtype=torch.float64)
+    near = scores >= scores.max() - NCC_MARGIN
+    if model is not None:
+        image, fractions = coarsen_stack(volume, mask, model.config.in_plane_mm)
+        _, logits = refine_frames(model, image, fractions, frames[near], iterations=0)
+        if float(logits.max()) > 0:
+            scores = torch.full_like(scores, -math.inf)
+            scores[near] = logits.double()
+        else:
+            log.info(
+                "atlas frame: the model is unsure of every start (best logit %.2f); chosen by NCC",
+                float(logits.max()),
+            )
+    won = int(torch.argmax(scores))
+    final = config or AtlasFitConfig()
+    reuse = levels if final.blur_mm == COARSE_FIT.blur_mm else None
+    best, _ = fit_to_atlas(volume, mask, frames[won], atlas, final, reuse)
+    centroid = points.mean(0)
     best = best.clone()
     best[:3, 3] = -best[:3, :3] @ centroid
-    return best, best_flip, nccs
+    return best, names[won], {name: float(v) for name, v in zip(names, scores, strict=True)}
 
 
 def align_to_atlas(
@@ -110,24 +143,24 @@ def align_to_atlas(
     """A reconstruction relabelled in the atlas's canonical frame (see the module docstring).
 
     Args:
-        result: A finished reconstruction (its frame roughly canonical).
+        result: A finished reconstruction (its frame best roughly canonical; any will do).
         atlas: The atlas brain in canonical space.
-        config: The fit's settings.
-        model: A stack-pose network to choose among the flips (:func:`atlas_transform`).
+        config: The final fit's settings.
+        model: A stack-pose network to choose among the fitted starts (:func:`atlas_transform`).
 
     Returns:
         The same result with the volume's, mask's and initial volume's affines and every slice
         pose premultiplied by the fitted transform.
     """
     volume = result.volume
-    transform, flip, nccs = atlas_transform(volume, result.mask.data > 0.5, atlas, config, model)
+    transform, start, scores = atlas_transform(volume, result.mask.data > 0.5, atlas, config, model)
     angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(
         "atlas frame: turned %.1f deg, shifted %.1f mm (start %s; scores %s)",
         angle,
         float(transform[:3, 3].norm()),
-        flip,
-        ", ".join(f"{k} {v:.3f}" for k, v in nccs.items()),
+        start,
+        ", ".join(f"{k} {v:.3f}" for k, v in scores.items()),
     )
 
     def moved(image: Image) -> Image:

@@ -5,7 +5,10 @@ The page shows, top to bottom:
 * orthogonal views of the initial volume (scattered-data approximation at the initial poses),
   the final volume and, when given, a reference volume resampled onto the result's grid by world
   position: the planes normal to the grid's axes (the frame's x, y and z) through the centroid
-  of the result's mask, each volume on its own grey scale (0 to its in-mask 99.5th percentile);
+  of the result's mask, each volume on its own grey scale (0 to its in-mask 99.5th percentile).
+  A volume in the canonical frame is first resampled onto a grid aligned with that frame's axes
+  (:func:`axis_aligned`), because bringing it into the atlas frame relabels its affine without
+  resampling: its views are then the atlas's sagittal (x), coronal (y) and axial (z) planes;
 * every slice's NCC with its simulation from the final volume against its number (the row of
   the transforms table), coloured by stack, excluded slices marked with a red cross;
 * the wall time of each phase and the initialisation kept for each stack;
@@ -34,10 +37,41 @@ from svr.image import Image, resample_to_grid
 from svr.reconstruction.config import ReconstructionResult
 from svr.reconstruction.convergence import verdict
 
-__all__ = ["FIGURE_SUFFIXES", "masks_figure", "qa_figure"]
+__all__ = ["FIGURE_SUFFIXES", "axis_aligned", "masks_figure", "qa_figure"]
 
 FIGURE_SUFFIXES = (".png", ".pdf")
 _AXES = ("x", "y", "z")
+
+
+def axis_aligned(image: Image, mask: Tensor) -> Image:
+    """An image resampled (trilinear) onto a grid aligned with the world axes around a mask.
+
+    The grid has the image's finest spacing.
+
+    Args:
+        image: (I, J, K) volume, its affine any rotation (voxel -> world mm).
+        mask: (I, J, K) bool mask on its grid; the grid covers its voxels' world bounding box
+            (the whole image where it is empty), with one voxel of margin.
+
+    Returns:
+        The float32 image on the new grid (affine: the spacing on the diagonal, no rotation).
+    """
+    affine = image.affine.detach().cpu().double()
+    inside = mask.detach().cpu()
+    idx = torch.nonzero(inside) if bool(inside.any()) else torch.nonzero(torch.ones_like(inside))
+    corners = idx.double()[:, None, :] + torch.tensor(
+        [[a, b, c] for a in (-0.5, 0.5) for b in (-0.5, 0.5) for c in (-0.5, 0.5)],
+        dtype=torch.float64,
+    )
+    world = corners.reshape(-1, 3) @ affine[:3, :3].T + affine[:3, 3]
+    spacing = float(affine[:3, :3].norm(dim=0).min())
+    low = world.min(dim=0).values - spacing
+    shape = tuple(int(n) for n in torch.ceil((world.max(dim=0).values + spacing - low) / spacing))
+    grid = torch.eye(4, dtype=torch.float64)
+    grid[:3, :3] *= spacing
+    grid[:3, 3] = low + spacing / 2
+    like = Image(torch.zeros(shape, dtype=torch.float32), grid.to(image.affine.device))
+    return resample_to_grid(image, like)
 
 
 def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
@@ -124,16 +158,21 @@ def qa_figure(
     if p.suffix not in FIGURE_SUFFIXES:
         raise ValueError(f"{p}: QA figures are written as .png or .pdf")
     check_output_path(p, overwrite)
-    mask = result.mask.data.detach().cpu() > 0.5
+    volumes = {"initial": result.initial_volume, "final": result.volume}
+    if reference is not None:
+        volumes["reference"] = resample_to_grid(reference, result.volume)
+    mask_image = result.mask
+    if result.slices.frame == "canonical":
+        brain = result.mask.data > 0.5
+        volumes = {name: axis_aligned(image, brain) for name, image in volumes.items()}
+        mask_image = axis_aligned(result.mask, brain)
+    mask = mask_image.data.detach().cpu() > 0.5
     if bool(mask.any()):
         where = torch.nonzero(mask).double().mean(dim=0)
     else:
         where = (torch.tensor(mask.shape, dtype=torch.float64) - 1) / 2
     centre = cast("tuple[int, int, int]", tuple(round(float(c)) for c in where))
-    volumes = {"initial": result.initial_volume, "final": result.volume}
-    if reference is not None:
-        volumes["reference"] = resample_to_grid(reference, result.volume)
-    affine = result.volume.affine.detach().cpu().double()
+    affine = volumes["final"].affine.detach().cpu().double()
     world = affine[:3, :3] @ torch.tensor(centre, dtype=torch.float64) + affine[:3, 3]
 
     panels = [1.1] + ([1.1] if result.rounds else [])

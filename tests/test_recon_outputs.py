@@ -23,7 +23,7 @@ from svr.reconstruction.outputs import (
     write_transforms,
     write_volume,
 )
-from svr.reconstruction.qa import qa_figure
+from svr.reconstruction.qa import axis_aligned, qa_figure
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 
@@ -215,6 +215,19 @@ def test_qa_figure_png_and_pdf(slices, tmp_path):
     with pytest.raises(ValueError, match=r"qa\.jpg: QA figures are written as \.png or \.pdf"):
         qa_figure(result, tmp_path / "qa.jpg")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["qa.pdf", "qa.png"]
+    # A canonical-frame result whose affine was relabelled by a turn is drawn in world-aligned
+    # planes.
+    from dataclasses import replace
+
+    turn = vector_to_se3(torch.tensor([0.2, 0.4, -0.3, 1.0, 2.0, 3.0], dtype=F64))
+    canonical = replace(
+        result,
+        slices=moved(slices),
+        volume=Image(result.volume.data, turn @ result.volume.affine),
+        mask=Image(result.mask.data, turn @ result.mask.affine),
+        initial_volume=Image(result.initial_volume.data, turn @ result.initial_volume.affine),
+    )
+    assert qa_figure(canonical, tmp_path / "canonical.png").stat().st_size > 0
 
 
 def test_qa_text_carries_the_initialisation_notes(slices):
@@ -230,6 +243,38 @@ def test_qa_text_carries_the_initialisation_notes(slices):
     assert "stack (cnn unsure (support 20%, 0 flipped))" in text
     assert "cnn (support 90%, 3 flipped)" in text
     assert "(" not in _text(make_result(slices)).split("initialisation per stack")[1].split("\n")[1]
+
+
+def test_axis_aligned_resamples_by_world_position_onto_an_unrotated_grid():
+    # A linear function of world position on a turned grid: trilinear sampling is exact for it.
+    n, spacing = 20, 2.0
+    affine = torch.eye(4, dtype=F64)
+    affine[:3, :3] = so3_exp(torch.tensor([0.3, -0.5, 0.8], dtype=F64)) * spacing
+    affine[:3, 3] = torch.tensor([4.0, -30.0, 7.0], dtype=F64)
+    idx = torch.stack(torch.meshgrid(*[torch.arange(n)] * 3, indexing="ij"), -1).to(F64)
+    world = idx @ affine[:3, :3].T + affine[:3, 3]
+    slope, offset = torch.tensor([0.7, -1.3, 0.4], dtype=F64), 100.0
+    image = Image((world @ slope + offset).float(), affine)
+    mask = torch.zeros(n, n, n, dtype=torch.bool)
+    mask[6:14, 5:15, 7:13] = True
+    aligned = axis_aligned(image, mask)
+    assert torch.allclose(aligned.affine[:3, :3], spacing * torch.eye(3, dtype=F64))
+    grid = torch.stack(torch.meshgrid(*[torch.arange(k) for k in aligned.shape], indexing="ij"), -1)
+    points = grid.to(F64) @ aligned.affine[:3, :3].T + aligned.affine[:3, 3]
+    # Every mask voxel's world centre lies on the new grid, with a voxel to spare.
+    inside = world[mask]
+    low, high = points.reshape(-1, 3).min(0).values, points.reshape(-1, 3).max(0).values
+    assert bool((inside >= low + spacing / 2).all() and (inside <= high - spacing / 2).all())
+    # Where the new grid's points are well inside the source image, the values are f(world).
+    back = (points - affine[:3, 3]) @ torch.linalg.inv(affine[:3, :3]).T
+    well_inside = ((back > 1.0) & (back < n - 2.0)).all(-1)
+    assert int(well_inside.sum()) > 1000
+    torch.testing.assert_close(
+        aligned.data.double()[well_inside],
+        (points @ slope + offset)[well_inside],
+        atol=2e-3,
+        rtol=0,
+    )
 
 
 def test_resample_to_grid_by_world_position():

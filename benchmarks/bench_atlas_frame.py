@@ -1,0 +1,199 @@
+"""How close an atlas of a neighbouring age can bring a volume to its true atlas frame.
+
+``--registration cnn`` ends by a rigid fit of the finished volume to an atlas of about the fetus's
+age (:func:`svr.reconstruction.atlas_frame.atlas_transform`). The benchmarks never give it the
+atlas the case was simulated from, but a neighbouring age (``--atlas-offset 1``). This measures
+what that choice alone costs, independent of the learned poses:
+
+* **atlas against atlas**: each atlas of the set fitted rigidly to its neighbours from the
+  identity (both are in canonical space): the angle between the two ages' canonical frames as
+  the fit sees them;
+* **the case's volume at its true frame**: each ``cnn`` output of a ``bench_reconstruct.py`` run
+  relabelled into its true atlas frame (the robust mean of ``T_i o P_i^-1`` over its slices, as
+  :func:`bench_common.output_frame_error`), then fitted to the atlases of neighbouring ages from
+  the identity: how far the fit moves a volume that is already right. The pipeline cannot end
+  closer to the true frame than this on that atlas. The brain mask of a volume is where it is
+  not zero (``reconstruct`` writes it through its coverage mask);
+* **from any start**: the same volume turned by ``--turns`` degrees about random axes, then
+  brought into the frame of the neighbouring-age atlas (``--atlas-offset``) by
+  :func:`svr.reconstruction.atlas_frame.atlas_transform` with the stack-pose model (``--model``)
+  and without: the error against the true frame, and the time it took. A real scan's stacks can
+  leave the volume tens of degrees from canonical when the model is unsure of them.
+
+Run from the repository root (after ``bench_reconstruct.py ... --registrations cnn --out RUN``)::
+
+    python benchmarks/bench_atlas_frame.py --runs RUN [--cases sb24-large ...]
+        [--simulated ga23-traj0.5-turn ...] [--threads 1] [--results PATH.md]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_slice_poses
+
+from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp, vector_to_se3
+from svr.geometry.averaging import robust_mean_pose
+from svr.image import Image, load_nifti
+from svr.models.stack_pose import fit_to_atlas, load_stack_pose_model
+from svr.pose_io import read_pose_table
+from svr.reconstruction.atlas_frame import atlas_transform
+from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
+
+ROOT = Path(__file__).resolve().parents[1]
+IDENTITY = torch.eye(4, dtype=torch.float64)
+
+
+def degrees(transform: torch.Tensor) -> float:
+    """Rotation angle of a (4, 4) transform, degrees."""
+    return math.degrees(rotation_angle(transform, IDENTITY))
+
+
+def true_frame_correction(case: Path, transforms: Path) -> torch.Tensor:
+    """(4, 4) transform from an output's canonical frame to the case's true atlas frame."""
+    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
+    centre = torch.tensor(info["atlas_centre_mm"], dtype=torch.float64)
+    truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
+    by_name = {Path(s["file"]).name: s["slices"] for s in truth}
+    table = read_pose_table(transforms)
+    per_file = {
+        name: true_slice_poses(by_name[Path(name).name], "atlas", centre)
+        for name in dict.fromkeys(table.files)
+    }
+    true = torch.stack(
+        [
+            per_file[f][int(k)]
+            for f, k in zip(table.files, table.slice_indices.tolist(), strict=True)
+        ]
+    )
+    return robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=Path, required=True, help="a bench_reconstruct.py --out")
+    parser.add_argument("--cases", nargs="*", default=["sb24-large", "sb28-moderate"])
+    parser.add_argument("--simulated", nargs="*", default=[])
+    parser.add_argument("--cases-dir", type=Path, default=ROOT / "runs" / "simulated-cases")
+    parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
+    parser.add_argument("--atlas", type=Path, default=ATLAS)
+    parser.add_argument("--turns", type=float, nargs="*", default=[0.0, 30.0, 60.0, 120.0, 180.0])
+    parser.add_argument("--atlas-offset", type=float, default=1.0)
+    parser.add_argument("--model", default="stack-pose")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--results", type=Path, default=None)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    pairs = atlas_volume_paths(args.atlas)
+    names = [v.parent.name for v, _ in pairs]
+    ages = [float(name[2:4]) for name in names]
+    atlases: dict[int, CanonicalVolume] = {}
+
+    def atlas(index: int) -> CanonicalVolume:
+        if index not in atlases:
+            atlases[index] = load_canonical_volume(*pairs[index])
+        return atlases[index]
+
+    lines = [
+        "## Atlas against atlas (each fitted to the next age from the identity)",
+        "",
+        "| atlas | fitted to | turn (deg) | shift (mm) | NCC |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for i in range(len(pairs) - 1):
+        j = i + 1
+        moving = atlas(i)
+        fitted, ncc = fit_to_atlas(moving.image, moving.mask, IDENTITY, atlas(j))
+        lines.append(
+            f"| {names[i]} | {names[j]} | {degrees(fitted):.1f} | "
+            f"{float(fitted[:3, 3].norm()):.1f} | {ncc:.3f} |"
+        )
+        print(lines[-1], flush=True)
+
+    lines += [
+        "",
+        "## The case's cnn output placed at its true frame, fitted to neighbouring ages",
+        "",
+        "| case | output frame error | atlas | fit from the true frame turns (deg) | NCC |",
+        "|---|---|---|---:|---:|",
+    ]
+    folders = [args.data / c for c in args.cases] + [args.cases_dir / c for c in args.simulated]
+    for case in folders:
+        stem = args.runs / f"{case.name}-cnn-adaptive"
+        volume = load_nifti(Path(f"{stem}.nii.gz"))
+        correction = true_frame_correction(case, Path(f"{stem}.csv"))
+        error = degrees(correction)
+        placed = Image(volume.data, correction.to(volume.affine) @ volume.affine)
+        data = volume.data.float()
+        mask = data != 0  # the coverage mask the volume was written through
+        age = case_age(case)
+        near = sorted(
+            (i for i, a in enumerate(ages) if abs(a - age) <= 1.0),
+            key=lambda i: (ages[i], names[i]),
+        )
+        for i in near:
+            fitted, ncc = fit_to_atlas(placed, mask, IDENTITY, atlas(i))
+            own = " (the case's own)" if ages[i] == age else ""
+            lines.append(
+                f"| {case.name} | {error:.1f} deg | {names[i]}{own} | {degrees(fitted):.1f} | "
+                f"{ncc:.3f} |"
+            )
+            print(lines[-1], flush=True)
+    if args.turns:
+        model = load_stack_pose_model(args.model)
+        gen = torch.Generator().manual_seed(args.seed)
+        lines += [
+            "",
+            f"## From any start: the volume turned, then atlas_transform (atlas offset "
+            f"{args.atlas_offset:+g} weeks)",
+            "",
+            "| case | turn (deg) | error with the model (deg) | start | error without (deg) "
+            "| time with the model (s) |",
+            "|---|---:|---:|---|---:|---:|",
+        ]
+        for case in folders:
+            stem = args.runs / f"{case.name}-cnn-adaptive"
+            volume = load_nifti(Path(f"{stem}.nii.gz"))
+            correction = true_frame_correction(case, Path(f"{stem}.csv"))
+            data = volume.data.float()
+            mask = data != 0  # the coverage mask the volume was written through
+            atlas_of = load_canonical_volume(*neighbour_atlas(case_age(case), args.atlas_offset))
+            for turn in args.turns:
+                axis = torch.nn.functional.normalize(
+                    torch.randn(3, generator=gen, dtype=torch.float64), dim=0
+                )
+                moved_by = IDENTITY.clone()
+                moved_by[:3, :3] = so3_exp(axis * math.radians(turn))
+                turned = Image(volume.data, moved_by.to(volume.affine) @ volume.affine)
+                to_true = se3_compose(correction, se3_inverse(moved_by))
+                began = time.perf_counter()
+                with_model, start, _ = atlas_transform(turned, mask, atlas_of, model=model)
+                seconds = time.perf_counter() - began
+                without, _, _ = atlas_transform(turned, mask, atlas_of)
+                lines.append(
+                    f"| {case.name} | {turn:g} | "
+                    f"{degrees(se3_compose(with_model, se3_inverse(to_true))):.1f} | {start} | "
+                    f"{degrees(se3_compose(without, se3_inverse(to_true))):.1f} | {seconds:.1f} |"
+                )
+                print(lines[-1], flush=True)
+    text = "\n".join(lines)
+    if args.results is not None:
+        command = "python benchmarks/bench_atlas_frame.py " + " ".join(sys.argv[1:])
+        args.results.write_text(
+            "# How close a neighbouring-age atlas brings a volume to its true frame\n\n"
+            f"Command: `{command}`\n\n{text}\n",
+            encoding="utf-8",
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
