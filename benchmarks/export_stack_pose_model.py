@@ -51,6 +51,14 @@ def main() -> int:
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("models/pretrained/stack_pose"))
     parser.add_argument("--minutes", default="110 minutes", help="training time, for the card")
+    parser.add_argument(
+        "--recipe",
+        action="append",
+        default=None,
+        metavar="COMMAND",
+        help="a user-facing command of the recipe that made the model, in order (repeat for a "
+        "fine-tuned model); default: the single-run recipe",
+    )
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args()
     source = args.checkpoint
@@ -63,17 +71,19 @@ def main() -> int:
     config = checkpoint.config
     assert checkpoint.training_state is not None
     step = int(checkpoint.training_state["step"])
+    recipe = args.recipe or [
+        "svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 --motion-path "
+        "svort_fetal_motion_trajectories.npz --output-dir RUN --minutes 110"
+    ]
+    data = config.get("data", {})
     provenance = {
-        "training_command": config.get(
-            "command",
-            "svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 --motion-path "
-            "svort_fetal_motion_trajectories.npz --output-dir RUN --minutes 110",
-        ),
+        # The run's own command names the machine's paths; the recipe names the user's.
+        "training_command": recipe[0] if len(recipe) == 1 else recipe,
         "data": {
             "atlas": "sb-fidon2021 (Fidon et al. 2021, zenodo.org/record/5524312, CC0 1.0)",
             "hold_out_weeks": [24, 28, 32],
             "motion": "SVoRT fetal head-motion trajectories (Apache-2.0)",
-            **({"run": config["data"]} if "data" in config else {}),
+            **({"phantoms": data["phantoms"]} if data.get("phantoms") else {}),
         },
         "step": step,
         "train": config.get("train"),

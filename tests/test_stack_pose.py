@@ -597,3 +597,30 @@ def test_the_shipped_model_loads_and_estimates() -> None:
     estimate = estimate_stack_pose(model, case.stacks[0].image, case.stacks[0].mask.data)
     assert estimate.method == "learned"
     assert torch.isfinite(estimate.pose).all()
+
+
+def test_training_phantoms_never_use_the_benchmarks_phantom() -> None:
+    from svr.cli.train_stack_pose import phantom_sources
+
+    assert phantom_sources(0) == []
+    for count in (1, 2, 5):
+        sources = phantom_sources(count)
+        assert len(sources) == count
+        assert sorted(seed for _, seed in sources) == list(range(1, count + 1))
+        assert all(22.0 <= weeks <= 36.0 for weeks, _ in sources)
+
+
+def test_the_training_command_adds_phantoms(tmp_path) -> None:
+    from svr.cli import main
+    from svr.models.checkpoint import latest_checkpoint, load_checkpoint
+
+    _one_age_atlas(tmp_path)
+    code = main(
+        [
+            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+            str(tmp_path / "run"), "--steps", "1", "--width", "4", "--phantoms", "1", "--quiet",
+        ]
+    )  # fmt: skip
+    assert code == 0
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data"]["phantoms"] == [{"weeks": 29.0, "seed": 1}]

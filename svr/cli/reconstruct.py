@@ -224,7 +224,8 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         "example GA28/srr.nii.gz of the Fidon 2021 spina bifida atlas, zenodo.org/record/5524312, "
         "or the CRL fetal atlas), with --atlas-mask. Each stack's pose is then chosen by "
         "agreement with it and fitted to it, and the output is brought into its frame (rigid "
-        "registration, 180-degree flips tested)",
+        "registration from 12 starts: the volume's frame, its 180-degree flips and its brain "
+        "mask's principal axes)",
     )
     settings.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
     settings.add_argument(

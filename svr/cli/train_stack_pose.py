@@ -82,6 +82,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="fetal motion trajectories (.npz); without it, random walks of a few degrees",
     )
     p.add_argument(
+        "--phantoms",
+        type=non_negative_int,
+        default=0,
+        help="also train on N procedural phantom brains (svr.sampling.phantom; seeds 1..N, ages "
+        "spread over 22-36 weeks): anatomy unlike the atlas's. Seed 0, the benchmarks' phantom, "
+        "is never used",
+    )
+    p.add_argument(
         "--volume-downsample",
         type=positive_int,
         default=2,
@@ -142,6 +150,22 @@ _OPTIONS = {
 (:func:`~svr.cli.common.option_errors`)."""
 
 
+def phantom_sources(count: int) -> list[tuple[float, int]]:
+    """The (gestational age in weeks, seed) of ``--phantoms``' training phantoms.
+
+    Seeds 1..count (seed 0 is the benchmarks' test phantom); ages spread evenly over 22-36 weeks.
+
+    Args:
+        count: How many, >= 0.
+
+    Returns:
+        ``count`` pairs.
+    """
+    if count == 1:
+        return [(29.0, 1)]
+    return [(22.0 + 14.0 * i / (count - 1), i + 1) for i in range(count)]
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
@@ -151,9 +175,11 @@ def run(args: argparse.Namespace) -> int:
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
     from svr.representation_registry import representations_by_cli_name
     from svr.sampling.motion import load_trajectories
+    from svr.sampling.phantom import gestational_age_config, make_phantom
     from svr.sampling.volume import (
         VolumeSourceError,
         atlas_volume_paths,
+        canonicalize,
         downsample_volume,
         load_canonical_volume,
     )
@@ -169,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
     volumes = [
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
+    phantoms = phantom_sources(args.phantoms)
+    for age, seed in phantoms:
+        image, mask = make_phantom(gestational_age_config(age, seed=seed))
+        volumes.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
     asked = {
         "head": args.head,
@@ -217,6 +247,7 @@ def run(args: argparse.Namespace) -> int:
             "data": {
                 "volumes": [str(v) for v, _ in pairs],
                 "hold_out_weeks": list(args.hold_out),
+                "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
                 "motion": args.motion_path,
                 "volume_downsample": args.volume_downsample,
             },
