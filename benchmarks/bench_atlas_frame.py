@@ -10,7 +10,7 @@ what that choice alone costs, independent of the learned poses:
   the fit sees them;
 * **the case's volume at its true frame**: each ``cnn`` output of a ``bench_reconstruct.py`` run
   relabelled into its true atlas frame (the robust mean of ``T_i o P_i^-1`` over its slices, as
-  :func:`bench_common.output_frame_error`), then fitted to the atlases of neighbouring ages from
+  :func:`bench_common.true_frame_correction`), then fitted to the atlases of neighbouring ages from
   the identity: how far the fit moves a volume that is already right. The pipeline cannot end
   closer to the true frame than this on that atlas. The brain mask of a volume is where it is
   not zero (``reconstruct`` writes it through its coverage mask);
@@ -29,20 +29,17 @@ Run from the repository root (after ``bench_reconstruct.py ... --registrations c
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
 from pathlib import Path
 
 import torch
-from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_slice_poses
+from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_frame_correction
 
-from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp, vector_to_se3
-from svr.geometry.averaging import robust_mean_pose
+from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, load_nifti
 from svr.models.stack_pose import fit_to_atlas, load_stack_pose_model
-from svr.pose_io import read_pose_table
 from svr.reconstruction.atlas_frame import atlas_transform
 from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
 
@@ -53,26 +50,6 @@ IDENTITY = torch.eye(4, dtype=torch.float64)
 def degrees(transform: torch.Tensor) -> float:
     """Rotation angle of a (4, 4) transform, degrees."""
     return math.degrees(rotation_angle(transform, IDENTITY))
-
-
-def true_frame_correction(case: Path, transforms: Path) -> torch.Tensor:
-    """(4, 4) transform from an output's canonical frame to the case's true atlas frame."""
-    info = json.loads((case / "case.json").read_text(encoding="utf-8"))
-    centre = torch.tensor(info["atlas_centre_mm"], dtype=torch.float64)
-    truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
-    by_name = {Path(s["file"]).name: s["slices"] for s in truth}
-    table = read_pose_table(transforms)
-    per_file = {
-        name: true_slice_poses(by_name[Path(name).name], "atlas", centre)
-        for name in dict.fromkeys(table.files)
-    }
-    true = torch.stack(
-        [
-            per_file[f][int(k)]
-            for f, k in zip(table.files, table.slice_indices.tolist(), strict=True)
-        ]
-    )
-    return robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
 
 
 def main() -> int:

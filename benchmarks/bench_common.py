@@ -217,15 +217,14 @@ def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
     return out
 
 
-def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
-    """How far a canonical-frame output is from the true atlas frame: degrees and mm.
+def true_frame_correction(case: Path, transforms: Path) -> torch.Tensor:
+    """(4, 4) float64 transform from a canonical-frame output's frame to the true atlas frame.
 
     The robust mean over the transforms table's slices of ``T_i o P_i^-1``, with ``T_i`` the
     slice's true canonical pose (``truth_slices.json``, atlas frame minus the atlas centre) and
-    ``P_i`` its final pose; its rotation angle and its translation (at the canonical origin, the
-    brain's centre).
+    ``P_i`` its final pose.
     """
-    from svr.geometry import rotation_angle, se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry import se3_compose, se3_inverse, vector_to_se3
     from svr.geometry.averaging import robust_mean_pose
     from svr.pose_io import read_pose_table
 
@@ -244,6 +243,17 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
             for f, k in zip(table.files, table.slice_indices.tolist(), strict=True)
         ]
     )
-    mean = robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
+    return robust_mean_pose(se3_compose(true, se3_inverse(vector_to_se3(table.poses))))
+
+
+def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
+    """How far a canonical-frame output is from the true atlas frame: degrees and mm.
+
+    The rotation angle of :func:`true_frame_correction` and its translation (at the canonical
+    origin, the brain's centre).
+    """
+    from svr.geometry import rotation_angle
+
+    mean = true_frame_correction(case, transforms)
     turn = math.degrees(rotation_angle(mean, torch.eye(4, dtype=mean.dtype)))
     return turn, float(mean[:3, 3].norm())
