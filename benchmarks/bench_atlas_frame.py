@@ -16,8 +16,8 @@ what that choice alone costs, independent of the learned poses:
   not zero (``reconstruct`` writes it through its coverage mask);
 * **from any start**: the same volume turned by ``--turns`` degrees about random axes, then
   brought into the frame of the neighbouring-age atlas (``--atlas-offset``) by
-  :func:`svr.reconstruction.atlas_frame.atlas_transform` with the stack-pose model (``--model``)
-  and without: the error against the true frame, and the time it took. A real scan's stacks can
+  :func:`svr.reconstruction.atlas_frame.atlas_transform`: the error against the true frame, and
+  the time it took. A real scan's stacks can
   leave the volume tens of degrees from canonical when the model is unsure of them.
 
 Run from the repository root (after ``bench_reconstruct.py ... --registrations cnn --out RUN``)::
@@ -39,7 +39,7 @@ from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_frame_co
 
 from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, load_nifti
-from svr.models.stack_pose import fit_to_atlas, load_stack_pose_model
+from svr.models.stack_pose import fit_to_atlas
 from svr.reconstruction.atlas_frame import atlas_transform
 from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
 
@@ -62,7 +62,6 @@ def main() -> int:
     parser.add_argument("--atlas", type=Path, default=ATLAS)
     parser.add_argument("--turns", type=float, nargs="*", default=[0.0, 30.0, 60.0, 120.0, 180.0])
     parser.add_argument("--atlas-offset", type=float, default=1.0)
-    parser.add_argument("--model", default="stack-pose")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--results", type=Path, default=None)
@@ -125,16 +124,14 @@ def main() -> int:
             )
             print(lines[-1], flush=True)
     if args.turns:
-        model = load_stack_pose_model(args.model)
         gen = torch.Generator().manual_seed(args.seed)
         lines += [
             "",
             f"## From any start: the volume turned, then atlas_transform (atlas offset "
             f"{args.atlas_offset:+g} weeks)",
             "",
-            "| case | turn (deg) | error with the model (deg) | start | error without (deg) "
-            "| time with the model (s) |",
-            "|---|---:|---:|---|---:|---:|",
+            "| case | turn (deg) | error (deg) | start | time (s) |",
+            "|---|---:|---:|---|---:|",
         ]
         for case in folders:
             stem = args.runs / f"{case.name}-cnn-adaptive"
@@ -152,13 +149,12 @@ def main() -> int:
                 turned = Image(volume.data, moved_by.to(volume.affine) @ volume.affine)
                 to_true = se3_compose(correction, se3_inverse(moved_by))
                 began = time.perf_counter()
-                with_model, start, _ = atlas_transform(turned, mask, atlas_of, model=model)
+                found, start, _ = atlas_transform(turned, mask, atlas_of)
                 seconds = time.perf_counter() - began
-                without, _, _ = atlas_transform(turned, mask, atlas_of)
                 lines.append(
                     f"| {case.name} | {turn:g} | "
-                    f"{degrees(se3_compose(with_model, se3_inverse(to_true))):.1f} | {start} | "
-                    f"{degrees(se3_compose(without, se3_inverse(to_true))):.1f} | {seconds:.1f} |"
+                    f"{degrees(se3_compose(found, se3_inverse(to_true))):.1f} | {start} | "
+                    f"{seconds:.1f} |"
                 )
                 print(lines[-1], flush=True)
     text = "\n".join(lines)

@@ -7,8 +7,9 @@ to an atlas of about the same age from several starts: the frame it is in, that 
 degrees about each axis, and the 8 frames of the volume's own brain-mask principal axes
 (:func:`svr.models.stack_pose.mask_axis_hypotheses`; a whole reconstructed brain's axes are far
 more reliable than a stack's), so that the result does not depend on how good the start was. Each
-start is fitted coarsely; the stack-pose model, where it is confident of one of the fitted frames,
-chooses among them, the atlas's NCC otherwise; the winner is fitted finely. The origin is then put
+start is fitted coarsely, the best NCC wins and is fitted finely. (The stack-pose model does not
+choose: on the real clinical scan it was confident of the frame turned by 180 degrees about z,
+which the atlas's NCC ranked 0.004 below the right one.) The origin is then put
 at the centroid of the volume's own brain mask, which is what canonical space means
 (``docs/conventions.md``): an atlas of a neighbouring age or another cohort differs in shape, and
 its fit pulled the centre by about 5 mm on sb28-moderate, where the mask's centroid does not depend
@@ -29,17 +30,14 @@ from svr.geometry import rotation_angle, se3_compose, so3_exp
 from svr.image import Image, voxel_to_world
 from svr.models.stack_pose import (
     AtlasFitConfig,
-    StackPoseNet,
     atlas_levels,
     fit_to_atlas,
     mask_axis_hypotheses,
-    refine_frames,
 )
 from svr.reconstruction.config import ReconstructionResult
-from svr.sampling.blocks import coarsen_stack
 from svr.sampling.volume import CanonicalVolume
 
-__all__ = ["COARSE_FIT", "FLIPS", "NCC_MARGIN", "align_to_atlas", "atlas_transform"]
+__all__ = ["COARSE_FIT", "FLIPS", "align_to_atlas", "atlas_transform"]
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +54,6 @@ def _flip(axis: str) -> Tensor:
     return out
 
 
-NCC_MARGIN = 0.05
-"""Fitted starts whose NCC is this close to the best one's are left for the model to choose from."""
-
 COARSE_FIT = AtlasFitConfig(blur_mm=(4.0, 2.0), iterations=15, max_points=4000)
 """The fit of every start: fewer iterations and a subsample of the mask, enough to rank them (a
 single 4 mm level is not: on a smooth brain, wrong frames reach a higher NCC there)."""
@@ -69,31 +64,23 @@ def atlas_transform(
     mask: Tensor,
     atlas: CanonicalVolume,
     config: AtlasFitConfig | None = None,
-    model: StackPoseNet | None = None,
 ) -> tuple[Tensor, str, dict[str, float]]:
     """The rigid transform from a volume's frame to an atlas's canonical frame.
 
     Every start (the volume's frame and its :data:`FLIPS`, then the 8 principal-axis frames of its
     brain mask, named ``"axes0"``..``"axes7"``) is fitted to the atlas with :data:`COARSE_FIT`.
-    The fitted frames whose NCC is within :data:`NCC_MARGIN` of the best are the candidates. With
-    a stack-pose model whose best score over them is positive (it sees a brain in canonical pose
-    in one of them), the best-scored candidate wins: on young brains whose smooth atlas fits two
-    flips almost equally well (0.429 and 0.429 on a GA 23 case) the model tells them apart.
-    Otherwise (no model, or a model unsure of every candidate, as on a real scan unlike its
-    training data) the best NCC wins. The winner is then fitted with ``config``.
+    The best NCC wins and is fitted again with ``config``.
 
     Args:
         volume: The volume (its world frame anywhere; best about the canonical one).
         mask: Its (I, J, K) bool brain mask on its grid, at least 4 voxels.
         atlas: The atlas brain in canonical space.
         config: The final fit's settings (default :class:`AtlasFitConfig`).
-        model: A stack-pose network to choose among the fitted starts, or ``None``.
 
     Returns:
         ``(G, start, scores)``: the (4, 4) float64 transform (volume world -> atlas canonical:
         the fitted rotation, and the translation that puts the mask's centroid at the origin),
-        the start that won, and each start's score (where the model chose: its logit for the
-        candidates and ``-inf`` for the rest; otherwise the coarse fit's NCC).
+        the start that won, and each start's NCC after the coarse fit.
 
     Raises:
         ValueError: If the mask has fewer than 4 voxels.
@@ -112,18 +99,6 @@ def atlas_transform(
         nccs.append(ncc)
     frames = torch.stack(fitted)
     scores = torch.tensor(nccs, dtype=torch.float64)
-    near = scores >= scores.max() - NCC_MARGIN
-    if model is not None:
-        image, fractions = coarsen_stack(volume, mask, model.config.in_plane_mm)
-        _, logits = refine_frames(model, image, fractions, frames[near], iterations=0)
-        if float(logits.max()) > 0:
-            scores = torch.full_like(scores, -math.inf)
-            scores[near] = logits.double()
-        else:
-            log.info(
-                "atlas frame: the model is unsure of every start (best logit %.2f); chosen by NCC",
-                float(logits.max()),
-            )
     won = int(torch.argmax(scores))
     final = config or AtlasFitConfig()
     reuse = levels if final.blur_mm == COARSE_FIT.blur_mm else None
@@ -138,7 +113,6 @@ def align_to_atlas(
     result: ReconstructionResult,
     atlas: CanonicalVolume,
     config: AtlasFitConfig | None = None,
-    model: StackPoseNet | None = None,
 ) -> ReconstructionResult:
     """A reconstruction relabelled in the atlas's canonical frame (see the module docstring).
 
@@ -146,14 +120,13 @@ def align_to_atlas(
         result: A finished reconstruction (its frame best roughly canonical; any will do).
         atlas: The atlas brain in canonical space.
         config: The final fit's settings.
-        model: A stack-pose network to choose among the fitted starts (:func:`atlas_transform`).
 
     Returns:
         The same result with the volume's, mask's and initial volume's affines and every slice
         pose premultiplied by the fitted transform.
     """
     volume = result.volume
-    transform, start, scores = atlas_transform(volume, result.mask.data > 0.5, atlas, config, model)
+    transform, start, scores = atlas_transform(volume, result.mask.data > 0.5, atlas, config)
     angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(
         "atlas frame: turned %.1f deg, shifted %.1f mm (start %s; scores %s)",

@@ -234,9 +234,7 @@ def reconstruct(
         result = dataclasses.replace(result, initialisation_notes=notes)
     if atlas is not None and config.registration == "cnn":
         with timer.phase("atlas frame"):
-            result = align_to_atlas(
-                result, atlas, model=model if isinstance(model, StackPoseNet) else None
-            )
+            result = align_to_atlas(result, atlas)
     return result
 
 
