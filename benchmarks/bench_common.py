@@ -97,7 +97,7 @@ def reconstruct_default(stacks: list, registration: str, model=None):
     )
 
 
-def neighbour_atlas(age: float, offset: float = 1.0) -> tuple[Path, Path]:
+def neighbour_atlas(age: float, offset: float = 1.0, atlas: Path = ATLAS) -> tuple[Path, Path]:
     """``(srr.nii.gz, mask.nii.gz)`` of the atlas age nearest ``age + offset`` other than ``age``.
 
     A case simulated from one atlas age is placed with a neighbouring age, as a user would use an
@@ -105,7 +105,7 @@ def neighbour_atlas(age: float, offset: float = 1.0) -> tuple[Path, Path]:
     """
     from svr.sampling.volume import atlas_volume_paths
 
-    pairs = atlas_volume_paths(ATLAS)
+    pairs = atlas_volume_paths(atlas)
     ages = [float(v.parent.name[2:4]) for v, _ in pairs]
     target = age + offset
     index = min(

@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import ATLAS, MOTION, SHARED, true_slice_poses
+from bench_common import ATLAS, MOTION, SHARED, neighbour_atlas, true_slice_poses
 
 from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import load_nifti, voxel_to_world
@@ -215,15 +215,13 @@ def main() -> int:
     model = load_stack_pose_model(args.model)
     trajectories = load_trajectories(args.motion)
     stacks = held_out_stacks(args, trajectories) + bench_stacks(args)
-    atlases: dict[float, CanonicalVolume] = {}
-    available = sorted({float(p.parent.name[2:4]) for p, _ in atlas_volume_paths(args.atlas)})
+    atlases: dict[tuple[Path, Path], CanonicalVolume] = {}
 
     def atlas_for(age: float) -> CanonicalVolume:
-        target = age + args.atlas_age_offset
-        near = min((a for a in available if a != age), key=lambda a: (abs(a - target), a))
-        if near not in atlases:
-            atlases[near] = load_canonical_volume(*atlas_volume_paths(args.atlas, only=(near,))[0])
-        return atlases[near]
+        paths = neighbour_atlas(age, args.atlas_age_offset, args.atlas)
+        if paths not in atlases:
+            atlases[paths] = load_canonical_volume(*paths)
+        return atlases[paths]
 
     rows = []
     for item in stacks:

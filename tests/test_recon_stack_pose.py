@@ -106,3 +106,20 @@ def test_atlas_transform_recovers_the_frame_from_any_start(rotvec) -> None:
     residual = se3_compose(transform, turn)  # should be the identity
     assert _angle_deg(residual, torch.eye(4, dtype=F64)) < 1.0
     assert float(residual[:3, 3].norm()) < 1.0
+
+
+def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None:
+    from svr.models.stack_pose import AtlasFitConfig, atlas_levels, fit_to_atlas
+
+    _volume, _mask, atlas = _brain()
+    turn = torch.eye(4, dtype=F64)
+    turn[:3, :3] = so3_exp(torch.tensor([0.1, -0.05, 0.08], dtype=F64))
+    moved = Image(atlas.image.data, turn @ atlas.image.affine)
+    config = AtlasFitConfig(iterations=10, max_points=2000)
+    levels = atlas_levels(atlas, config)
+    given = fit_to_atlas(moved, atlas.mask, torch.eye(4, dtype=F64), atlas, config, levels)
+    made = fit_to_atlas(moved, atlas.mask, torch.eye(4, dtype=F64), atlas, config)
+    torch.testing.assert_close(given[0], made[0])
+    assert given[1] == made[1]
+    with pytest.raises(ValueError, match="'levels' must have 2 images"):
+        fit_to_atlas(moved, atlas.mask, torch.eye(4, dtype=F64), atlas, config, levels[:1])
