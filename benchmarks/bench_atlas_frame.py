@@ -139,7 +139,9 @@ def main() -> int:
             correction = true_frame_correction(case, Path(f"{stem}.csv"))
             data = volume.data.float()
             mask = data != 0  # the coverage mask the volume was written through
-            atlas_of = load_canonical_volume(*neighbour_atlas(case_age(case), args.atlas_offset, args.atlas))
+            atlas_of = load_canonical_volume(
+                *neighbour_atlas(case_age(case), args.atlas_offset, args.atlas)
+            )
             for turn in args.turns:
                 axis = torch.nn.functional.normalize(
                     torch.randn(3, generator=gen, dtype=torch.float64), dim=0
