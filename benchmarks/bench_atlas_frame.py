@@ -98,8 +98,9 @@ def main() -> int:
         "",
         "## The case's cnn output placed at its true frame, fitted to neighbouring ages",
         "",
-        "| case | output frame error | atlas | fit from the true frame turns (deg) | NCC |",
-        "|---|---|---|---:|---:|",
+        "| case | output frame error | atlas | fit from the true frame turns (deg) | "
+        "and shifts (mm) | NCC |",
+        "|---|---|---|---:|---:|---:|",
     ]
     folders = [args.data / c for c in args.cases] + [args.cases_dir / c for c in args.simulated]
     for case in folders:
@@ -107,6 +108,7 @@ def main() -> int:
         volume = load_nifti(Path(f"{stem}.nii.gz"))
         correction = true_frame_correction(case, Path(f"{stem}.csv"))
         error = degrees(correction)
+        shift = float(correction[:3, 3].norm())
         placed = Image(volume.data, correction.to(volume.affine) @ volume.affine)
         data = volume.data.float()
         mask = data != 0  # the coverage mask the volume was written through
@@ -119,8 +121,8 @@ def main() -> int:
             fitted, ncc = fit_to_atlas(placed, mask, IDENTITY, atlas(i))
             own = " (the case's own)" if ages[i] == age else ""
             lines.append(
-                f"| {case.name} | {error:.1f} deg | {names[i]}{own} | {degrees(fitted):.1f} | "
-                f"{ncc:.3f} |"
+                f"| {case.name} | {error:.1f} deg / {shift:.1f} mm | {names[i]}{own} | "
+                f"{degrees(fitted):.1f} | {float(fitted[:3, 3].norm()):.1f} | {ncc:.3f} |"
             )
             print(lines[-1], flush=True)
     if args.turns:
@@ -130,8 +132,8 @@ def main() -> int:
             f"## From any start: the volume turned, then atlas_transform (atlas offset "
             f"{args.atlas_offset:+g} weeks)",
             "",
-            "| case | turn (deg) | error (deg) | start | time (s) |",
-            "|---|---:|---:|---|---:|",
+            "| case | turn (deg) | error (deg) | centre error (mm) | start | time (s) |",
+            "|---|---:|---:|---:|---|---:|",
         ]
         for case in folders:
             stem = args.runs / f"{case.name}-cnn-adaptive"
@@ -153,10 +155,10 @@ def main() -> int:
                 began = time.perf_counter()
                 found, start, _ = atlas_transform(turned, mask, atlas_of)
                 seconds = time.perf_counter() - began
+                error = se3_compose(found, se3_inverse(to_true))
                 lines.append(
-                    f"| {case.name} | {turn:g} | "
-                    f"{degrees(se3_compose(found, se3_inverse(to_true))):.1f} | {start} | "
-                    f"{seconds:.1f} |"
+                    f"| {case.name} | {turn:g} | {degrees(error):.1f} | "
+                    f"{float(error[:3, 3].norm()):.1f} | {start} | {seconds:.1f} |"
                 )
                 print(lines[-1], flush=True)
     text = "\n".join(lines)

@@ -7,18 +7,21 @@ bounds is the time added per stack.
 
 Run from the repository root::
 
-    python benchmarks/bench_init_time.py [--threads 2] [--model stack-pose]
+    python benchmarks/bench_init_time.py [--threads 2] [--model stack-pose] \
+        [--results benchmarks/results/init-time.md]
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import time
+from pathlib import Path
 
 import torch
 from bench_common import SHARED, case_age, load_case_stacks, neighbour_atlas
 
-from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model
+from svr.models.stack_pose import atlas_levels, estimate_stack_pose, load_stack_pose_model
 from svr.reconstruction.cnn_init import stack_pose_initialisation
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_registration
@@ -31,9 +34,11 @@ def main() -> int:
     parser.add_argument("--model", default="stack-pose")
     parser.add_argument("--cases", nargs="*", default=["sb24-large", "sb28-moderate"])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--results", type=Path, help="also write the table here (markdown)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     model = load_stack_pose_model(args.model)
+    rows = []
     for name in args.cases:
         case = SHARED / "data" / "bench" / name
         stacks = load_case_stacks(case)
@@ -48,10 +53,17 @@ def main() -> int:
             stack_pose_initialisation(slices, stacks, model, config, with_atlas)
             full = time.perf_counter() - began
             began = time.perf_counter()
+            levels = None if with_atlas is None else atlas_levels(with_atlas)
             for stack in stacks:
-                estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, atlas=with_atlas)
+                estimate_stack_pose(
+                    model, stack.image, stack.mask.data > 0.5, atlas=with_atlas, levels=levels
+                )
             alone = (time.perf_counter() - began) / len(stacks)
             added = (full - registration) / len(stacks)
+            rows.append(
+                f"| {name} ({len(stacks)} stacks) | {label} | {registration:.1f} s | "
+                f"{full:.1f} s (x{full / registration:.2f}) | {alone:.2f} s | {added:.2f} s |"
+            )
             print(
                 f"{name}, {label} ({args.threads} threads): "
                 f"stack registration {registration:.1f} s, "
@@ -59,6 +71,24 @@ def main() -> int:
                 f"estimate {alone:.2f} s per stack; added {added:.2f} s per stack",
                 flush=True,
             )
+    if args.results is not None:
+        command = "python benchmarks/bench_init_time.py " + " ".join(
+            [f"--threads {args.threads}", f"--model {args.model}", "--cases", *args.cases]
+        )
+        lines = [
+            "# Time of the learned initialisation against stack registration alone",
+            "",
+            f"Command: `{command}`",
+            f"Measured {datetime.date.today().isoformat()}, {args.threads} torch threads.",
+            "",
+            "| case | learned initialisation | stack registration | learned (ratio) | "
+            "estimate per stack | added per stack |",
+            "|---|---|---:|---:|---:|---:|",
+            *rows,
+            "",
+        ]
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text("\n".join(lines), encoding="utf-8")
     return 0
 
 

@@ -495,6 +495,7 @@ def estimate_stack_pose(
     fit: AtlasFitConfig | None = None,
     in_plane_mm: float = 2.0,
     max_fit_turn_deg: float = 15.0,
+    levels: list[Image] | None = None,
 ) -> StackPoseEstimate:
     """A stack's canonical pose from its own data: mask-axis hypotheses, refined, one chosen.
 
@@ -517,6 +518,8 @@ def estimate_stack_pose(
         in_plane_mm: In-plane spacing the stack is averaged to without a model (with one, the
             model's).
         max_fit_turn_deg: With a model and an atlas, the largest turn the atlas fit may make.
+        levels: The atlas's blurred copies for ``fit`` (:func:`atlas_levels`), computed once
+            for the stacks of one fetus; ``None`` makes them here.
 
     Returns:
         The estimate.
@@ -546,7 +549,7 @@ def estimate_stack_pose(
     best = int(torch.argmax(scores))
     frame, score = frames[best], float(scores[best])
     if atlas is not None:
-        fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit)
+        fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit, levels)
         turn = math.degrees(rotation_angle(fitted, frame))
         if model is None or turn <= max_fit_turn_deg:
             frame, method = fitted, method + "+atlas"

@@ -44,7 +44,7 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.mirror import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
-from svr.models.stack_pose import StackPoseNet, estimate_stack_pose
+from svr.models.stack_pose import StackPoseNet, atlas_levels, estimate_stack_pose
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
@@ -625,8 +625,11 @@ def stack_pose_initialisation(
     scanner = slices.poses.to(torch.float64).cpu()
     ids = slices.stack_ids.cpu()
     frames, heads = [], []
+    levels = None if atlas is None else atlas_levels(atlas)  # blurred once for all stacks
     for stack in stacks:
-        estimate = estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, atlas=atlas)
+        estimate = estimate_stack_pose(
+            model, stack.image, stack.mask.data > 0.5, atlas=atlas, levels=levels
+        )
         frames.append(estimate.frame)
         heads.append(f"{estimate.method}, score {estimate.score:.2f}")
         log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)

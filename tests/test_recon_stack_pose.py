@@ -123,3 +123,17 @@ def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None
     assert given[1] == made[1]
     with pytest.raises(ValueError, match="'levels' must have 2 images"):
         fit_to_atlas(moved, atlas.mask, torch.eye(4, dtype=F64), atlas, config, levels[:1])
+
+
+def test_estimate_stack_pose_passes_precomputed_levels_to_the_atlas_fit(turned_scene) -> None:
+    from svr.models.stack_pose import atlas_levels
+
+    atlas, stacks, _truths = turned_scene
+    stack = stacks[0]
+    inside = stack.mask.data > 0.5
+    levels = atlas_levels(atlas)
+    given = estimate_stack_pose(None, stack.image, inside, atlas=atlas, levels=levels)
+    made = estimate_stack_pose(None, stack.image, inside, atlas=atlas)
+    torch.testing.assert_close(given.pose, made.pose)
+    with pytest.raises(ValueError, match="'levels' must have 2 images"):
+        estimate_stack_pose(None, stack.image, inside, atlas=atlas, levels=levels[:1])

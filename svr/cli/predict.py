@@ -170,7 +170,7 @@ def _predict_stacks(args: argparse.Namespace, model) -> int:
     from svr.files import atomic_write_text
     from svr.geometry import se3_compose, se3_to_vector
     from svr.image import ImageError, load_nifti, stack_slice_poses
-    from svr.models.stack_pose import estimate_stack_pose
+    from svr.models.stack_pose import atlas_levels, estimate_stack_pose
     from svr.pose_io import PoseTable, write_pose_table
     from svr.sampling.volume import load_canonical_volume
 
@@ -178,9 +178,10 @@ def _predict_stacks(args: argparse.Namespace, model) -> int:
         raise CliError("--input-slices: a stack-pose model poses whole stacks; give --input-stacks")
     if not args.stack_masks:
         raise CliError("a stack-pose model needs --stack-masks (one brain mask per stack)")
-    atlas = None
+    atlas, levels = None, None
     if args.atlas_volume is not None:
         atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
+        levels = atlas_levels(atlas)  # blurred once for all stacks
     files, indices, poses, records = [], [], [], []
     for path, mask_path in tqdm(
         list(zip(args.input_stacks, args.stack_masks, strict=True)),
@@ -196,7 +197,7 @@ def _predict_stacks(args: argparse.Namespace, model) -> int:
         inside = mask.data > 0.5
         if int(inside.sum()) < 4:
             raise ImageError(f"{mask_path}: the mask is empty")
-        estimate = estimate_stack_pose(model, stack, inside, atlas=atlas)
+        estimate = estimate_stack_pose(model, stack, inside, atlas=atlas, levels=levels)
         planes = se3_compose(estimate.frame[None], stack_slice_poses(stack))
         keep = inside.flatten(0, 1).any(0)
         for k in torch.nonzero(keep).flatten().tolist():
