@@ -28,22 +28,33 @@ atlas frame and a score for the frame (`svr.models.stack_pose.estimate_stack_pos
 from the brain mask's principal axes, each refined 3 times, the best-scored kept).
 
 **Training data.** Simulated only: stacks cut on the fly from 12 ages of the sb-fidon2021 atlas
-(Fidon et al. 2021, CC0; GA 24, 28 and 32 held out), with real fetal head motion (SVoRT's
+(Fidon et al. 2021, CC0; GA 24, 28 and 32 held out){phantoms}, with real fetal head motion (SVoRT's
 trajectories, Apache-2.0) and the artefacts listed in `svr.models.stack_pose_train`.
 Steps: {step} ({minutes} on one CPU core). Loss: the SE(3) geodesic loss on the stack pose, plus
 the score's cross-entropy.
 
-**Reproduce** (from the repository root; the run resumes from its newest checkpoint):
+**Reproduce** (from the repository root; a run resumes from its newest checkpoint; ATLAS and the
+trajectories as in `docs/training.md`):
 
-    svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 \\
-        --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose --minutes 110
-    python benchmarks/export_stack_pose_model.py --checkpoint runs/stack-pose \\
+{recipe}
+    python benchmarks/export_stack_pose_model.py --checkpoint RUN \\
         --out models/pretrained/stack_pose --overwrite
 
 **Evaluation.** `benchmarks/bench_learned_stack_poses.py` (per-stack accuracy) and
 `benchmarks/bench_reconstruct.py --registrations stack cnn --model stack-pose` (reconstruction);
 figures in `benchmarks/results/learned-stack-poses.md`.
 """
+
+
+def _phantom_sentence(phantoms: object) -> str:
+    """The card's words for the procedural phantoms a run trained on (none: empty)."""
+    if not phantoms:
+        return ""
+    count = len(phantoms) if isinstance(phantoms, list) else phantoms
+    return (
+        f" and {count} procedural phantom brains (`svr.sampling.phantom`, seeds 1-{count}, ages "
+        "spread over 22-36 weeks; seed 0, the benchmarks' phantom, never)"
+    )
 
 
 def main() -> int:
@@ -97,6 +108,8 @@ def main() -> int:
         spacing=model["grid_spacing_mm"],
         step=step,
         minutes=args.minutes,
+        phantoms=_phantom_sentence(data.get("phantoms")),
+        recipe="\n".join(f"    {line}" for line in recipe),
     )
     (out / "README.md").write_text(card, encoding="utf-8")
     size = sum(f.stat().st_size for f in out.iterdir())
