@@ -64,9 +64,9 @@ from svr.models.stack_pose import (
 )
 from svr.sampling.blocks import (
     coarsen_stack,
+    implied_stack_poses,
     stack_frame,
     stack_pose_from_slices,
-    stack_slice_poses,
 )
 from svr.sampling.motion import load_trajectories
 from svr.sampling.phantom import gestational_age_config, make_phantom
@@ -90,8 +90,7 @@ SPREAD_LIMIT_DEG = 10.0
 
 def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
-    in_frame = se3_compose(se3_inverse(stack_frame(stack))[None], stack_slice_poses(stack))
-    implied = se3_compose(slice_poses.to(torch.float64), se3_inverse(in_frame))
+    implied = implied_stack_poses(slice_poses, stack)
     return float(np.median([rotation_deg(p, pose) for p in implied]))
 
 

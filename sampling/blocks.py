@@ -36,6 +36,7 @@ __all__ = [
     "TrainingStackConfig",
     "block_inputs",
     "coarsen_stack",
+    "implied_stack_poses",
     "simulate_training_stack",
     "stack_frame",
     "stack_pose_from_slices",
@@ -82,13 +83,11 @@ def stack_frame(stack: Image) -> Tensor:
     return frame
 
 
-def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
-    """The stack pose implied by the canonical poses of its slices (their robust mean).
+def implied_stack_poses(slice_poses: Tensor, stack: Image) -> Tensor:
+    """The stack pose each slice's canonical pose implies: ``T_k o (F^-1 N_k)^-1``.
 
-    Slice ``k`` at canonical pose ``T_k`` implies the stack pose ``T_k o (F^-1 N_k)^-1``, with
-    ``N_k`` its nominal pose in the stack's world frame and ``F`` the stack frame; the result is
-    their geodesic median (:func:`svr.geometry.robust_mean_pose`), so a moving fetus gives the
-    pose that most slices agree with.
+    ``N_k`` is slice ``k``'s nominal pose in the stack's world frame and ``F`` the stack frame
+    (:func:`stack_frame`); with a rigid stack all K poses are the same.
 
     Args:
         slice_poses: (K, 4, 4) canonical poses of the stack's K slices (slice plane mm ->
@@ -96,17 +95,39 @@ def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
         stack: The stack (its grid gives ``N_k`` and ``F``).
 
     Returns:
-        (4, 4) float64 stack pose (stack frame mm -> canonical mm).
+        (K, 4, 4) float64 stack poses (stack frame mm -> canonical mm).
+
+    Raises:
+        ValueError: If ``slice_poses`` does not have one pose per slice of the stack.
     """
     nominal = stack_slice_poses(stack)
     if slice_poses.shape != nominal.shape:
         raise ValueError(
-            f"stack_pose_from_slices(): 'slice_poses' must have shape {tuple(nominal.shape)} "
+            f"implied_stack_poses(): 'slice_poses' must have shape {tuple(nominal.shape)} "
             f"(one pose per slice of the stack), got {tuple(slice_poses.shape)}"
         )
     in_frame = se3_compose(se3_inverse(stack_frame(stack))[None], nominal)
-    implied = se3_compose(slice_poses.to(torch.float64), se3_inverse(in_frame))
-    return robust_mean_pose(implied)
+    return se3_compose(slice_poses.to(torch.float64), se3_inverse(in_frame))
+
+
+def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
+    """The stack pose implied by the canonical poses of its slices (their robust mean).
+
+    The geodesic median (:func:`svr.geometry.robust_mean_pose`) of
+    :func:`implied_stack_poses`, so a moving fetus gives the pose that most slices agree with.
+
+    Args:
+        slice_poses: (K, 4, 4) canonical poses of the stack's K slices (slice plane mm ->
+            canonical mm).
+        stack: The stack (its grid gives the slices' nominal poses and the stack frame).
+
+    Returns:
+        (4, 4) float64 stack pose (stack frame mm -> canonical mm).
+
+    Raises:
+        ValueError: If ``slice_poses`` does not have one pose per slice of the stack.
+    """
+    return robust_mean_pose(implied_stack_poses(slice_poses, stack))
 
 
 def coarsen_stack(image: Image, mask: Tensor, in_plane_mm: float) -> tuple[Image, Tensor]:

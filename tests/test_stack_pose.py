@@ -37,6 +37,7 @@ from svr.sampling.blocks import (
     TrainingStackConfig,
     block_inputs,
     coarsen_stack,
+    implied_stack_poses,
     simulate_training_stack,
     stack_frame,
     stack_pose_from_slices,
@@ -98,6 +99,9 @@ def test_stack_pose_from_slices_agrees_with_the_slice_sampler_without_motion() -
     # Without motion every slice is the stack pose moved along its normal by its offset.
     local = se3_compose(se3_inverse(stack_frame(stack.image))[None], stack_slice_poses(stack.image))
     assert torch.allclose(se3_compose(pose[None], local), slice_poses, atol=1e-6)
+    # ... so every slice implies that same stack pose.
+    implied = implied_stack_poses(slice_poses, stack.image)
+    assert torch.allclose(implied, pose.expand_as(implied), atol=1e-6)
     with pytest.raises(ValueError, match="one pose per slice"):
         stack_pose_from_slices(slice_poses[:-1], stack.image)
 

@@ -222,8 +222,9 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         metavar="NIFTI",
         help="--registration cnn: a brain atlas volume of about the fetus's gestational age (for "
         "example GA28/srr.nii.gz of the Fidon 2021 spina bifida atlas, zenodo.org/record/5524312, "
-        "or the CRL fetal atlas), with --atlas-mask. Each stack's pose is then chosen by "
-        "agreement with it and fitted to it, and the output is brought into its frame (rigid "
+        "or the CRL fetal atlas), with --atlas-mask. Each stack's pose is then fitted to it (and, "
+        "without a model, chosen by agreement with it), and the output is brought into its "
+        "frame (rigid "
         "registration from 12 starts: the volume's frame, its 180-degree flips and its brain "
         "mask's principal axes)",
     )
