@@ -749,14 +749,25 @@ def test_reconstruct_on_cuda_matches_cpu():
     config = SimulationConfig(num_stacks=3, thickness_mm=3.0, in_plane_mm=1.5, seed=2)
     case = simulate_case(canonicalize(volume, mask), config)
     stacks = prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
+    # No slice is excluded (ncc_threshold -1): on this case one slice sits at the default
+    # threshold, and CUDA's atomic additions (their order varies from run to run) put it on either
+    # side, which moved the volume's agreement to 0.976 in 2 of 10 runs on an H200 (0.9998 with
+    # the same exclusions). The test compares the arithmetic, not a decision at a threshold:
+    # without exclusions, 0.99954 in 8 of 8 runs, slice NCCs within 0.008.
     settings = ReconstructionConfig(
-        output_resolution_mm=1.5, outer_iterations=2, sr_iterations=(3, 5), svr_iterations=3
+        output_resolution_mm=1.5,
+        outer_iterations=2,
+        sr_iterations=(3, 5),
+        svr_iterations=3,
+        ncc_threshold=-1.0,
     )
     cpu = reconstruct(stacks, settings, progress=False)
     cuda = reconstruct(stacks, settings, device="cuda", progress=False)
     assert cuda.volume.shape == cpu.volume.shape
+    assert not cpu.excluded.any() and not cuda.excluded.any()
     a, b = cpu.volume.data.numpy().ravel(), cuda.volume.data.cpu().numpy().ravel()
-    assert ncc_np(a, b) > 0.99
+    assert ncc_np(a, b) > 0.999
+    assert float((cpu.slice_ncc - cuda.slice_ncc.cpu()).abs().max()) < 0.02
 
 
 # --- the steps of a round ----------------------------------------------------------------------
