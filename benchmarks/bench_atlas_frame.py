@@ -39,8 +39,8 @@ from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_frame_co
 
 from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, load_nifti
-from svr.models.stack_pose import fit_to_atlas
-from svr.reconstruction.atlas_frame import atlas_transform
+from svr.models.stack_pose import AtlasFitConfig, atlas_levels, fit_to_atlas
+from svr.reconstruction.atlas_frame import COARSE_FIT, KEEP_MARGIN, atlas_starts, atlas_transform
 from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,6 +63,12 @@ def main() -> int:
     parser.add_argument("--turns", type=float, nargs="*", default=[0.0, 30.0, 60.0, 120.0, 180.0])
     parser.add_argument("--atlas-offset", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--margins",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="fit every start finely and report the right frame's NCC against the best wrong one",
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--results", type=Path, default=None)
     args = parser.parse_args()
@@ -125,6 +131,50 @@ def main() -> int:
                 f"{degrees(fitted):.1f} | {float(fitted[:3, 3].norm()):.1f} | {ncc:.3f} |"
             )
             print(lines[-1], flush=True)
+
+    def case_output(case: Path) -> tuple[Image, torch.Tensor, torch.Tensor, CanonicalVolume]:
+        """A case's cnn output, its true-frame correction, coverage mask and neighbouring atlas."""
+        stem = args.runs / f"{case.name}-cnn-adaptive"
+        volume = load_nifti(Path(f"{stem}.nii.gz"))
+        correction = true_frame_correction(case, Path(f"{stem}.csv"))
+        mask = volume.data.float() != 0  # the coverage mask the volume was written through
+        atlas_of = load_canonical_volume(
+            *neighbour_atlas(case_age(case), args.atlas_offset, args.atlas)
+        )
+        return volume, correction, mask, atlas_of
+
+    if args.margins:
+        lines += [
+            "",
+            "## How much better the right frame fits than a wrong one (every start fitted finely)",
+            "",
+            "Every start of `atlas_transform` fitted with `COARSE_FIT`, then with the final "
+            "`AtlasFitConfig`; a frame within 20 deg of the true one is right. `KEEP_MARGIN` "
+            f"(the NCC by which another frame must beat the volume's own) is {KEEP_MARGIN:g}.",
+            "",
+            "| case | own frame error (deg) | own frame NCC | best right NCC | best wrong NCC "
+            "(start, error) | right - wrong |",
+            "|---|---:|---:|---:|---|---:|",
+        ]
+        for case in folders:
+            volume, correction, mask, atlas_of = case_output(case)
+            starts = atlas_starts(volume, mask)
+            levels = atlas_levels(atlas_of, COARSE_FIT)
+            fits = []
+            for name, start in starts.items():
+                coarse, _ = fit_to_atlas(volume, mask, start, atlas_of, COARSE_FIT, levels)
+                fine, ncc = fit_to_atlas(volume, mask, coarse, atlas_of, AtlasFitConfig(), levels)
+                fits.append((name, ncc, degrees(se3_compose(fine, se3_inverse(correction)))))
+            right = [f for f in fits if f[2] < 20.0]
+            wrong = [f for f in fits if f[2] >= 20.0]
+            own = fits[0]
+            best_right = max((f[1] for f in right), default=float("nan"))
+            worst = max(wrong, key=lambda f: f[1]) if wrong else ("-", float("nan"), 0.0)
+            lines.append(
+                f"| {case.name} | {own[2]:.1f} | {own[1]:.3f} | {best_right:.3f} | "
+                f"{worst[1]:.3f} ({worst[0]}, {worst[2]:.0f}) | {best_right - worst[1]:+.3f} |"
+            )
+            print(lines[-1], flush=True)
     if args.turns:
         gen = torch.Generator().manual_seed(args.seed)
         lines += [
@@ -136,14 +186,7 @@ def main() -> int:
             "|---|---:|---:|---:|---|---:|",
         ]
         for case in folders:
-            stem = args.runs / f"{case.name}-cnn-adaptive"
-            volume = load_nifti(Path(f"{stem}.nii.gz"))
-            correction = true_frame_correction(case, Path(f"{stem}.csv"))
-            data = volume.data.float()
-            mask = data != 0  # the coverage mask the volume was written through
-            atlas_of = load_canonical_volume(
-                *neighbour_atlas(case_age(case), args.atlas_offset, args.atlas)
-            )
+            volume, correction, mask, atlas_of = case_output(case)
             for turn in args.turns:
                 axis = torch.nn.functional.normalize(
                     torch.randn(3, generator=gen, dtype=torch.float64), dim=0
@@ -153,7 +196,7 @@ def main() -> int:
                 turned = Image(volume.data, moved_by.to(volume.affine) @ volume.affine)
                 to_true = se3_compose(correction, se3_inverse(moved_by))
                 began = time.perf_counter()
-                found, start, _ = atlas_transform(turned, mask, atlas_of)
+                found, start, _, _ = atlas_transform(turned, mask, atlas_of)
                 seconds = time.perf_counter() - began
                 error = se3_compose(found, se3_inverse(to_true))
                 lines.append(

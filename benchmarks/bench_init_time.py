@@ -3,7 +3,10 @@
 ``stack_pose_initialisation`` (each stack placed by the stack-pose model, with or without the
 atlas fit; stack registration from both starts; the per-stack NCC choice) against
 ``stack_registration`` alone, and the per-stack estimates by themselves; the figure the issue
-bounds is the time added per stack.
+bounds is the time added per stack. Since 2026-11-27 ``stack_pose_initialisation`` with a model
+no longer fits each stack to the atlas (the atlas only sets the output frame), so its
+"model + atlas" row times the same work as "model"; the per-stack estimate's "model + atlas" row
+still times the fit (what ``svr predict --atlas-volume`` does).
 
 Run from the repository root::
 

@@ -30,7 +30,7 @@ from the brain mask's principal axes, each refined 3 times, the best-scored kept
 **Training data.** Simulated only: stacks cut on the fly from 12 ages of the sb-fidon2021 atlas
 (Fidon et al. 2021, CC0; GA 24, 28 and 32 held out){phantoms}, with real fetal head motion (SVoRT's
 trajectories, Apache-2.0) and the artefacts listed in `svr.models.stack_pose_train`.
-Steps: {step} ({minutes} on one CPU core). Loss: the SE(3) geodesic loss on the stack pose, plus
+Steps: {step} (the last run: {minutes}). Loss: the SE(3) geodesic loss on the stack pose, plus
 the score's cross-entropy.
 
 **Reproduce** (from the repository root; a run resumes from its newest checkpoint; ATLAS and the
@@ -61,7 +61,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("models/pretrained/stack_pose"))
-    parser.add_argument("--minutes", default="110 minutes", help="training time, for the card")
+    parser.add_argument(
+        "--minutes",
+        default="110 minutes on one CPU core",
+        help="the last run's training time and machine, for the card",
+    )
     parser.add_argument(
         "--recipe",
         action="append",

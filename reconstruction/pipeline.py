@@ -172,9 +172,9 @@ def reconstruct(
         device: Where to compute.
         progress: Show a progress bar.
         atlas: For ``registration="cnn"``: a brain of about the fetus's age in canonical space.
-            Each stack's pose hypotheses are then chosen by agreement with it and fitted to it
-            (with or without a stack-pose model), and the final volume is brought into its frame
-            (:func:`svr.reconstruction.atlas_frame.align_to_atlas`).
+            The final volume is brought into its frame
+            (:func:`svr.reconstruction.atlas_frame.align_to_atlas`); without a stack-pose model,
+            each stack's pose hypotheses are also chosen by agreement with it and fitted to it.
 
     Returns:
         The result: volume in the canonical frame for ``"cnn"``, in ``frame`` for given poses,

@@ -12,7 +12,7 @@ from test_recon_init import oblique_stack
 from svr.geometry import se3_compose, so3_exp
 from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet, estimate_stack_pose
-from svr.reconstruction.atlas_frame import atlas_transform
+from svr.reconstruction.atlas_frame import KEEP_MARGIN, atlas_transform
 from svr.reconstruction.cnn_init import stack_pose_initialisation
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.slices import extract_slices
@@ -86,6 +86,29 @@ def test_a_wrong_model_falls_back_to_stack_registration(turned_scene) -> None:
     assert start.frame == "canonical"
 
 
+def test_with_a_model_the_atlas_does_not_fit_each_stack(turned_scene, monkeypatch) -> None:
+    """With a model each stack's pose is the model's; the atlas is used per stack only without."""
+    import svr.reconstruction.cnn_init as cnn_init
+
+    atlas, stacks, _ = turned_scene
+    slices = extract_slices(stacks)
+    seen = []
+    original = cnn_init.estimate_stack_pose
+
+    def recording(model, image, mask, atlas=None, levels=None, **kwargs):
+        seen.append((model is None, atlas is None, levels is None))
+        return original(model, image, mask, atlas=atlas, levels=levels, **kwargs)
+
+    monkeypatch.setattr(cnn_init, "estimate_stack_pose", recording)
+    net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
+    config = ReconstructionConfig(output_resolution_mm=2.5)
+    stack_pose_initialisation(slices, stacks, net, config, atlas)
+    assert seen == [(False, True, True)] * len(stacks)
+    seen.clear()
+    stack_pose_initialisation(slices, stacks, None, config, atlas)
+    assert seen == [(True, False, False)] * len(stacks)
+
+
 @pytest.mark.parametrize(
     "rotvec",
     [
@@ -100,12 +123,34 @@ def test_atlas_transform_recovers_the_frame_from_any_start(rotvec) -> None:
     turn[:3, 3] = torch.tensor([3.0, -2.0, 4.0], dtype=F64)
     # The same brain, its world frame turned: world' = turn o canonical.
     moved = Image(atlas.image.data, turn @ atlas.image.affine)
-    transform, start, scores = atlas_transform(moved, atlas.mask, atlas)
-    assert scores[start] == max(scores.values())
-    assert set(scores) == {"none", "x", "y", "z", *(f"axes{i}" for i in range(8))}
-    residual = se3_compose(transform, turn)  # should be the identity
+    found = atlas_transform(moved, atlas.mask, atlas)
+    assert set(found.scores) == {"none", "x", "y", "z", *(f"axes{i}" for i in range(8))}
+    assert found.start != "none" and found.final[found.start] == max(found.final.values())
+    assert found.final[found.start] > found.final["none"] + KEEP_MARGIN
+    residual = se3_compose(found.transform, turn)  # should be the identity
     assert _angle_deg(residual, torch.eye(4, dtype=F64)) < 1.0
     assert float(residual[:3, 3].norm()) < 1.0
+
+
+def test_atlas_transform_keeps_the_volumes_own_frame_unless_another_fits_clearly_better() -> None:
+    _volume, _mask, atlas = _brain()
+    # Turned by 10 degrees: the volume's own frame fits back to the right one.
+    small = torch.eye(4, dtype=F64)
+    small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
+    found = atlas_transform(Image(atlas.image.data, small @ atlas.image.affine), atlas.mask, atlas)
+    assert found.start == "none" and len(found.final) == 3
+    assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) < 1.0
+    # A half turn: the own frame fits worse; with a margin no fit can clear, it is kept anyway.
+    half = torch.eye(4, dtype=F64)
+    half[:3, :3] = so3_exp(torch.tensor([0.05, -0.08, math.pi - 0.1], dtype=F64))
+    turned = Image(atlas.image.data, half @ atlas.image.affine)
+    kept = atlas_transform(turned, atlas.mask, atlas, keep_margin=2.0, alternatives=1)
+    assert kept.start == "none" and len(kept.final) == 2
+    assert _angle_deg(se3_compose(kept.transform, half), torch.eye(4, dtype=F64)) > 30.0
+    with pytest.raises(ValueError, match="'keep_margin' must be >= 0"):
+        atlas_transform(turned, atlas.mask, atlas, keep_margin=-0.1)
+    with pytest.raises(ValueError, match="'alternatives' must be >= 1"):
+        atlas_transform(turned, atlas.mask, atlas, alternatives=0)
 
 
 def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None:

@@ -88,7 +88,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--atlas-volume",
         metavar="NIFTI",
         help="with a stack-pose model: an atlas of about the fetus's age (with --atlas-mask) to "
-        "choose and fit each stack's pose (see svr reconstruct --help)",
+        "fit each stack's pose to (within 15 degrees; on held-out ages this put fewer stacks "
+        "within 10 degrees than the model alone, 81 %% against 89 %%, so svr reconstruct does "
+        "not do it with a model)",
     )
     p.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
     p.add_argument("--batch-size", type=positive_int, default=64, help="slices per forward pass")

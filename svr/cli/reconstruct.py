@@ -39,13 +39,14 @@ DESCRIPTION = """\
 Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. Every slice is
 its own rigid body: its pose is initialised (--registration: `cnn` places every stack in
 canonical atlas space from its own data with the stack-pose model (the brain mask's principal
-axes give candidate frames, a 3D CNN refines and scores them; with --atlas-volume each is fitted
-to the atlas), refines how the stacks sit together by stack registration, and keeps, per stack,
-whichever of this and plain stack registration fits better (a slice-pose model given with
---model predicts every slice instead); `stack` registers every stack rigidly to the template
-stack; `none` keeps the scanner's poses), then outer rounds alternate slice-to-volume
-registration (skipped in the first round), EM outlier weighting, exclusion of slices whose NCC
-with their simulation is below --ncc-threshold, and edge-preserving super-resolution.
+axes give candidate frames, a 3D CNN refines and scores them; with --atlas-volume the finished
+volume is brought into the atlas's frame), refines how the stacks sit together by stack
+registration, and keeps, per stack, whichever of this and plain stack registration fits better
+(a slice-pose model given with --model predicts every slice instead); `stack` registers every
+stack rigidly to the template stack; `none` keeps the scanner's poses), then outer rounds
+alternate slice-to-volume registration (skipped in the first round), EM outlier weighting,
+exclusion of slices whose NCC with their simulation is below --ncc-threshold, and
+edge-preserving super-resolution.
 
 Stacks are cropped to their brain masks and normalised; without --stack-masks each stack's brain
 is found automatically (--auto-masks network, as `svr segment-stack` does; the log and the QA
@@ -222,11 +223,12 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         metavar="NIFTI",
         help="--registration cnn: a brain atlas volume of about the fetus's gestational age (for "
         "example GA28/srr.nii.gz of the Fidon 2021 spina bifida atlas, zenodo.org/record/5524312, "
-        "or the CRL fetal atlas), with --atlas-mask. Each stack's pose is then fitted to it (and, "
-        "without a model, chosen by agreement with it), and the output is brought into its "
-        "frame (rigid "
-        "registration from 12 starts: the volume's frame, its 180-degree flips and its brain "
-        "mask's principal axes)",
+        "or the CRL fetal atlas), with --atlas-mask. The output is brought into its frame: rigid "
+        "registration from 12 starts (the volume's frame, its 180-degree flips and its brain "
+        "mask's principal axes); another frame replaces the one the stacks' learned poses give "
+        "only if it fits the atlas clearly better (NCC higher by 0.05). Without a model "
+        "(--model none) each stack's pose is also chosen by agreement with the atlas and fitted "
+        "to it",
     )
     settings.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
     settings.add_argument(
