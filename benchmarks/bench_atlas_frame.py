@@ -160,10 +160,12 @@ def main() -> int:
             volume, correction, mask, atlas_of = case_output(case)
             starts = atlas_starts(volume, mask)
             levels = atlas_levels(atlas_of, COARSE_FIT)
+            final = AtlasFitConfig()
+            reuse = levels if final.blur_mm == COARSE_FIT.blur_mm else None
             fits = []
             for name, start in starts.items():
                 coarse, _ = fit_to_atlas(volume, mask, start, atlas_of, COARSE_FIT, levels)
-                fine, ncc = fit_to_atlas(volume, mask, coarse, atlas_of, AtlasFitConfig(), levels)
+                fine, ncc = fit_to_atlas(volume, mask, coarse, atlas_of, final, reuse)
                 fits.append((name, ncc, degrees(se3_compose(fine, se3_inverse(correction)))))
             right = [f for f in fits if f[2] < 20.0]
             wrong = [f for f in fits if f[2] >= 20.0]

@@ -8,19 +8,18 @@ degrees about each axis, and the 8 frames of the volume's own brain-mask princip
 (:func:`svr.models.stack_pose.mask_axis_hypotheses`; a whole reconstructed brain's axes are far
 more reliable than a stack's), so that a wrong start is found and left. Each start is fitted
 coarsely; the volume's own frame and the two best distinct others are fitted finely, and another
-frame replaces the volume's own only if it fits the atlas clearly better (:data:`KEEP_MARGIN`).
-On a case simulated from the atlas family the right frame fits 0.09-0.22 (NCC) better than any
-wrong one, but on the real clinical scan (a fetus without spina bifida, unlike the atlas's
-brains) the front-back twin of the right frame fitted 0.008 better one time and 0.008 worse
-another: there,
-NCC alone flipped the output with the thread count, and the frame the learned stack poses agree on
-is the better evidence. (The stack-pose model does not choose among the starts: on the real scan
-it was confident of the frame turned by 180 degrees about z.) The origin is then put
-at the centroid of the volume's own brain mask, which is what canonical space means
-(``docs/conventions.md``): an atlas of a neighbouring age or another cohort differs in shape, and
-its fit pulled the centre by about 5 mm on sb28-moderate, where the mask's centroid does not depend
-on it. Everything is relabelled in that frame: the volume's and mask's affines and every slice
-pose. Nothing is resampled, so the volume's values are unchanged.
+frame replaces the volume's own only if it fits the atlas clearly better (:data:`KEEP_MARGIN`). On
+a case simulated from the atlas family the right frame fits 0.09-0.22 (NCC) better than any wrong
+one, but on the real clinical scan (a fetus without spina bifida, unlike the atlas's brains) the
+front-back twin of the right frame fitted 0.008 better one time and 0.008 worse another: there, NCC
+alone flipped the output with the thread count, and the frame the learned stack poses agree on is
+the better evidence. (The stack-pose model does not choose among the starts: on the real scan it
+was confident of the frame turned by 180 degrees about z.) The origin is then put at the centroid
+of the volume's own brain mask, which is what canonical space means (``docs/conventions.md``): an
+atlas of a neighbouring age or another cohort differs in shape, and its fit pulled the centre by
+about 5 mm on sb28-moderate, where the mask's centroid does not depend on it. Everything is
+relabelled in that frame: the volume's and mask's affines and every slice pose. Nothing is
+resampled, so the volume's values are unchanged.
 """
 
 from __future__ import annotations
@@ -125,7 +124,11 @@ def atlas_starts(volume: Image, mask: Tensor) -> dict[str, Tensor]:
     Raises:
         ValueError: If the mask has fewer than 4 voxels.
     """
-    points = _mask_points(volume, mask, "atlas_starts")
+    return _starts(_mask_points(volume, mask, "atlas_starts"))
+
+
+def _starts(points: Tensor) -> dict[str, Tensor]:
+    """:func:`atlas_starts` from the mask's (N, 3) world points."""
     out = {axis: _flip(axis) for axis in FLIPS}
     for i, frame in enumerate(mask_axis_hypotheses(points)):
         out[f"axes{i}"] = frame
@@ -170,7 +173,7 @@ def atlas_transform(
     if alternatives < 1:
         raise ValueError(f"atlas_transform(): 'alternatives' must be >= 1, got {alternatives}")
     points = _mask_points(volume, mask, "atlas_transform")
-    named = atlas_starts(volume, mask)
+    named = _starts(points)
     names, starts = list(named), list(named.values())
     levels = atlas_levels(atlas, COARSE_FIT)
     fitted, nccs = [], []
