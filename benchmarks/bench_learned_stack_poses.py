@@ -20,9 +20,12 @@ Methods, each giving one scanner -> canonical frame per stack:
 * ``axes+atlas+fit``: that hypothesis refined by rigid registration of the stack's masked voxels
   to the atlas (:func:`svr.models.stack_pose.fit_to_atlas`): the classical estimate in full;
 * ``learned+atlas``: the refined hypotheses, chosen by atlas agreement;
-* ``learned+atlas+fit``: what ``--registration cnn`` does with a model and an atlas: the model's
-  choice, then the atlas fit where it stays within 15 degrees of it
-  (``estimate_stack_pose(model, ..., atlas=...)``).
+* ``learned+atlas+fit``: what ``--registration cnn`` did with a model and an atlas until
+  2026-11-27: the model's choice, then the atlas fit where it stays within 15 degrees of it
+  (``estimate_stack_pose(model, ..., atlas=...)``);
+* ``learned+packets``: the learned frame, then each interleaved packet (from the acquisition
+  order) placed on its own (:func:`svr.models.stack_pose.estimate_packet_poses`), the stack's
+  pose the robust mean of its slices' packet frames.
 
 Errors: the rotation angle between the estimated and the true stack pose (the robust mean of the
 slices' true canonical poses, :func:`svr.sampling.blocks.stack_pose_from_slices`) and the distance
@@ -54,9 +57,11 @@ import torch
 from bench_common import ATLAS, MOTION, SHARED, neighbour_atlas, true_slice_poses
 
 from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import load_nifti, voxel_to_world
 from svr.models.stack_pose import (
     atlas_agreement,
+    estimate_packet_poses,
     estimate_stack_pose,
     load_stack_pose_model,
     mask_axis_hypotheses,
@@ -92,6 +97,16 @@ def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
     implied = implied_stack_poses(slice_poses, stack)
     return float(np.median([rotation_deg(p, pose) for p in implied]))
+
+
+def packet_index(acquisition: torch.Tensor) -> torch.Tensor:
+    """(K,) packet of each slice: slices acquired in one sweep (positions rising with time)."""
+    order = torch.argsort(acquisition)
+    packet = torch.zeros(len(order), dtype=torch.int64)
+    breaks = torch.nonzero(order[1:] < order[:-1]).flatten() + 1
+    for start in breaks.tolist():
+        packet[order[start:]] += 1
+    return packet
 
 
 def held_out_stacks(args, trajectories) -> list[dict]:
@@ -263,6 +278,9 @@ def main() -> int:
         estimate = estimate_stack_pose(model, image, mask, args.iterations)
         row["seconds"] = time.perf_counter() - began
         record("learned", estimate.frame)
+        packet_of = packet_index(item["acquisition"])
+        packets = estimate_packet_poses(model, image, mask, estimate.frame, packet_of)
+        record("learned+packets", robust_mean_pose(packets.frames[packet_of]))
         refined_agreement = atlas_agreement(coarse, fractions, estimate.hypotheses, atlas)
         record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
         both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
@@ -276,6 +294,7 @@ def main() -> int:
             f"{row['learned']['centre_mm']:5.1f} mm  learned+atlas "
             f"{row['learned+atlas']['rot_deg']:6.1f}  "
             f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
+            f"learned+packets {row['learned+packets']['rot_deg']:6.1f}  "
             f"({row['seconds']:.2f} s, classical {row['classical_seconds']:.2f} s)",
             flush=True,
         )
@@ -334,6 +353,7 @@ def main() -> int:
         "learned",
         "learned+atlas",
         "learned+atlas+fit",
+        "learned+packets",
     ]
     groups = sorted({r["group"] for r in rows})
     lines = [

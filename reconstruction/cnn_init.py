@@ -39,12 +39,17 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from svr.geometry import se3_compose, se3_inverse, so3_log
+from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_log
 from svr.geometry.averaging import robust_mean_pose
 from svr.geometry.mirror import ReflectionPlane, check_planes, orbit_matrices
 from svr.models.network import SlicePoseNet
 from svr.models.predict import predict_plane_poses
-from svr.models.stack_pose import StackPoseNet, atlas_levels, estimate_stack_pose
+from svr.models.stack_pose import (
+    StackPoseNet,
+    atlas_levels,
+    estimate_packet_poses,
+    estimate_stack_pose,
+)
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
@@ -483,8 +488,9 @@ def learned_initialisation(
        orientation is unreliable.
     3. **NCC per stack.** A trusted stack keeps its learned poses (each slice its own prediction,
        or the consensus pose where that is an outlier: :meth:`CnnInitialisation.refined_poses`)
-       when they match their simulation from their own scattered-data volume at least as well
-       (mean NCC) as the registered poses do, as NeSVoR chooses between SVoRT and registration.
+       when they match their simulation from the other stacks' scattered-data volume at least as
+       well (mean NCC, :func:`~svr.reconstruction.registration.stack_ncc` with ``leave_out``)
+       as the registered poses do, as NeSVoR chooses between SVoRT and registration.
     4. **Joint check.** The mixed start is kept only if its slice-weighted mean NCC is not below
        that of stack registration alone; otherwise every stack starts from registration.
 
@@ -536,21 +542,29 @@ def _choose_per_stack(
     heads: Sequence[str],
     config: ReconstructionConfig,
 ) -> LearnedStart:
-    """Per stack, the ``"cnn"`` or ``"stack"`` candidate poses by NCC, then the joint check.
+    """Per stack, the candidate poses with the best NCC, then the joint check against ``"stack"``.
+
+    A stack's NCC under a candidate is that of its slices with their simulation from the other
+    stacks' volume, all at the candidate's poses (:func:`stack_ncc` with ``leave_out``): scored
+    against its own slices as well, a stack placed more freely (its packets apart) fits itself
+    better even where one packet is the wrong twin.
 
     Args:
         slices: All slices.
-        candidates: ``"cnn"`` and ``"stack"``: (N, 4, 4) canonical poses of every slice.
-        trusted: (S,) bool, stacks that may keep ``"cnn"`` (the others keep ``"stack"``).
+        candidates: Name -> (N, 4, 4) canonical poses of every slice; ``"stack"`` (stack
+            registration) is required, the others are learned starts.
+        trusted: (S,) bool, stacks that may keep a learned start (the others keep ``"stack"``).
         heads: Per stack, what the learned estimate says of itself (for the notes).
         config: Settings.
 
     Returns:
         The slices at the chosen poses, the choice and the notes per stack.
     """
-    # The learned candidate is only scored when some stack may keep it.
+    # The learned candidates are only scored when some stack may keep them.
     scores = {
-        name: stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm)
+        name: stack_ncc(
+            slices.with_poses(poses, "canonical"), config.output_resolution_mm, leave_out=True
+        )
         for name, poses in candidates.items()
         if name == "stack" or bool(trusted.any())
     }
@@ -561,17 +575,21 @@ def _choose_per_stack(
         if not bool(trusted[sid]):
             best, why = "stack", f"cnn unsure ({head})"
         else:
-            ncc_cnn, ncc_stack = float(scores["cnn"][sid]), float(scores["stack"][sid])
-            best = "cnn" if ncc_cnn >= ncc_stack else "stack"
-            why = f"{head}, NCC cnn {ncc_cnn:.3f} vs stack {ncc_stack:.3f}"
+            ncc = {key: float(value[sid]) for key, value in scores.items()}
+            # Learned starts first: a tie keeps the learned start, as before.
+            best = max(sorted(ncc, key=lambda key: key == "stack"), key=lambda key: ncc[key])
+            why = f"{head}, NCC " + " vs ".join(f"{key} {value:.3f}" for key, value in ncc.items())
         members = slices.stack_ids == sid
         poses[members] = candidates[best][members]
         choice.append(best)
         notes.append(why)
         log.info("%s: initialisation %s (%s)", name, best, why)
-    if "cnn" in choice:
+    if any(c != "stack" for c in choice):
         mixed = _mean_ncc(
-            stack_ncc(slices.with_poses(poses, "canonical"), config.output_resolution_mm), slices
+            stack_ncc(
+                slices.with_poses(poses, "canonical"), config.output_resolution_mm, leave_out=True
+            ),
+            slices,
         )
         alone = _mean_ncc(scores["stack"], slices)
         if mixed < alone:
@@ -602,15 +620,21 @@ def stack_pose_initialisation(
        agreement with the atlas and fitted to it). No template stack: a fetus that turned
        between stacks is placed stack by stack. A slice's placed pose is ``E_s o S_i``
        (``S_i`` its scanner pose).
-    2. **Two candidates, both refined by stack registration.** ``"cnn"``: stack registration
+    2. **Per-packet poses** (with a model and ``config.packets`` > 1). Each interleaved packet's
+       frame from its own slices (:func:`svr.models.stack_pose.estimate_packet_poses`: the
+       stack's frame and the packet's own mask-axis hypotheses, refined on the packet and the
+       best-scored kept), for a fetus that moved within a stack, or a stack whose own frame is a
+       wrong twin that its packets are not.
+    3. **Candidates, each refined by stack registration.** ``"cnn"``: stack registration
        started from the placed poses, which are within a few degrees of each other even where
        the fetus turned between stacks, so that the same-subject registration only refines how
-       the stacks sit together; ``"stack"``: stack registration from the scanner poses, as
-       ``--registration stack``. Registration moves stack ``s`` by ``M_s`` in the template's
-       frame; each candidate is brought into canonical space by ``G``, the robust mean of
-       ``E_s o M_s^-1`` over the stacks (weighted by their slices), so the output is in atlas
-       orientation whichever start each stack keeps, and no single stack's estimate sets it.
-    3. **Safe choice.** Per stack by NCC, then the joint check (as
+       the stacks sit together; ``"packets"``: the same from each slice placed by its packet's
+       frame; ``"stack"``: stack registration from the scanner poses, as ``--registration
+       stack``. Registration moves stack ``s`` by ``M_s`` in the template's frame; each
+       candidate is brought into canonical space by ``G``, the robust mean of ``E o M_s^-1``
+       over the slices (``E`` the slice's learned frame), so the output is in atlas orientation
+       whichever start each stack keeps, and no single stack's estimate sets it.
+    4. **Safe choice.** Per stack by NCC against the other stacks, then the joint check (as
        :func:`learned_initialisation`).
 
     Args:
@@ -633,18 +657,36 @@ def stack_pose_initialisation(
     # (benchmarks/results/learned-stack-poses-recon-no-stack-fit.md).
     per_stack_atlas = atlas if model is None else None
     levels = None if per_stack_atlas is None else atlas_levels(per_stack_atlas)
-    for stack in stacks:
+    packets = config.packets if model is not None else 1
+    packet_frames = torch.empty(len(stacks), packets, 4, 4, dtype=torch.float64)
+    for sid, stack in enumerate(stacks):
+        mask = stack.mask.data > 0.5
         estimate = estimate_stack_pose(
-            model, stack.image, stack.mask.data > 0.5, atlas=per_stack_atlas, levels=levels
+            model, stack.image, mask, atlas=per_stack_atlas, levels=levels
         )
         frames.append(estimate.frame)
-        heads.append(f"{estimate.method}, score {estimate.score:.2f}")
+        head = f"{estimate.method}, score {estimate.score:.2f}"
         log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
+        if packets > 1:
+            assert model is not None
+            per_packet = estimate_packet_poses(
+                model, stack.image, mask, estimate.frame, stack.k_indices.cpu() % packets
+            )
+            packet_frames[sid] = per_packet.frames
+            turns = [math.degrees(rotation_angle(f, estimate.frame)) for f in per_packet.frames]
+            head += "; packets " + ", ".join(f"{t:.0f} deg" for t in turns)
+            log.info(
+                "%s: packets %s from the stack's frame (own hypothesis: %s)",
+                stack.name,
+                ", ".join(f"{t:.1f}" for t in turns),
+                per_packet.own.tolist(),
+            )
+        heads.append(head)
     frame_of = torch.stack(frames)  # (S, 4, 4) scanner -> canonical
     placed = se3_compose(frame_of[ids], scanner)
 
-    def in_canonical(start: Tensor) -> Tensor:
-        """Stack registration from ``start``, moved by the mean of the stacks' own frames."""
+    def in_canonical(start: Tensor, placed: Tensor) -> Tensor:
+        """Stack registration from ``start``, moved by the mean of the learned placements."""
         registered, _ = stack_registration(
             slices.with_poses(start.to(slices.poses)), config.output_resolution_mm, config.template
         )
@@ -653,6 +695,10 @@ def stack_pose_initialisation(
         to_canonical = robust_mean_pose(se3_compose(placed, se3_inverse(registered)))
         return se3_compose(to_canonical[None], registered).to(slices.poses)
 
-    candidates = {"cnn": in_canonical(placed), "stack": in_canonical(scanner)}
+    candidates = {"cnn": in_canonical(placed, placed)}
+    if packets > 1:
+        by_packet = se3_compose(packet_frames[ids, slices.slice_indices.cpu() % packets], scanner)
+        candidates["packets"] = in_canonical(by_packet, by_packet)
+    candidates["stack"] = in_canonical(scanner, placed)
     trusted = torch.ones(len(stacks), dtype=torch.bool, device=slices.device)
     return _choose_per_stack(slices, candidates, trusted, heads, config)

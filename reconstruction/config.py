@@ -58,7 +58,8 @@ class ReconstructionConfig:
         svr_levels: Resolution levels of slice-to-volume registration (coarse to fine).
         svr_iterations: Levenberg-Marquardt steps per SVR level.
         packets: Interleaved packets per stack (acquisition order ``k = 0, 2, 4, ..., 1, 3, ...``
-            for 2; 1 for sequential), used to group slices acquired one after another.
+            for 2; 1 for sequential), used to group slices acquired one after another and, with
+            a stack-pose model, to place each packet on its own (the ``"packets"`` start).
         group_sizes: Hierarchical SVR: in round ``r`` (from 1) slices are first registered in
             groups of ``group_sizes[r - 1]`` temporal neighbours (:func:`slice_groups`), then
             one by one from the round after the last size on.

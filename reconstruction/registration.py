@@ -29,7 +29,12 @@ from svr.geometry import so3_exp
 from svr.image import sample_channels
 from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur
 from svr.reconstruction.slices import SliceSet
-from svr.reconstruction.superres import output_grid, scattered_data_approximation
+from svr.reconstruction.superres import (
+    coverage,
+    output_grid,
+    scattered_data_approximation,
+    sda_ratio,
+)
 from svr.validation import check_int, check_number
 
 __all__ = [
@@ -308,15 +313,56 @@ def stack_registration(
     return poses, template
 
 
-def stack_ncc(slices: SliceSet, resolution_mm: float) -> Tensor:
-    """(S,) mean NCC of each stack's slices with their simulation from the slices' SDA volume."""
+def stack_ncc(slices: SliceSet, resolution_mm: float, leave_out: bool = False) -> Tensor:
+    """(S,) mean NCC of each stack's slices with their simulation from a volume of the slices.
+
+    The volume is the scattered-data approximation of the slices on a grid of twice
+    ``resolution_mm``. With ``leave_out`` (and at least two stacks), each stack is simulated from
+    the volume of the *other* stacks' slices only, so that a stack cannot agree with itself: a
+    stack whose packets are placed apart, one of them the wrong twin, fits its own volume better
+    the more freely it is placed, but fits the other stacks only where it is right.
+
+    Args:
+        slices: The slices at the poses to score.
+        resolution_mm: Half the grid spacing (mm).
+        leave_out: Score each stack against the other stacks only.
+
+    Returns:
+        (S,) mean slice NCC per stack.
+    """
     grid = output_grid(slices, 2 * resolution_mm)
-    projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-    observed = projector.gather(slices.images)
-    points = projector.grid_points(slices.poses)
-    volume = scattered_data_approximation(projector, points, observed, torch.ones_like(observed))
-    ncc = slice_ncc(projector, projector.forward(volume, points), observed)
     num_stacks = len(slices.stack_names)
-    total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
-    count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
-    return total.index_add(0, slices.stack_ids, ncc) / count
+    if not leave_out or num_stacks < 2:
+        projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
+        observed = projector.gather(slices.images)
+        points = projector.grid_points(slices.poses)
+        ones = torch.ones_like(observed)
+        volume = scattered_data_approximation(projector, points, observed, ones)
+        ncc = slice_ncc(projector, projector.forward(volume, points), observed)
+        total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
+        count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
+        return total.index_add(0, slices.stack_ids, ncc) / count
+    # Each stack's sums once; the volume without stack s is (all - s's numerator) / (all - s's
+    # coverage), so leaving each out costs one pass over the pixels, not one per stack.
+    parts: list[tuple[SliceProjector, Tensor, Tensor, tuple[Tensor, Tensor]] | None] = []
+    for sid in range(num_stacks):
+        mine = slices.subset(slices.stack_ids == sid)
+        if len(mine) == 0:
+            parts.append(None)
+            continue
+        projector = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
+        observed = projector.gather(mine.images)
+        points = projector.grid_points(mine.poses)
+        ones = torch.ones_like(observed)
+        sums = projector.adjoint(observed, points), coverage(projector, points, ones)
+        parts.append((projector, observed, points, sums))
+    numerator = sum(part[3][0] for part in parts if part is not None)
+    denominator = sum(part[3][1] for part in parts if part is not None)
+    out = torch.zeros(num_stacks, dtype=torch.float32, device=slices.images.device)
+    for sid, part in enumerate(parts):
+        if part is None:
+            continue
+        projector, observed, points, (own_numerator, own_coverage) = part
+        volume = sda_ratio(numerator - own_numerator, denominator - own_coverage)
+        out[sid] = slice_ncc(projector, projector.forward(volume, points), observed).mean()
+    return out

@@ -34,6 +34,7 @@ __all__ = [
     "coverage",
     "output_grid",
     "scattered_data_approximation",
+    "sda_ratio",
     "slice_intensity_scales",
     "super_resolution",
 ]
@@ -92,7 +93,15 @@ def scattered_data_approximation(
         (I, J, K) ``A^T (w y) / A^T w``, 0 where no data reaches.
     """
     numerator = projector.adjoint(weights * observed, points)
-    denominator = coverage(projector, points, weights)
+    return sda_ratio(numerator, coverage(projector, points, weights))
+
+
+def sda_ratio(numerator: Tensor, denominator: Tensor) -> Tensor:
+    """The scattered-data volume ``A^T (w y) / A^T w`` from its two sums, (I, J, K).
+
+    Voxels whose coverage is below 1e-3 of the largest are 0. The sums are linear in the pixels,
+    so a volume of a subset of the slices is the ratio of the subsets' sums.
+    """
     floor = 1e-3 * float(denominator.max().clamp_min(1e-12))
     return torch.where(denominator > floor, numerator / denominator.clamp_min(floor), 0.0)
 

@@ -871,6 +871,7 @@ def _cases() -> list[Case]:
             ("--iterations", "0"),
             ("--sr-iterations", "0"),
             ("--svr-iterations", "0"),
+            ("--packets", "0"),
         ],
         "demo": [("--train-steps", "0"), ("--phantom-ga", "0")],
         "demo-loss": [("--num-poses", "0"), ("--steps", "0"), ("--learning-rate", "0")],

@@ -361,3 +361,13 @@ def test_help_uses_nesvor_option_names(capsys):
         "svr reconstruct --input-stacks ax.nii.gz",
     ):
         assert option in text
+
+
+def test_packets_reach_the_reconstruction_configuration() -> None:
+    from svr.cli.reconstruct import build_configs
+
+    parser = svr.cli.build_parser()
+    base = ["reconstruct", "--input-stacks", "a.nii.gz", "--output-volume", "out.nii.gz"]
+    assert build_configs(parser.parse_args(base), 1).reconstruction.packets == 2
+    args = parser.parse_args([*base, "--packets", "3"])
+    assert build_configs(args, 1).reconstruction.packets == 3

@@ -442,7 +442,10 @@ def test_learned_consensus_and_refined_poses_errors(scene):
 
 def test_learned_initialisation_keeps_good_predictions_per_slice(moving_scene):
     _, stacks, truth, slices = moving_scene
-    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    # Each stack is scored against the other two (11-13 slices each) on a grid of twice this
+    # spacing; at 2.5 mm (a 5 mm grid) one stack's exact poses and its registered ones scored
+    # within 0.04 of each other either way round, at 2 mm exact poses win by 0.14-0.19.
+    config = ReconstructionConfig(output_resolution_mm=2.0, template=0)
     exact = true_array_poses(slices, truth, stacks)
     start, kept, _ = learned_initialisation(slices, learned_consensus(slices, exact), config)
     assert kept == ("cnn", "cnn", "cnn") and start.frame == "canonical"

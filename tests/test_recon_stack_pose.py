@@ -182,3 +182,92 @@ def test_estimate_stack_pose_passes_precomputed_levels_to_the_atlas_fit(turned_s
     torch.testing.assert_close(given.pose, made.pose)
     with pytest.raises(ValueError, match="'levels' must have 2 images"):
         estimate_stack_pose(None, stack.image, inside, atlas=atlas, levels=levels[:1])
+
+
+def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch) -> None:
+    """Per-packet frames are a third candidate; a stack whose second packet turned keeps them."""
+    import svr.reconstruction.cnn_init as cnn_init
+    from svr.models.stack_pose import PacketPoseEstimate, StackPoseEstimate
+    from svr.sampling.blocks import implied_stack_poses, stack_frame
+
+    volume, mask, _atlas = _brain()
+    specs = [
+        ("a.nii.gz", (0.2, -0.1, 0.3), (40, 36), 14, 4.0),
+        ("b.nii.gz", (1.4, 0.2, -0.2), (33, 38), 14, 4.0),
+    ]
+    turn = torch.eye(4, dtype=F64)
+    turn[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, math.radians(50.0)], dtype=F64))
+    stacks, packet_frames = [], []
+    for index, (name, rotvec, size, planes, thickness) in enumerate(specs):
+        _, still = oblique_stack(volume, mask, name, rotvec, size, planes, thickness, 0)
+        motion = None
+        if index == 1:  # the odd planes (the second packet) turned 50 degrees about the brain
+            motion = torch.eye(4, dtype=F64).repeat(planes, 1, 1)
+            odd = slice(1, None, 2)
+            motion[odd] = se3_compose(torch.linalg.inv(still[odd]), se3_compose(turn, still[odd]))
+        stack, canonical = oblique_stack(
+            volume, mask, name, rotvec, size, planes, thickness, 0, motion
+        )
+        stacks.append(stack)
+        implied = implied_stack_poses(canonical, stack.image)
+        to_frame = torch.linalg.inv(stack_frame(stack.image))
+        packet_frames.append(torch.stack([implied[0] @ to_frame, implied[1] @ to_frame]))
+    slices = extract_slices(stacks)
+    calls = []
+
+    def oracle_stack(model, image, inside, atlas=None, levels=None, **kwargs):
+        sid = next(i for i, s in enumerate(stacks) if s.image is image)
+        frame = packet_frames[sid][0]  # the first packet's frame: the second packet is off
+        return StackPoseEstimate(
+            frame @ stack_frame(image), frame, 5.0, frame[None], torch.ones(1), "learned"
+        )
+
+    def oracle_packets(model, image, inside, frame, packet_of, iterations=3):
+        sid = next(i for i, s in enumerate(stacks) if s.image is image)
+        calls.append(packet_of.tolist())
+        return PacketPoseEstimate(packet_frames[sid], torch.ones(2), torch.tensor([False, True]))
+
+    monkeypatch.setattr(cnn_init, "estimate_stack_pose", oracle_stack)
+    monkeypatch.setattr(cnn_init, "estimate_packet_poses", oracle_packets)
+    net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
+    config = ReconstructionConfig(output_resolution_mm=2.5)
+    start, kept, notes = stack_pose_initialisation(slices, stacks, net, config)
+    assert calls == [[k % 2 for k in range(14)]] * 2
+    assert kept[1] == "packets", notes
+    assert "packets 0 deg, 50 deg" in notes[1]
+    # The turned stack's packets start 50 degrees apart, as they were acquired.
+    ids, ks = slices.stack_ids, slices.slice_indices
+    even = start.poses[(ids == 1) & (ks % 2 == 0)][0].double()
+    odd = start.poses[(ids == 1) & (ks % 2 == 1)][0].double()
+    assert abs(_angle_deg(even, odd) - 50.0) < 2.0
+    # With one packet per stack there is no packet candidate.
+    calls.clear()
+    _, kept, _ = stack_pose_initialisation(
+        slices, stacks, net, ReconstructionConfig(output_resolution_mm=2.5, packets=1)
+    )
+    assert calls == [] and "packets" not in kept
+
+
+def test_stack_ncc_with_leave_out_scores_each_stack_against_the_others(turned_scene) -> None:
+    from svr.reconstruction.registration import stack_ncc
+
+    _, stacks, _ = turned_scene
+    slices = extract_slices(stacks)  # at their scanner poses: every stack in place
+    right = stack_ncc(slices, 2.5, leave_out=True)
+    # Stack 1 turned half round about its slices' centre: its twin.
+    members = slices.stack_ids == 1
+    poses = slices.poses.to(F64).clone()
+    centre = poses[members, :3, 3].mean(0)
+    turn = torch.eye(4, dtype=F64)
+    turn[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, math.pi], dtype=F64))
+    turn[:3, 3] = centre - turn[:3, :3] @ centre
+    poses[members] = turn @ poses[members]
+    wrong = slices.with_poses(poses.to(slices.poses))
+    alone = stack_ncc(wrong, 2.5)
+    apart = stack_ncc(wrong, 2.5, leave_out=True)
+    assert float(apart[1]) < float(right[1]) - 0.2
+    # Scored against a volume that holds its own slices, the twin hides part of its misfit.
+    assert float(apart[1]) < float(alone[1]) - 0.1
+    # With one stack there is nothing to leave it out from: the plain score.
+    single = extract_slices(stacks[:1])
+    torch.testing.assert_close(stack_ncc(single, 2.5, leave_out=True), stack_ncc(single, 2.5))

@@ -19,6 +19,7 @@ from svr.models.stack_pose import (
     StackPoseConfig,
     StackPoseNet,
     StackPoseOutput,
+    estimate_packet_poses,
     estimate_stack_pose,
     load_stack_pose_model,
     mask_axis_hypotheses,
@@ -388,6 +389,90 @@ def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
     )
     with pytest.raises(ValueError, match="fewer than 4"):
         estimate_stack_pose(net, case.stacks[0].image, torch.zeros(case.stacks[0].image.shape))
+
+
+def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
+    """The stack's frame and the packet's own 8 hypotheses compete on the packet's slices."""
+    import svr.models.stack_pose as stack_pose
+
+    model_config, _ = _tiny_training()
+    net = StackPoseNet(model_config)
+    volume = _volume()
+    case = simulate_case(
+        volume,
+        SimulationConfig(
+            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=7
+        ),
+    )
+    stack = case.stacks[0]
+    k = stack.image.shape[2]
+    packet_of = torch.arange(k) % 2
+    image, fractions = coarsen_stack(stack.image, stack.mask.data, model_config.in_plane_mm)
+    idx = torch.nonzero((fractions > 0.5) & (packet_of == 1)[None, None, :]).double()
+    own = mask_axis_hypotheses(voxel_to_world(image.affine, idx))  # packet 1's own hypotheses
+    seen = []
+
+    def fake_refine(model, image, mask, frames, iterations=3, present=None):
+        # Packet 0 likes the stack's frame (the first candidate), packet 1 its 6th candidate.
+        seen.append((frames.shape[0], present.clone()))
+        scores = torch.zeros(frames.shape[0])
+        scores[0 if bool(present[0]) else 5] = 1.0
+        return frames + 0.0, scores
+
+    def turned(frame: torch.Tensor, deg: float) -> torch.Tensor:
+        out = frame.clone()
+        out[:3, :3] = (
+            so3_exp(torch.tensor([math.radians(deg), 0.0, 0.0], dtype=torch.float64))
+            @ (frame[:3, :3])
+        )
+        return out
+
+    monkeypatch.setattr(stack_pose, "refine_frames", fake_refine)
+    # The stack's frame 30 degrees from packet 1's own choice: each packet keeps its choice.
+    near = turned(own[4], 30.0)
+    estimate = stack_pose.estimate_packet_poses(net, stack.image, stack.mask.data, near, packet_of)
+    assert [n for n, _ in seen] == [9, 9]
+    assert torch.equal(seen[0][1], packet_of == 0)
+    assert torch.equal(seen[1][1], packet_of == 1)
+    assert estimate.own.tolist() == [False, True]
+    assert torch.equal(estimate.frames[0], near)
+    assert torch.allclose(estimate.frames[1], own[4])
+    # 150 degrees apart (a twin): every packet keeps the stack's frame refined on its slices.
+    far = turned(own[4], 150.0)
+    estimate = stack_pose.estimate_packet_poses(net, stack.image, stack.mask.data, far, packet_of)
+    assert estimate.own.tolist() == [False, False]
+    assert torch.equal(estimate.frames, far.expand(2, 4, 4))
+    allowed = stack_pose.estimate_packet_poses(
+        net, stack.image, stack.mask.data, far, packet_of, max_apart_deg=180.0
+    )
+    assert allowed.own.tolist() == [False, True]
+    with pytest.raises(ValueError, match="'packet_of'"):
+        stack_pose.estimate_packet_poses(net, stack.image, stack.mask.data, near, packet_of[:-1])
+
+
+def test_packet_poses_from_a_real_network_are_rigid() -> None:
+    model_config, _ = _tiny_training()
+    net = StackPoseNet(model_config)
+    case = simulate_case(
+        _volume(),
+        SimulationConfig(
+            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=3
+        ),
+    )
+    stack = case.stacks[0]
+    k = stack.image.shape[2]
+    estimate = estimate_packet_poses(
+        net,
+        stack.image,
+        stack.mask.data,
+        torch.eye(4, dtype=torch.float64),
+        torch.arange(k) % 3,
+        iterations=1,
+    )
+    assert estimate.frames.shape == (3, 4, 4)
+    assert estimate.scores.shape == (3,)
+    dets = torch.linalg.det(estimate.frames[:, :3, :3])
+    assert torch.allclose(dets, torch.ones(3, dtype=torch.float64))
 
 
 def test_loading_a_model_of_another_kind_fails_cleanly(tmp_path) -> None:

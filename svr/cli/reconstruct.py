@@ -40,9 +40,10 @@ Reconstruct a 3D volume from thick-slice stacks acquired while the fetus moved. 
 its own rigid body: its pose is initialised (--registration: `cnn` places every stack in
 canonical atlas space from its own data with the stack-pose model (the brain mask's principal
 axes give candidate frames, a 3D CNN refines and scores them; with --atlas-volume the finished
-volume is brought into the atlas's frame), refines how the stacks sit together by stack
-registration, and keeps, per stack, whichever of this and plain stack registration fits better
-(a slice-pose model given with --model predicts every slice instead); `stack` registers every
+volume is brought into the atlas's frame) and each interleaved packet (--packets) on its own,
+refines how the stacks sit together by stack registration, and keeps, per stack, whichever of
+these starts and plain stack registration agrees best with the other stacks (a slice-pose model
+given with --model predicts every slice instead); `stack` registers every
 stack rigidly to the template stack; `none` keeps the scanner's poses), then outer rounds
 alternate slice-to-volume registration (skipped in the first round), EM outlier weighting,
 exclusion of slices whose NCC with their simulation is below --ncc-threshold, and
@@ -205,8 +206,11 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         "--registration",
         choices=REGISTRATIONS,
         default=d.registration,
-        help="pose initialisation: slice-pose model (canonical space), stack registration or "
-        "the scanner's poses",
+        help="pose initialisation: cnn places every stack (and, with a stack-pose model, every "
+        "interleaved packet: --packets) in the atlas's canonical space with --model and keeps, "
+        "per stack, whichever start agrees best with the other stacks, stack registration "
+        "included; stack registers every stack rigidly to a template stack; none keeps the "
+        "scanner's poses",
     )
     settings.add_argument(
         "--model",
@@ -285,6 +289,16 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         default=d.svr_iterations,
         metavar="N",
         help="optimiser steps per resolution level of slice-to-volume registration",
+    )
+    settings.add_argument(
+        "--packets",
+        type=positive_int,
+        default=d.packets,
+        metavar="N",
+        help="interleaved packets per stack: slices k = 0, N, 2N, ... were acquired in one "
+        "sweep, then k = 1, N + 1, ..., and so on (1 for sequential acquisition). Slices are "
+        "registered in groups of neighbours within a packet, and --registration cnn also places "
+        "each packet on its own",
     )
     settings.add_argument(
         "--no-robust", action="store_true", help="no EM outlier weights (voxel and slice level)"
@@ -415,6 +429,7 @@ _OPTIONS = {
     "converged_mm": "--converged-mm",
     "sr_iterations": "--sr-iterations",
     "svr_iterations": "--svr-iterations",
+    "packets": "--packets",
     "robust": "--no-robust",
     "ncc_threshold": "--ncc-threshold",
     "seed": "--seed",
@@ -475,6 +490,7 @@ def build_configs(args: argparse.Namespace, count: int) -> Settings:
             converged_mm=args.converged_mm,
             sr_iterations=tuple(args.sr_iterations),
             svr_iterations=args.svr_iterations,
+            packets=args.packets,
             robust=not args.no_robust,
             ncc_threshold=args.ncc_threshold,
             seed=args.seed,
