@@ -52,6 +52,15 @@ def _volume(semi_axes=(30.0, 40.0, 24.0)):
     return canonicalize(image, mask)
 
 
+def _still_case(seed: int):
+    """The test volume and a one-stack case cut from it at a random orientation, without motion."""
+    volume = _volume()
+    config = SimulationConfig(
+        num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=seed
+    )
+    return volume, simulate_case(volume, config)
+
+
 def _rotation(seed: int) -> torch.Tensor:
     return torch.from_numpy(Rotation.random(random_state=seed).as_matrix())
 
@@ -85,13 +94,7 @@ def test_stack_frame_is_the_centre_slice_pose_for_an_odd_stack() -> None:
 
 
 def test_stack_pose_from_slices_agrees_with_the_slice_sampler_without_motion() -> None:
-    volume = _volume()
-    case = simulate_case(
-        volume,
-        SimulationConfig(
-            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=4
-        ),
-    )
+    volume, case = _still_case(4)
     stack = case.stacks[0]
     to_canonical = torch.eye(4, dtype=torch.float64)
     to_canonical[:3, 3] = -volume.centre_mm
@@ -369,13 +372,7 @@ def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_pa
 def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
-    volume = _volume()
-    case = simulate_case(
-        volume,
-        SimulationConfig(
-            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=7
-        ),
-    )
+    _, case = _still_case(7)
     estimate = estimate_stack_pose(
         net, case.stacks[0].image, case.stacks[0].mask.data, iterations=1
     )
@@ -397,13 +394,7 @@ def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
 
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
-    volume = _volume()
-    case = simulate_case(
-        volume,
-        SimulationConfig(
-            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=7
-        ),
-    )
+    _, case = _still_case(7)
     stack = case.stacks[0]
     k = stack.image.shape[2]
     packet_of = torch.arange(k) % 2
@@ -453,12 +444,7 @@ def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
 def test_packet_poses_from_a_real_network_are_rigid() -> None:
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
-    case = simulate_case(
-        _volume(),
-        SimulationConfig(
-            num_stacks=1, orientations="random", motion="none", in_plane_mm=2.0, seed=3
-        ),
-    )
+    _, case = _still_case(3)
     stack = case.stacks[0]
     k = stack.image.shape[2]
     estimate = estimate_packet_poses(
