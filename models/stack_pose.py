@@ -614,8 +614,9 @@ def estimate_packet_poses(
         max_apart_deg: The largest angle between two packets' own frames (degrees).
 
     Returns:
-        The packets' frames and scores; a packet with fewer than 4 mask voxels keeps the stack's
-        frame refined on its slices.
+        The frames and scores of packets 0 to ``packet_of.max()``; a packet with fewer than 4
+        mask voxels keeps the stack's frame refined on its slices, one without a plane the
+        stack's frame (score NaN).
 
     Raises:
         ValueError: If ``packet_of`` does not have one entry per k-plane or has negative values.
@@ -632,7 +633,10 @@ def estimate_packet_poses(
     frames, scores, own = [], [], []
     for packet in range(int(packet_of.max()) + 1):
         present = packet_of.cpu() == packet
-        if not bool(present.any()):
+        if not bool(present.any()):  # no plane of this packet in the (cropped) stack
+            frames.append((frame, frame))
+            scores.append((torch.tensor(float("nan")),) * 2)
+            own.append(False)
             continue
         candidates = frame[None]
         idx = torch.nonzero((fractions > 0.5) & present[None, None, :]).to(torch.float64)
@@ -645,8 +649,9 @@ def estimate_packet_poses(
         scores.append((logits[best], logits[0]))
         own.append(best > 0)
     chosen = torch.stack([f for f, _ in frames])
+    placed = [chosen[p] for p in range(len(chosen)) if bool((packet_of == p).any())]
     apart = max(
-        (math.degrees(rotation_angle(a, b)) for i, a in enumerate(chosen) for b in chosen[i + 1 :]),
+        (math.degrees(rotation_angle(a, b)) for i, a in enumerate(placed) for b in placed[i + 1 :]),
         default=0.0,
     )
     if apart > max_apart_deg:

@@ -672,7 +672,8 @@ def stack_pose_initialisation(
             per_packet = estimate_packet_poses(
                 model, stack.image, mask, estimate.frame, stack.k_indices.cpu() % packets
             )
-            packet_frames[sid] = per_packet.frames
+            packet_frames[sid] = estimate.frame  # for packets without a plane in this stack
+            packet_frames[sid, : len(per_packet.frames)] = per_packet.frames
             turns = [math.degrees(rotation_angle(f, estimate.frame)) for f in per_packet.frames]
             head += "; packets " + ", ".join(f"{t:.0f} deg" for t in turns)
             log.info(

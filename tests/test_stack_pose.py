@@ -459,6 +459,16 @@ def test_packet_poses_from_a_real_network_are_rigid() -> None:
     assert estimate.scores.shape == (3,)
     dets = torch.linalg.det(estimate.frames[:, :3, :3])
     assert torch.allclose(dets, torch.ones(3, dtype=torch.float64))
+    # A packet with no plane in the stack (cropped away) keeps the stack's frame, score NaN.
+    frame = torch.eye(4, dtype=torch.float64)
+    frame[:3, 3] = torch.tensor([1.0, -2.0, 3.0], dtype=torch.float64)
+    gap = estimate_packet_poses(
+        net, stack.image, stack.mask.data, frame, torch.arange(k) % 3 * 2, iterations=1
+    )
+    assert gap.frames.shape == (5, 4, 4)
+    assert torch.equal(gap.frames[1], frame) and torch.equal(gap.frames[3], frame)
+    assert bool(gap.scores[1].isnan()) and not bool(gap.scores[0].isnan())
+    assert gap.own[1].item() is False
 
 
 def test_loading_a_model_of_another_kind_fails_cleanly(tmp_path) -> None:
