@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import io
 import os
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import cast
@@ -83,6 +84,10 @@ def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[
     return [volume[i, :, :].T, volume[:, j, :].T, volume[:, :, k].T]
 
 
+NOTE_WIDTH = 44
+"""Characters per line of a stack's initialisation note in the figure's text panel."""
+
+
 def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     timings = result.timings_s
     lines = [*notes, "time per phase (s)"]
@@ -90,12 +95,13 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     lines.append(f"  total: {sum(timings.values()):.1f}")
     lines.append("initialisation per stack")
     notes = result.initialisation_notes or ("",) * len(result.initialisation)
-    lines += [
-        f"  {Path(name).name}: {init}" + (f" ({note})" if note else "")
-        for name, init, note in zip(
-            result.slices.stack_names, result.initialisation, notes, strict=True
-        )
-    ]
+    for name, init, note in zip(
+        result.slices.stack_names, result.initialisation, notes, strict=True
+    ):
+        lines.append(f"  {Path(name).name}: {init}")
+        # Long notes (the learned starts' scores) wrap under their stack: one long line
+        # squeezed the figure's panels.
+        lines += textwrap.wrap(note, NOTE_WIDTH, initial_indent="    ", subsequent_indent="    ")
     spacing = float(result.volume.spacing[0])
     excluded = int(result.excluded.sum())
     lines.append(f"slices: {len(result.slices)}, excluded {excluded}")

@@ -233,16 +233,31 @@ def test_qa_figure_png_and_pdf(slices, tmp_path):
 def test_qa_text_carries_the_initialisation_notes(slices):
     from dataclasses import replace
 
-    from svr.reconstruction.qa import _text
+    from svr.reconstruction.qa import NOTE_WIDTH, _text
 
     result = replace(
         make_result(slices),
         initialisation_notes=("cnn unsure (support 20%, 0 flipped)", "support 90%, 3 flipped"),
     )
     text = _text(result)
-    assert "stack (cnn unsure (support 20%, 0 flipped))" in text
-    assert "cnn (support 90%, 3 flipped)" in text
-    assert "(" not in _text(make_result(slices)).split("initialisation per stack")[1].split("\n")[1]
+    lines = text.split("initialisation per stack\n")[1].splitlines()
+    assert lines[:4] == [
+        "  a.nii.gz: stack",
+        "    cnn unsure (support 20%, 0 flipped)",
+        "  b.nii.gz: cnn",
+        "    support 90%, 3 flipped",
+    ]
+    # A long note wraps under its stack, whole, so that it does not squeeze the figure.
+    long = (
+        "learned, score 2.95; packets 130 deg, 165 deg, NCC cnn 0.069 vs packets 0.217 vs "
+        "stack -0.029"
+    )
+    wrapped = _text(replace(result, initialisation_notes=(long, "")))
+    lines = wrapped.split("initialisation per stack\n")[1].splitlines()
+    note = [line for line in lines if line.startswith("    ")]
+    assert len(note) > 1 and all(len(line) <= 4 + NOTE_WIDTH for line in note)
+    assert " ".join(line.strip() for line in note) == long
+    assert "  b.nii.gz: cnn" in lines
 
 
 def test_axis_aligned_resamples_by_world_position_onto_an_unrotated_grid():
