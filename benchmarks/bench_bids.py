@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 import torch
-from bench_common import ATLAS, MOTION, SHARED
+from bench_common import ATLAS, MOTION, SHARED, write_results
 
 from svr.image import load_nifti, save_nifti
 from svr.sampling.simulate import SimulationConfig, simulate_case
@@ -241,12 +241,7 @@ def main() -> int:
     text = "\n".join(lines)
     print(text)
     if args.results is not None:
-        command = "python benchmarks/bench_bids.py " + " ".join(sys.argv[1:])
-        args.results.write_text(
-            f"# svr bids: the real scan, participants in parallel\n\n"
-            f"Command: `{command}`\n\n{text}\n",
-            encoding="utf-8",
-        )
+        write_results(args.results, "svr bids: the real scan, participants in parallel", text)
     return 0
 
 

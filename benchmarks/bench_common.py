@@ -16,6 +16,19 @@ ATLAS = SHARED / "data" / "atlas" / "sb-fidon2021"
 MOTION = SHARED / "data" / "motion" / "svort_fetal_motion_trajectories.npz"
 
 
+def write_results(path: Path, title: str, text: str, note: str = "") -> None:
+    """Write a benchmark's markdown results: the title, the command that ran it, the text.
+
+    Args:
+        path: The results file (overwritten).
+        title: Its heading.
+        text: The body (tables, lines).
+        note: Appended after the command (for example when and where it ran).
+    """
+    command = " ".join(["python", f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]])
+    path.write_text(f"# {title}\n\nCommand: `{command}`{note}\n\n{text}\n", encoding="utf-8")
+
+
 def add_device_options(parser: argparse.ArgumentParser, cuda_note: str = "") -> None:
     """Add ``--threads`` (torch CPU threads, default 2) and ``--device cpu|cuda|all``."""
     parser.add_argument("--threads", type=int, default=2, help="torch CPU threads")

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import nibabel as nib
 import numpy as np
-from bench_common import ATLAS, SHARED
+from bench_common import ATLAS, SHARED, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "benchmarks" / "results" / "real-scan-frame-reference.json"
@@ -106,12 +106,11 @@ def main() -> int:
     text = "\n".join(lines)
     print(text.splitlines()[-1])
     if args.results is not None:
-        command = "python benchmarks/bench_real_frame.py " + " ".join(sys.argv[1:])
-        args.results.write_text(
-            "# The real scan's output frame, run by run\n\n"
-            f"Command: `{command}` ({datetime.date.today().isoformat()}, the 2-core VM)\n\n"
-            f"{text}\n",
-            encoding="utf-8",
+        write_results(
+            args.results,
+            "The real scan's output frame, run by run",
+            text,
+            f" ({datetime.date.today().isoformat()}, the 2-core VM)",
         )
     return 0
 

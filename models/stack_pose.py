@@ -630,14 +630,17 @@ def estimate_packet_poses(
     model.eval()
     image, fractions = coarsen_stack(stack, mask, model.config.in_plane_mm)
     frame = frame.to(torch.float64).cpu()
-    frames, scores, own = [], [], []
-    for packet in range(int(packet_of.max()) + 1):
-        present = packet_of.cpu() == packet
-        if not bool(present.any()):  # no plane of this packet in the (cropped) stack
-            frames.append((frame, frame))
-            scores.append((torch.tensor(float("nan")),) * 2)
-            own.append(False)
-            continue
+    packet_of = packet_of.cpu()
+    count = int(packet_of.max()) + 1
+    # Per packet: the best-scored candidate, and the stack's frame refined on the packet (the
+    # fallback); a packet without a plane in the (cropped) stack keeps the stack's frame.
+    best_frames, stack_frames = frame.repeat(count, 1, 1), frame.repeat(count, 1, 1)
+    best_scores = torch.full((count,), float("nan"))
+    stack_scores = best_scores.clone()
+    own = torch.zeros(count, dtype=torch.bool)
+    placed = [p for p in range(count) if bool((packet_of == p).any())]
+    for packet in placed:
+        present = packet_of == packet
         candidates = frame[None]
         idx = torch.nonzero((fractions > 0.5) & present[None, None, :]).to(torch.float64)
         if idx.shape[0] >= 4:
@@ -645,22 +648,20 @@ def estimate_packet_poses(
             candidates = torch.cat([candidates, hypotheses])
         refined, logits = refine_frames(model, image, fractions, candidates, iterations, present)
         best = int(torch.argmax(logits))
-        frames.append((refined[best], refined[0]))
-        scores.append((logits[best], logits[0]))
-        own.append(best > 0)
-    chosen = torch.stack([f for f, _ in frames])
-    placed = [chosen[p] for p in range(len(chosen)) if bool((packet_of == p).any())]
+        best_frames[packet], best_scores[packet] = refined[best], logits[best]
+        stack_frames[packet], stack_scores[packet] = refined[0], logits[0]
+        own[packet] = best > 0
     apart = max(
-        (math.degrees(rotation_angle(a, b)) for i, a in enumerate(placed) for b in placed[i + 1 :]),
+        (
+            math.degrees(rotation_angle(best_frames[a], best_frames[b]))
+            for i, a in enumerate(placed)
+            for b in placed[i + 1 :]
+        ),
         default=0.0,
     )
     if apart > max_apart_deg:
-        return PacketPoseEstimate(
-            torch.stack([f for _, f in frames]),
-            torch.stack([s for _, s in scores]),
-            torch.zeros(len(frames), dtype=torch.bool),
-        )
-    return PacketPoseEstimate(chosen, torch.stack([s for s, _ in scores]), torch.tensor(own))
+        return PacketPoseEstimate(stack_frames, stack_scores, torch.zeros_like(own))
+    return PacketPoseEstimate(best_frames, best_scores, own)
 
 
 def load_stack_pose_model(

@@ -332,37 +332,29 @@ def stack_ncc(slices: SliceSet, resolution_mm: float, leave_out: bool = False) -
     """
     grid = output_grid(slices, 2 * resolution_mm)
     num_stacks = len(slices.stack_names)
-    if not leave_out or num_stacks < 2:
-        projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
-        observed = projector.gather(slices.images)
-        points = projector.grid_points(slices.poses)
-        ones = torch.ones_like(observed)
-        volume = scattered_data_approximation(projector, points, observed, ones)
-        ncc = slice_ncc(projector, projector.forward(volume, points), observed)
-        total = torch.zeros(num_stacks, dtype=ncc.dtype, device=ncc.device)
-        count = total.index_add(0, slices.stack_ids, torch.ones_like(ncc)).clamp_min(1)
-        return total.index_add(0, slices.stack_ids, ncc) / count
-    # Each stack's sums once; the volume without stack s is (all - s's numerator) / (all - s's
-    # coverage), so leaving each out costs one pass over the pixels, not one per stack.
-    parts: list[tuple[SliceProjector, Tensor, Tensor, tuple[Tensor, Tensor]] | None] = []
+    leave = leave_out and num_stacks > 1
+    # Each stack's SDA sums once: the volume of all stacks is the ratio of their totals, the
+    # volume without stack s that of the totals less s's, so leaving every stack out in turn
+    # still costs one pass over the pixels.
+    parts: dict[int, tuple[SliceProjector, Tensor, Tensor, Tensor, Tensor]] = {}
     for sid in range(num_stacks):
         mine = slices.subset(slices.stack_ids == sid)
         if len(mine) == 0:
-            parts.append(None)
             continue
         projector = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
         observed = projector.gather(mine.images)
         points = projector.grid_points(mine.poses)
-        ones = torch.ones_like(observed)
-        sums = projector.adjoint(observed, points), coverage(projector, points, ones)
-        parts.append((projector, observed, points, sums))
-    numerator = sum(part[3][0] for part in parts if part is not None)
-    denominator = sum(part[3][1] for part in parts if part is not None)
+        covered = coverage(projector, points, torch.ones_like(observed))
+        parts[sid] = (projector, observed, points, projector.adjoint(observed, points), covered)
     out = torch.zeros(num_stacks, dtype=torch.float32, device=slices.images.device)
-    for sid, part in enumerate(parts):
-        if part is None:
-            continue
-        projector, observed, points, (own_numerator, own_coverage) = part
-        volume = sda_ratio(numerator - own_numerator, denominator - own_coverage)
+    if not parts:
+        return out
+    total_numerator = torch.stack([part[3] for part in parts.values()]).sum(0)
+    total_coverage = torch.stack([part[4] for part in parts.values()]).sum(0)
+    for sid, (projector, observed, points, numerator, covered) in parts.items():
+        if leave:
+            volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
+        else:
+            volume = sda_ratio(total_numerator, total_coverage)
         out[sid] = slice_ncc(projector, projector.forward(volume, points), observed).mean()
     return out
