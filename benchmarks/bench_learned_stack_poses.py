@@ -15,8 +15,11 @@ Methods, each giving one scanner -> canonical frame per stack:
 * ``axes+oracle``: the mask-axis hypothesis nearest the truth (the coarse step's best case);
 * ``axes+atlas``: the classical chain, the hypothesis whose atlas agreement (NCC of the stack with
   an atlas of a neighbouring age sampled at the hypothesis; ``--atlas-age-offset``) is highest;
-* ``learned``: every hypothesis refined by the network, the best-scored kept
-  (:func:`svr.models.stack_pose.estimate_stack_pose`);
+* ``learned``: every hypothesis refined by the network, the best-scored kept, then refined again
+  from itself and six starts turned 10 degrees about the canonical axes, the robust mean of the
+  seven kept (:func:`svr.models.stack_pose.estimate_stack_pose`);
+* ``learned, no restarts``: the same without the restarts (``restart_deg=0``; ``learned`` until
+  2026-11-27);
 * ``axes+atlas+fit``: that hypothesis refined by rigid registration of the stack's masked voxels
   to the atlas (:func:`svr.models.stack_pose.fit_to_atlas`): the classical estimate in full;
 * ``learned+atlas``: the refined hypotheses, chosen by atlas agreement;
@@ -278,6 +281,8 @@ def main() -> int:
         estimate = estimate_stack_pose(model, image, mask, args.iterations)
         row["seconds"] = time.perf_counter() - began
         record("learned", estimate.frame)
+        plain = estimate_stack_pose(model, image, mask, args.iterations, restart_deg=0.0)
+        record("learned, no restarts", plain.frame)
         packet_of = packet_index(item["acquisition"])
         packets = estimate_packet_poses(model, image, mask, estimate.frame, packet_of)
         record("learned+packets", robust_mean_pose(packets.frames[packet_of]))
@@ -291,6 +296,7 @@ def main() -> int:
             f"{row['axes+atlas']['rot_deg']:6.1f}  fit {row['axes+atlas+fit']['rot_deg']:6.1f} "
             f"{row['axes+atlas+fit']['centre_mm']:5.1f} mm  "
             f"learned {row['learned']['rot_deg']:6.1f} deg "
+            f"(no restarts {row['learned, no restarts']['rot_deg']:6.1f}) "
             f"{row['learned']['centre_mm']:5.1f} mm  learned+atlas "
             f"{row['learned+atlas']['rot_deg']:6.1f}  "
             f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
@@ -351,6 +357,7 @@ def main() -> int:
         "axes+atlas",
         "axes+atlas+fit",
         "learned",
+        "learned, no restarts",
         "learned+atlas",
         "learned+atlas+fit",
         "learned+packets",

@@ -116,6 +116,13 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
     return options
 
 
+def converged_options(converged: list[float] | None) -> list[str]:
+    """``svr reconstruct``'s convergence thresholds, where ``--converged`` gives them."""
+    if converged is None:
+        return []
+    return ["--converged-deg", str(converged[0]), "--converged-mm", str(converged[1])]
+
+
 def run_child(command: list[str], threads: int) -> tuple[int, float, float, float]:
     """Run a command; return its exit code, wall s, CPU s (user + sys) and peak RSS in MB."""
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
@@ -191,6 +198,13 @@ def main() -> int:
         help="cnn runs also get --atlas-volume/--atlas-mask: the atlas age nearest the case's "
         "own age plus this many weeks (never the case's own age); default: no atlas",
     )
+    parser.add_argument(
+        "--converged",
+        type=float,
+        nargs=2,
+        metavar=("DEG", "MM"),
+        help="--converged-deg and --converged-mm of every run (default: svr reconstruct's)",
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -229,6 +243,7 @@ def main() -> int:
                 "--registration", registration,
                 *cnn_options(registration, folder, args),
                 "--schedule", schedule,
+                *converged_options(args.converged),
                 "--output-volume", f"{stem}.nii.gz",
                 "--output-transforms", f"{stem}.csv",
                 "--output-qa", f"{stem}.png",

@@ -45,6 +45,7 @@ from svr.geometry import (
     vector_to_se3,
     weighted_rigid_fit,
 )
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, sample_world, voxel_to_world
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
@@ -453,6 +454,32 @@ class StackPoseEstimate(NamedTuple):
     method: str
 
 
+def restart_frames(frame: Tensor, turn_deg: float) -> Tensor:
+    """A frame and six copies turned by ``turn_deg`` either way about each canonical axis.
+
+    The turns are about the canonical origin (the brain's centre): every copy maps the same
+    scanner point to it.
+
+    Args:
+        frame: (4, 4) frame (scanner mm -> canonical mm).
+        turn_deg: The turn (degrees, >= 0).
+
+    Returns:
+        (7, 4, 4) float64 frames, ``frame`` first, then +x, -x, +y, -y, +z, -z.
+
+    Raises:
+        ValueError: If ``frame`` is not (4, 4) or ``turn_deg`` is negative or not finite.
+    """
+    if tuple(frame.shape) != (4, 4):
+        raise ValueError(f"restart_frames(): 'frame' must be (4, 4), got {tuple(frame.shape)}")
+    check_number("restart_frames", "turn_deg", turn_deg, ge=0.0)
+    eye = torch.eye(3, dtype=torch.float64)
+    axes = torch.stack([eye, -eye], dim=1).reshape(6, 3)  # +x, -x, +y, -y, +z, -z
+    turns = torch.eye(4, dtype=torch.float64).repeat(7, 1, 1)
+    turns[1:, :3, :3] = so3_exp(axes * math.radians(turn_deg))
+    return se3_compose(turns, frame.to(torch.float64))
+
+
 @torch.no_grad()
 def refine_frames(
     model: StackPoseNet,
@@ -498,10 +525,16 @@ def estimate_stack_pose(
     in_plane_mm: float = 2.0,
     max_fit_turn_deg: float = 15.0,
     levels: list[Image] | None = None,
+    restart_deg: float = 10.0,
 ) -> StackPoseEstimate:
     """A stack's canonical pose from its own data: mask-axis hypotheses, refined, one chosen.
 
-    With a model, every hypothesis is refined by it and its score chooses one; with an atlas as
+    With a model, every hypothesis is refined by it and its score chooses one; the chosen frame
+    is then refined again from itself and six starts turned by ``restart_deg`` about the
+    canonical axes (:func:`restart_frames`), and the robust mean of the seven is kept: on
+    simulated stacks of the held-out ages (three draws of 54) it put 89.5 % within 10 degrees
+    against 84.6 % (``benchmarks/results/stack-pose-restarts.md``; the reconstruction's start
+    does without, ``restart_deg=0``). With an atlas as
     well, the chosen frame is then rigidly fitted to the atlas (:func:`fit_to_atlas`, more
     precise where it converges) unless the fit turns it by more than ``max_fit_turn_deg`` (a
     fit gone to another optimum; the model's frame is kept). Without a model, the hypothesis
@@ -522,6 +555,8 @@ def estimate_stack_pose(
         max_fit_turn_deg: With a model and an atlas, the largest turn the atlas fit may make.
         levels: The atlas's blurred copies for ``fit`` (:func:`atlas_levels`), computed once
             for the stacks of one fetus; ``None`` makes them here.
+        restart_deg: With a model, the turn (degrees, >= 0) of the restarts about the chosen
+            frame; 0 keeps the chosen hypothesis as refined.
 
     Returns:
         The estimate.
@@ -550,6 +585,11 @@ def estimate_stack_pose(
             scores = atlas_agreement(image, fractions, frames, atlas).float()
     best = int(torch.argmax(scores))
     frame, score = frames[best], float(scores[best])
+    if model is not None and restart_deg > 0:
+        restarted, _ = refine_frames(
+            model, image, fractions, restart_frames(frame, restart_deg), iterations
+        )
+        frame = robust_mean_pose(restarted)
     if atlas is not None:
         fitted, ncc = fit_to_atlas(image, fractions, frame, atlas, fit, levels)
         turn = math.degrees(rotation_angle(fitted, frame))

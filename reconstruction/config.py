@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 from torch import Tensor
 
@@ -20,13 +20,33 @@ from svr.validation import (
     check_range,
 )
 
-__all__ = ["REGISTRATIONS", "SCHEDULES", "ReconstructionConfig", "ReconstructionResult"]
+__all__ = [
+    "CONVERGED_DEFAULTS",
+    "REGISTRATIONS",
+    "SCHEDULES",
+    "ReconstructionConfig",
+    "ReconstructionResult",
+]
 
 REGISTRATIONS = ("cnn", "stack", "none")
 SCHEDULES = ("adaptive", "fixed")
 # Default number of rounds of the fixed schedule and default cap of the adaptive one.
 FIXED_ROUNDS = 5
 ADAPTIVE_MAX_ROUNDS = 16
+CONVERGED_DEFAULTS: dict[str, tuple[float, float]] = {
+    "stack": (0.3, 0.15),
+    "none": (0.3, 0.15),
+    "cnn": (0.15, 0.075),
+}
+"""The adaptive schedule's default (degrees, mm) "still moving" thresholds per registration.
+
+From a learned start the slices begin near their place and the rounds reach "at most 10 % still
+moving" at 0.3 deg / 0.15 mm early, before the slow last alignment that is still worth 1 dB on
+sb24-large (24.30 -> 25.29 dB with half the thresholds; no case lower by more than 0.06 dB,
+``benchmarks/results/stack-pose-strict-convergence.md``). From stack registration's start, half
+the thresholds measured mixed (ga25 -0.09 dB, ga33 +0.10 dB, ga27 +0.32 dB) and up to 1.3 times
+slower, so ``"stack"`` keeps the thresholds of ``benchmarks/results/reconstruction-convergence.md``.
+"""
 
 
 @dataclass(frozen=True)
@@ -82,7 +102,8 @@ class ReconstructionConfig:
             deterministic, and :func:`~svr.reconstruction.pipeline.reconstruct` neither reads
             nor changes torch's global generator.
         converged_deg: ``"adaptive"``: a registered slice whose rotation changed by more than
-            this (degrees) in a round is still moving.
+            this (degrees) in a round is still moving; ``None``: the registration's default
+            (:data:`CONVERGED_DEFAULTS`, read through :attr:`convergence`).
         converged_mm: ``"adaptive"``: likewise for the displacement of its centre (mm).
         converged_fraction: ``"adaptive"``: the rounds stop once at most this fraction of the
             registrable slices is still moving, in [0, 1).
@@ -117,11 +138,26 @@ class ReconstructionConfig:
     cnn_max_deviation_mm: float = 20.0
     cnn_min_support: float = 0.5
     seed: int = 0
-    converged_deg: float = 0.3
-    converged_mm: float = 0.15
+    converged_deg: float | None = None
+    converged_mm: float | None = None
     converged_fraction: float = 0.1
     background_mm: tuple[float, float] = (2.0, 5.0)
     recapture: bool = True
+
+    @property
+    def convergence(self) -> tuple[float, float]:
+        """The adaptive schedule's (degrees, mm) thresholds: as given, else the registration's."""
+        deg, mm = CONVERGED_DEFAULTS[self.registration]
+        return (
+            deg if self.converged_deg is None else self.converged_deg,
+            mm if self.converged_mm is None else self.converged_mm,
+        )
+
+    def settings(self) -> dict[str, object]:
+        """The fields as a dict (for logs and sidecars), the registration's defaults filled in."""
+        out = asdict(self)
+        out["converged_deg"], out["converged_mm"] = self.convergence
+        return out
 
     @property
     def rounds(self) -> int:
@@ -144,7 +180,7 @@ class ReconstructionConfig:
         check_choice(owner, "schedule", self.schedule, SCHEDULES)
         check_int(owner, "outer_iterations", self.outer_iterations, minimum=1, allow_none=True)
         for name in ("converged_deg", "converged_mm"):
-            check_number(owner, name, getattr(self, name), ge=0)
+            check_number(owner, name, getattr(self, name), ge=0, allow_none=True)
         check_fraction(owner, "converged_fraction", self.converged_fraction, include_one=False)
         check_range(owner, "background_mm", self.background_mm, ge=0)
         for name, minimum in (

@@ -840,7 +840,8 @@ def _record(
     else:
         registered = registered.cpu()
         rotation, translation = changes[0][registered], changes[1][registered]
-    moving = (rotation > config.converged_deg) | (translation > config.converged_mm)
+    still_deg, still_mm = config.convergence
+    moving = (rotation > still_deg) | (translation > still_mm)
     excluded = outliers.excluded.cpu()
     median_r, p90_r, median_t, p90_t = round_summary(rotation, translation)
     record = RoundRecord(
@@ -965,9 +966,8 @@ def _adaptive_rounds(
             # A slice that moved less than half the thresholds in two rounds in a row sits out
             # the next round and is registered again after it: the volume keeps changing
             # around it (freezing it for good cost sb24-large 0.55 dB).
-            still = (rotation <= config.converged_deg / 2) & (
-                translation <= config.converged_mm / 2
-            )
+            still_deg, still_mm = config.convergence
+            still = (rotation <= still_deg / 2) & (translation <= still_mm / 2)
             quiet = torch.where(still & registered, quiet + 1, torch.zeros_like(quiet))
             active = single & (quiet < QUIET_ROUNDS)
     verdict: bool | None = converged

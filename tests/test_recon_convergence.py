@@ -7,6 +7,7 @@ with and without motion; the background term by its effect on the volume outside
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import math
@@ -16,7 +17,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.config import CONVERGED_DEFAULTS, ReconstructionConfig
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary, verdict
 from svr.reconstruction.pipeline import (
     acquisition_model,
@@ -214,9 +215,33 @@ def test_the_rule_stops_when_nothing_moves_and_not_before_the_cap_otherwise(monk
     assert all(abs(r.rotation_deg - 1.0) < 1e-6 for r in result.rounds[1:])
     assert any("not converged" in r.getMessage() for r in caplog.records)
     # Just below the threshold counts as still.
-    still(monkeypatch, 0.99 * config.converged_deg)
+    assert config.converged_deg is None and config.convergence == (0.3, 0.15)
+    still(monkeypatch, 0.99 * config.convergence[0])
     result = reconstruct(stacks, config, progress=False)
     assert result.converged is True and len(result.rounds) == 3
+    # A threshold given (cnn's default) is the one the rounds use: 0.2 deg is moving under it.
+    still(monkeypatch, 0.2)
+    assert reconstruct(stacks, config, progress=False).converged is True
+    strict = dataclasses.replace(config, converged_deg=CONVERGED_DEFAULTS["cnn"][0])
+    assert reconstruct(stacks, strict, progress=False).converged is False
+
+
+def test_the_thresholds_default_per_registration_and_given_values_win():
+    """cnn's slices start near their place: half the thresholds (CONVERGED_DEFAULTS)."""
+    assert ReconstructionConfig().convergence == (0.3, 0.15)
+    assert ReconstructionConfig(registration="none").convergence == (0.3, 0.15)
+    cnn = ReconstructionConfig(registration="cnn")
+    assert cnn.convergence == (0.15, 0.075)
+    # A stack config replaced into cnn takes cnn's defaults (nothing was resolved at creation).
+    assert dataclasses.replace(ReconstructionConfig(), registration="cnn").convergence == (
+        0.15,
+        0.075,
+    )
+    given = ReconstructionConfig(registration="cnn", converged_deg=0.5, converged_mm=0.0)
+    assert given.convergence == (0.5, 0.0)
+    assert given.settings()["converged_deg"] == 0.5
+    assert cnn.settings()["converged_mm"] == 0.075
+    assert set(cnn.settings()) == {f.name for f in dataclasses.fields(cnn)}
 
 
 def test_two_rounds_have_no_verdict(caplog):

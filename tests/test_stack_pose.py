@@ -23,6 +23,7 @@ from svr.models.stack_pose import (
     estimate_stack_pose,
     load_stack_pose_model,
     mask_axis_hypotheses,
+    restart_frames,
 )
 from svr.models.stack_pose_train import (
     StackPoseTrainingConfig,
@@ -386,6 +387,69 @@ def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
     )
     with pytest.raises(ValueError, match="fewer than 4"):
         estimate_stack_pose(net, case.stacks[0].image, torch.zeros(case.stacks[0].image.shape))
+
+
+def test_restart_frames_turn_about_each_canonical_axis() -> None:
+    """Against scipy: the six copies are the frame turned by +-angle about x, y and z."""
+    frame = torch.tensor(
+        [[0.0, -1.0, 0.0, 4.0], [1.0, 0.0, 0.0, -2.0], [0.0, 0.0, 1.0, 7.0], [0, 0, 0, 1]],
+        dtype=torch.float64,
+    )
+    frames = restart_frames(frame, 12.0)
+    assert frames.shape == (7, 4, 4) and frames.dtype == torch.float64
+    assert torch.equal(frames[0], frame)
+    for i, (axis, sign) in enumerate([(a, s) for a in range(3) for s in (1, -1)], start=1):
+        vector = np.zeros(3)
+        vector[axis] = sign * math.radians(12.0)
+        turn = Rotation.from_rotvec(vector).as_matrix()
+        np.testing.assert_allclose(frames[i, :3, :3], turn @ frame[:3, :3].numpy(), atol=1e-12)
+        np.testing.assert_allclose(frames[i, :3, 3], turn @ frame[:3, 3].numpy(), atol=1e-12)
+    assert torch.allclose(restart_frames(frame, 0.0), frame.expand(7, 4, 4))
+    with pytest.raises(ValueError, match="'turn_deg'"):
+        restart_frames(frame, -1.0)
+    with pytest.raises(ValueError, match="'frame'"):
+        restart_frames(frame[:3], 10.0)
+
+
+def test_the_chosen_frame_is_the_robust_mean_of_its_restarts(monkeypatch) -> None:
+    """The best-scored hypothesis is refined again from 7 starts; their robust mean is kept."""
+    import svr.models.stack_pose as stack_pose
+
+    model_config, _ = _tiny_training()
+    net = StackPoseNet(model_config)
+    _, case = _still_case(7)
+    stack = case.stacks[0]
+    target = torch.eye(4, dtype=torch.float64)
+    target[:3, :3] = so3_exp(torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64))
+    target[:3, 3] = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    outlier = se3_compose(
+        torch.tensor(
+            [[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=torch.float64
+        ),
+        target,
+    )
+    calls = []
+
+    def fake_refine(model, image, mask, frames, iterations=3, present=None):
+        calls.append(frames.clone())
+        scores = torch.zeros(frames.shape[0])
+        if len(calls) == 1:  # the 8 hypotheses: the third scores best, refined as it is
+            scores[2] = 1.0
+            return frames + 0.0, scores
+        # the restarts: two land on a frame turned 90 degrees from the target, five on it
+        return torch.stack([outlier] * 2 + [target] * 5), scores
+
+    monkeypatch.setattr(stack_pose, "refine_frames", fake_refine)
+    estimate = stack_pose.estimate_stack_pose(net, stack.image, stack.mask.data, iterations=2)
+    assert [c.shape[0] for c in calls] == [8, 7]
+    assert torch.allclose(calls[1], restart_frames(calls[0][2], 10.0))
+    assert torch.allclose(estimate.frame, target, atol=1e-6)
+    assert torch.equal(estimate.hypotheses, calls[0])
+    calls.clear()
+    plain = stack_pose.estimate_stack_pose(
+        net, stack.image, stack.mask.data, iterations=2, restart_deg=0.0
+    )
+    assert len(calls) == 1 and torch.equal(plain.frame, calls[0][2])
 
 
 def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:

@@ -428,7 +428,7 @@ def _reconstruct(
             "options": {
                 "masking": None if masks else asdict(settings.masking),
                 "stack_preparation": asdict(settings.stacks),
-                "reconstruction": asdict(config),
+                "reconstruction": config.settings(),
                 "masks": "given (--masks-dir)" if masks else f"automatic ({args.auto_masks})",
                 "mask_model": None if masks else args.mask_model,
                 "thickness_mm": list(job.thicknesses),

@@ -187,6 +187,7 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
     """
     from svr.reconstruction.config import (
         ADAPTIVE_MAX_ROUNDS,
+        CONVERGED_DEFAULTS,
         FIXED_ROUNDS,
         REGISTRATIONS,
         SCHEDULES,
@@ -266,14 +267,18 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         default=d.converged_deg,
         metavar="DEG",
         help="adaptive schedule: a slice whose rotation changes by more than this in a round is "
-        "still moving; the rounds stop once at most 10%% of the slices are",
+        "still moving; the rounds stop once at most 10%% of the slices are (default: "
+        f"{CONVERGED_DEFAULTS['stack'][0]:g}; {CONVERGED_DEFAULTS['cnn'][0]:g} with --registration "
+        "cnn, whose slices start near their place)",
     )
     settings.add_argument(
         "--converged-mm",
         type=non_negative_float,
         default=d.converged_mm,
         metavar="MM",
-        help="adaptive schedule: likewise for the displacement of a slice's centre",
+        help="adaptive schedule: likewise for the displacement of a slice's centre (default: "
+        f"{CONVERGED_DEFAULTS['stack'][1]:g}; {CONVERGED_DEFAULTS['cnn'][1]:g} with --registration "
+        "cnn)",
     )
     settings.add_argument(
         "--sr-iterations",
@@ -608,7 +613,7 @@ def _summary(
     lines.append("stack preparation:")
     lines += [f"  {key}: {value}" for key, value in asdict(settings.stacks).items()]
     lines.append("reconstruction:")
-    lines += [f"  {key}: {value}" for key, value in asdict(config).items()]
+    lines += [f"  {key}: {value}" for key, value in config.settings().items()]
     lines.append(f"  device: {device}")
     lines.append("time per phase (s):")
     lines += [f"  {name}: {seconds:.2f}" for name, seconds in result.timings_s.items()]
