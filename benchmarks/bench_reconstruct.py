@@ -205,6 +205,9 @@ def main() -> int:
         metavar=("DEG", "MM"),
         help="--converged-deg and --converged-mm of every run (default: svr reconstruct's)",
     )
+    parser.add_argument(
+        "--iterations", type=int, help="--iterations of every run (default: svr reconstruct's)"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -244,6 +247,7 @@ def main() -> int:
                 *cnn_options(registration, folder, args),
                 "--schedule", schedule,
                 *converged_options(args.converged),
+                *([] if args.iterations is None else ["--iterations", str(args.iterations)]),
                 "--output-volume", f"{stem}.nii.gz",
                 "--output-transforms", f"{stem}.csv",
                 "--output-qa", f"{stem}.png",

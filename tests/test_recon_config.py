@@ -75,6 +75,11 @@ def test_defaults_and_edges_are_accepted():
 def test_rounds_default_per_schedule():
     assert ReconstructionConfig(schedule="fixed").rounds == 5
     assert ReconstructionConfig().rounds == 16
+    # The adaptive cap follows the registration: the learned start's rounds keep paying.
+    assert ReconstructionConfig(registration="cnn").rounds == 24
+    assert ReconstructionConfig(registration="cnn", schedule="fixed").rounds == 5
+    assert ReconstructionConfig(registration="cnn", outer_iterations=7).rounds == 7
+    assert ReconstructionConfig(registration="cnn").settings()["outer_iterations"] == 24
     assert ReconstructionConfig(schedule="fixed", outer_iterations=3).rounds == 3
     assert ReconstructionConfig(outer_iterations=1).rounds == 1
     ReconstructionConfig(converged_deg=0.0, converged_mm=0.0, converged_fraction=0.0)

@@ -259,7 +259,8 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         metavar="N",
         help="rounds of (slice-to-volume registration, super-resolution), no slice-to-volume "
         f"registration in the first: the most rounds of the adaptive schedule (default "
-        f"{ADAPTIVE_MAX_ROUNDS}), the number of rounds of the fixed one (default {FIXED_ROUNDS})",
+        f"{ADAPTIVE_MAX_ROUNDS['stack']}; {ADAPTIVE_MAX_ROUNDS['cnn']} with --registration cnn), "
+        f"the number of rounds of the fixed one (default {FIXED_ROUNDS})",
     )
     settings.add_argument(
         "--converged-deg",
