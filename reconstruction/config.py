@@ -79,7 +79,8 @@ class ReconstructionConfig:
             (reproduces its outputs bit for bit).
         outer_iterations: ``"fixed"``: the number of rounds of (SVR, super-resolution), SVR
             skipped in the first (``None``: 5). ``"adaptive"``: the most rounds, the first
-            (super-resolution only) and the final one included (``None``: 16).
+            (super-resolution only) and the final one included (``None``: the registration's
+            :data:`ADAPTIVE_MAX_ROUNDS`, 16, or 24 for ``"cnn"``).
         sr_iterations: Conjugate-gradient iterations of super-resolution per round (one per round,
             or a single number for all). The adaptive schedule uses the last value for the final
             round and the others, the last of them repeating, for the rounds before it.
