@@ -116,11 +116,19 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
     return options
 
 
-def converged_options(converged: list[float] | None) -> list[str]:
-    """``svr reconstruct``'s convergence thresholds, where ``--converged`` gives them."""
-    if converged is None:
-        return []
-    return ["--converged-deg", str(converged[0]), "--converged-mm", str(converged[1])]
+def schedule_options(args: argparse.Namespace) -> list[str]:
+    """``svr reconstruct``'s --converged-deg/-mm and --iterations where the bench sets them."""
+    options = []
+    if args.converged is not None:
+        options += [
+            "--converged-deg",
+            str(args.converged[0]),
+            "--converged-mm",
+            str(args.converged[1]),
+        ]
+    if args.iterations is not None:
+        options += ["--iterations", str(args.iterations)]
+    return options
 
 
 def run_child(command: list[str], threads: int) -> tuple[int, float, float, float]:
@@ -246,8 +254,7 @@ def main() -> int:
                 "--registration", registration,
                 *cnn_options(registration, folder, args),
                 "--schedule", schedule,
-                *converged_options(args.converged),
-                *([] if args.iterations is None else ["--iterations", str(args.iterations)]),
+                *schedule_options(args),
                 "--output-volume", f"{stem}.nii.gz",
                 "--output-transforms", f"{stem}.csv",
                 "--output-qa", f"{stem}.png",

@@ -75,6 +75,7 @@ __all__ = [
     "fit_to_atlas",
     "load_stack_pose_model",
     "mask_axis_hypotheses",
+    "restart_frames",
 ]
 
 Head = Literal["regress", "coords"]
