@@ -82,7 +82,10 @@ def train_runs(args, trajectories) -> dict[str, float]:
             trajectories,
             StackPoseConfig(representation=by_cli[loss].name),
             StackPoseTrainingConfig(
-                steps=args.steps, learning_rate=args.learning_rate, seed=args.seed
+                steps=args.steps,
+                learning_rate=args.learning_rate,
+                fine_tune_steps=0,
+                seed=args.seed,
             ),
             folder=folder,
             progress=True,

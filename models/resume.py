@@ -31,12 +31,47 @@ log = logging.getLogger(__name__)
 
 
 def cosine_schedule(
-    optimiser: torch.optim.Optimizer, steps: int, floor: float = 0.05
+    optimiser: torch.optim.Optimizer,
+    steps: int,
+    floor: float = 0.05,
+    restart_at: int | None = None,
+    restart_scale: float = 1.0,
 ) -> torch.optim.lr_scheduler.LambdaLR:
-    """Cosine decay of the learning rate from its initial value to ``floor`` of it in ``steps``."""
+    """Cosine decay of the learning rate from its initial value to ``floor`` of it in ``steps``.
+
+    With ``restart_at`` the decay is a warm restart (Loshchilov & Hutter, SGDR): the first
+    ``restart_at`` steps decay from the initial rate to ``floor`` of it, then the rate jumps to
+    ``restart_scale`` times the initial rate and decays again to ``floor`` of that at ``steps``.
+
+    Args:
+        optimiser: The optimiser whose initial rate is scaled.
+        steps: Length of the whole schedule, >= 1.
+        floor: Final share of each phase's starting rate.
+        restart_at: Step of the warm restart, 0 < restart_at < steps; ``None`` for none.
+        restart_scale: The restart's rate as a share of the initial rate, > 0.
+
+    Raises:
+        ValueError: If ``restart_at`` is not inside the schedule or ``restart_scale`` <= 0.
+    """
+
+    def cosine(s: float, length: int) -> float:
+        return floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(s / length, 1.0)))
+
+    if restart_at is None:
+        return torch.optim.lr_scheduler.LambdaLR(optimiser, lambda s: cosine(s, steps))
+    if not (isinstance(restart_at, int) and 0 < restart_at < steps):
+        raise ValueError(
+            f"cosine_schedule(): 'restart_at' must be an int in (0, {steps}), got {restart_at!r}"
+        )
+    if not restart_scale > 0:
+        raise ValueError(f"cosine_schedule(): 'restart_scale' must be > 0, got {restart_scale!r}")
     return torch.optim.lr_scheduler.LambdaLR(
         optimiser,
-        lambda s: floor + (1 - floor) * 0.5 * (1 + math.cos(math.pi * min(s / steps, 1.0))),
+        lambda s: (
+            cosine(s, restart_at)
+            if s < restart_at
+            else restart_scale * cosine(s - restart_at, steps - restart_at)
+        ),
     )
 
 

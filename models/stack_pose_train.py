@@ -13,7 +13,9 @@ blocks from each, in frames drawn around the truth:
   mask-axis hypotheses make), score 0.
 
 Blocks use every slice of the stack (probability ``1 - subset_fraction``) or a subset: one
-interleaved packet, or k neighbouring slices (k from 1 to ``max_subset``). Checkpoints
+interleaved packet, or k neighbouring slices (k from 1 to ``max_subset``). The run has two
+phases: the last ``fine_tune_steps`` steps restart the learning rate lower and add the fine-tune
+brains (procedural phantoms: anatomy unlike the atlas's) to the training ones. Checkpoints
 (:mod:`svr.models.checkpoint`) are written every ``checkpoint_every`` steps and the newest is
 resumed, with the RNG state, so a run that is stopped and started again continues where it was.
 """
@@ -32,6 +34,7 @@ from torch import Tensor
 from torch.nn import functional
 from torch.utils.data import DataLoader, Dataset
 
+from svr.errors import ConfigFieldError
 from svr.geometry import (
     ANCHOR_HALF_SIZE_MM,
     se3_compose,
@@ -88,6 +91,11 @@ class StackPoseTrainingConfig:
         stacks_per_step: Stacks simulated per step, >= 1.
         samples_per_stack: Blocks cut from each stack, >= 1.
         learning_rate: Adam's initial rate (cosine decay to 5 % of it).
+        fine_tune_steps: The last steps of ``steps``, a second phase: the rate restarts at
+            ``fine_tune_learning_rate`` (cosine decay to 5 % of it again) and the fine-tune
+            volumes (``train_stack_pose``'s ``fine_tune_volumes``: the procedural phantoms)
+            join the training brains. 0 for one phase; < ``steps``.
+        fine_tune_learning_rate: Adam's rate at the start of the second phase.
         max_start_deg: Largest start error within reach (degrees).
         start_shift_mm: Per-axis standard deviation of the start's shift (mm).
         positive_fraction: Share of blocks within reach.
@@ -104,10 +112,12 @@ class StackPoseTrainingConfig:
             out of range.
     """
 
-    steps: int = 14000
+    steps: int = 28000
     stacks_per_step: int = 2
     samples_per_stack: int = 4
     learning_rate: float = 1e-3
+    fine_tune_steps: int = 12000
+    fine_tune_learning_rate: float = 3e-4
     max_start_deg: float = 40.0
     start_shift_mm: float = 5.0
     positive_fraction: float = 0.65
@@ -131,8 +141,16 @@ class StackPoseTrainingConfig:
             check_int(owner, name, getattr(self, name), minimum=1)
         for name in ("positive_fraction", "subset_fraction"):
             check_fraction(owner, name, getattr(self, name))
-        for name in ("learning_rate", "max_start_deg"):
+        for name in ("learning_rate", "fine_tune_learning_rate", "max_start_deg"):
             check_number(owner, name, getattr(self, name), gt=0)
+        check_int(owner, "fine_tune_steps", self.fine_tune_steps, minimum=0)
+        if self.fine_tune_steps >= self.steps:
+            raise ConfigFieldError(
+                owner,
+                "fine_tune_steps",
+                f"< steps ({self.steps}; 0 for one phase)",
+                self.fine_tune_steps,
+            )
         for name in ("start_shift_mm", "score_weight", "coords_weight"):
             check_number(owner, name, getattr(self, name), ge=0)
         check_int(owner, "seed", self.seed)
@@ -249,16 +267,21 @@ def step_seed(seed: int, step: int) -> int:
 
 
 class _StepBatches(Dataset):
-    """Step ``i``'s batch, simulated from a generator seeded by :func:`step_seed`."""
+    """Step ``i``'s batch, simulated from a generator seeded by :func:`step_seed`.
+
+    ``phases`` are the training brains before and from step ``turn`` on.
+    """
 
     def __init__(
         self,
-        volumes: list[CanonicalVolume],
+        phases: tuple[list[CanonicalVolume], list[CanonicalVolume]],
+        turn: int,
         trajectories: list[Trajectory] | None,
         model_config: StackPoseConfig,
         config: StackPoseTrainingConfig,
     ) -> None:
-        self.volumes = volumes
+        self.phases = phases
+        self.turn = turn
         self.trajectories = trajectories
         self.model_config = model_config
         self.config = config
@@ -269,7 +292,11 @@ class _StepBatches(Dataset):
     def __getitem__(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         generator = torch.Generator().manual_seed(step_seed(self.config.seed, step))
         return simulate_batch(
-            self.volumes, self.trajectories, self.model_config, self.config, generator
+            self.phases[step >= self.turn],
+            self.trajectories,
+            self.model_config,
+            self.config,
+            generator,
         )
 
 
@@ -351,6 +378,7 @@ def train_stack_pose(
     device: str | torch.device = "cpu",
     init: dict[str, Tensor] | None = None,
     workers: int = 0,
+    fine_tune_volumes: list[CanonicalVolume] | None = None,
 ) -> StackPoseNet:
     """Train (or resume training) the stack-pose network.
 
@@ -372,6 +400,8 @@ def train_stack_pose(
             the step (:func:`step_seed`), so the run is the same for every N >= 1 and resumes
             exactly, but differs from a run with 0. Use them where simulation is the bottleneck
             (a GPU, or a machine with spare cores).
+        fine_tune_volumes: Brains that join ``volumes`` for the last ``config.fine_tune_steps``
+            steps (the procedural phantoms), or for every step if that is 0; ``None`` for none.
 
     Returns:
         The network (eval mode).
@@ -390,8 +420,16 @@ def train_stack_pose(
         net.load_state_dict(init)
     net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
-    schedule = cosine_schedule(optimiser, config.steps)
+    turn = config.steps - config.fine_tune_steps
+    schedule = cosine_schedule(
+        optimiser,
+        config.steps,
+        restart_at=turn if config.fine_tune_steps else None,
+        restart_scale=config.fine_tune_learning_rate / config.learning_rate,
+    )
     start = resume_training(folder, net, optimiser, schedule, generator, device)
+    every = [*volumes, *(fine_tune_volumes or [])]
+    phases = (volumes if config.fine_tune_steps else every, every)
     cells = getattr(net, "cells", None)
     net.train()
     sums: dict[str, float] = {}
@@ -399,12 +437,12 @@ def train_stack_pose(
     began = time.time()
     if workers == 0:
         batches: Iterable[tuple[Tensor, ...]] = (
-            simulate_batch(volumes, trajectories, model_config, config, generator)
-            for _ in range(start, config.steps)
+            simulate_batch(phases[step >= turn], trajectories, model_config, config, generator)
+            for step in range(start, config.steps)
         )
     else:
         batches = DataLoader(
-            _StepBatches(volumes, trajectories, model_config, config),
+            _StepBatches(phases, turn, trajectories, model_config, config),
             batch_size=None,
             sampler=range(start, config.steps),
             num_workers=workers,

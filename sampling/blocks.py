@@ -115,6 +115,9 @@ def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
 
     The geodesic median (:func:`svr.geometry.robust_mean_pose`) of
     :func:`implied_stack_poses`, so a moving fetus gives the pose that most slices agree with.
+    Its iterations stop at steps below 1e-8 rad / mm (a millionth of a degree, far below any
+    error that matters): training's stack simulation takes a fifth less time than iterating to
+    the float64 floor (0.094 against 0.117 s per step, measured).
 
     Args:
         slice_poses: (K, 4, 4) canonical poses of the stack's K slices (slice plane mm ->
@@ -127,7 +130,7 @@ def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
     Raises:
         ValueError: If ``slice_poses`` does not have one pose per slice of the stack.
     """
-    return robust_mean_pose(implied_stack_poses(slice_poses, stack))
+    return robust_mean_pose(implied_stack_poses(slice_poses, stack), tolerance=1e-8)
 
 
 def coarsen_stack(image: Image, mask: Tensor, in_plane_mm: float) -> tuple[Image, Tensor]:

@@ -81,9 +81,17 @@ def participant_run(dataset, tmp_path_factory) -> Path:
     """The participant level for sub-01 (given masks)."""
     bids_dir, masks_dir = dataset
     out = tmp_path_factory.mktemp("out") / "derivatives"
-    code, _ = _main([
-        "bids", str(bids_dir), str(out), "participant", "--participant-label", "01",
-        "--masks-dir", str(masks_dir), *FAST])  # fmt: skip
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        code, _ = _main([
+            "bids", str(bids_dir), str(out), "participant", "--participant-label", "01",
+            "--masks-dir", str(masks_dir), *FAST])  # fmt: skip
+        # In this process, the participant's thread count is not left behind (a caller that
+        # runs one thread beside other processes would be slowed many times over).
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
     assert code == 0
     return out
 

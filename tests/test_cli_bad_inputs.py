@@ -310,7 +310,8 @@ BASE = {
     "--steps 1 --size 32 --spacing 2 --width 8 --depth 1 --batch-size 2 --checkpoint-every 1 "
     "--device cpu",
     "train-stack-pose": "train-stack-pose --output-dir {out}/run --atlas-dir {atlas_good} "
-    "--steps 1 --width 4 --checkpoint-every 1 --volume-downsample 4 --device cpu",
+    "--steps 1 --fine-tune-steps 0 --phantoms 0 --width 4 --checkpoint-every 1 "
+    "--volume-downsample 4 --device cpu",
     "predict": "predict --model {model} --input-stacks {stack} --stack-masks {stack_mask} "
     "--output-poses {out}/poses.csv --device cpu",
     "evaluate": "evaluate --checkpoints {model} --input-volumes {brain} --input-masks {mask} "
@@ -772,6 +773,14 @@ def _cases() -> list[Case]:
                 [ref(bad), "not a fetal motion trajectory file"],
             )
         )
+    add(
+        Case(
+            "train-stack-pose-second-phase-too-long",
+            "train-stack-pose",
+            ["--fine-tune-steps", "1"],
+            ["--fine-tune-steps must be < steps (1; 0 for one phase), got 1"],
+        )
+    )
     add(
         Case(
             "train-stack-pose-minutes-zero",

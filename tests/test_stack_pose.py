@@ -223,6 +223,7 @@ def _tiny_training():
         samples_per_stack=4,
         learning_rate=3e-3,
         checkpoint_every=30,
+        fine_tune_steps=0,
         stacks=TrainingStackConfig(thickness_mm=(3.0, 4.0), in_plane_mm=3.0),
     )
     return model, training
@@ -357,7 +358,7 @@ def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_pa
     assert same(run(2), one)
     assert not same(run(0), one)
     # Each step's batch is the in-process simulation from the step's seed.
-    dataset = _StepBatches([volume], None, model_config, training)
+    dataset = _StepBatches(([volume], [volume]), training.steps, None, model_config, training)
     for step in (0, 2):
         generator = torch.Generator().manual_seed(step_seed(training.seed, step))
         expected = simulate_batch([volume], None, model_config, training, generator)
@@ -589,17 +590,21 @@ def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
     from svr.models.stack_pose import load_stack_pose_model
 
     folder = _one_age_atlas(tmp_path)
+    threads = torch.get_num_threads()
     code = main(
         [
             "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
-            str(tmp_path / "run"), "--steps", "2", "--checkpoint-every", "1", "--width", "4",
-            "--volume-downsample", "1", "--quiet",
+            str(tmp_path / "run"), "--steps", "3", "--fine-tune-steps", "1", "--phantoms", "0",
+            "--checkpoint-every", "1", "--width", "4", "--volume-downsample", "1", "--quiet",
         ]
     )  # fmt: skip
     assert code == 0
+    assert torch.get_num_threads() == threads  # trained on one, the caller's count restored
     trained = load_stack_pose_model(tmp_path / "run")
     library = _library_run(
-        folder, StackPoseConfig(width=4), StackPoseTrainingConfig(steps=2, checkpoint_every=1)
+        folder,
+        StackPoseConfig(width=4),
+        StackPoseTrainingConfig(steps=3, fine_tune_steps=1, checkpoint_every=1),
     )
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
@@ -611,8 +616,8 @@ def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, caps
 
     folder = _one_age_atlas(tmp_path)
     common = [
-        "--atlas-dir", str(tmp_path / "atlas"), "--steps", "2", "--checkpoint-every", "1",
-        "--volume-downsample", "1", "--quiet",
+        "--atlas-dir", str(tmp_path / "atlas"), "--steps", "2", "--fine-tune-steps", "0",
+        "--phantoms", "0", "--checkpoint-every", "1", "--volume-downsample", "1", "--quiet",
     ]  # fmt: skip
     assert main(["train-stack-pose", "--output-dir", str(tmp_path / "a"), "--loss", "anchor",
                  "--width", "4", *common]) == 0  # fmt: skip
@@ -627,7 +632,9 @@ def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, caps
     library = _library_run(
         folder,
         baseline.config,
-        StackPoseTrainingConfig(steps=2, checkpoint_every=1, learning_rate=1e-4, seed=1),
+        StackPoseTrainingConfig(
+            steps=2, fine_tune_steps=0, checkpoint_every=1, learning_rate=1e-4, seed=1
+        ),
         init=baseline.state_dict(),
     )
     for a, b in zip(tuned.state_dict().values(), library.state_dict().values(), strict=True):
@@ -767,9 +774,100 @@ def test_the_training_command_adds_phantoms(tmp_path) -> None:
     code = main(
         [
             "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
-            str(tmp_path / "run"), "--steps", "1", "--width", "4", "--phantoms", "1", "--quiet",
+            str(tmp_path / "run"), "--steps", "2", "--fine-tune-steps", "1", "--width", "4",
+            "--phantoms", "1", "--quiet",
         ]
     )  # fmt: skip
     assert code == 0
     config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
     assert config["data"]["phantoms"] == [{"weeks": 29.0, "seed": 1}]
+    assert config["train"]["fine_tune_steps"] == 1
+
+
+def test_the_training_command_names_a_second_phase_longer_than_the_run(tmp_path, capsys) -> None:
+    from svr.cli import main
+
+    _one_age_atlas(tmp_path)
+    code = main(
+        [
+            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+            str(tmp_path / "run"), "--steps", "200", "--phantoms", "0", "--quiet",
+        ]
+    )  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1
+    assert "--fine-tune-steps must be < steps (200; 0 for one phase), got 12000" in err
+    with pytest.raises(ValueError, match="'fine_tune_steps'"):
+        StackPoseTrainingConfig(steps=10, fine_tune_steps=10)
+    with pytest.raises(ValueError, match="'fine_tune_learning_rate'"):
+        StackPoseTrainingConfig(fine_tune_learning_rate=0.0)
+
+
+def test_the_learning_rate_restarts_for_the_second_phase() -> None:
+    from svr.models.resume import cosine_schedule
+
+    def rates(**kwargs) -> list[float]:
+        optimiser = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+        schedule = cosine_schedule(optimiser, 10, **kwargs)
+        out = []
+        for _ in range(10):
+            out.append(optimiser.param_groups[0]["lr"])
+            optimiser.step()
+            schedule.step()
+        return out
+
+    one = rates()
+    assert one[0] == pytest.approx(1.0) and one[5] == pytest.approx(0.525)
+    two = rates(restart_at=6, restart_scale=0.3)
+    # First phase: the cosine from 1 to 0.05 over 6 steps; second: from 0.3 to 0.015 over 4.
+    for s in range(6):
+        assert two[s] == pytest.approx(0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * s / 6)))
+    for s in range(6, 10):
+        expected = 0.3 * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (s - 6) / 4)))
+        assert two[s] == pytest.approx(expected)
+    assert two[6] == pytest.approx(0.3)
+    for bad in (0, 10, 2.5):
+        with pytest.raises(ValueError, match="'restart_at'"):
+            rates(restart_at=bad)
+    with pytest.raises(ValueError, match="'restart_scale'"):
+        rates(restart_at=5, restart_scale=0.0)
+
+
+def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> None:
+    import svr.models.stack_pose_train as module
+
+    model_config, training = _tiny_training()
+    training = dataclasses.replace(
+        training, steps=5, fine_tune_steps=2, checkpoint_every=5, fine_tune_learning_rate=6e-4
+    )
+    volume, phantom = _volume(), _volume()
+    seen: list[int] = []
+    simulate = module.simulate_batch
+
+    def counting(volumes, *args):
+        seen.append(len(volumes))
+        assert volumes[0] is volume
+        return simulate(volumes, *args)
+
+    restarts = []
+    schedule = module.cosine_schedule
+
+    def recording(optimiser, steps, **kwargs):
+        restarts.append((steps, kwargs))
+        return schedule(optimiser, steps, **kwargs)
+
+    monkeypatch.setattr(module, "simulate_batch", counting)
+    monkeypatch.setattr(module, "cosine_schedule", recording)
+    train_stack_pose([volume], None, model_config, training, fine_tune_volumes=[phantom])
+    assert seen == [1, 1, 1, 2, 2]
+    assert restarts == [(5, {"restart_at": 3, "restart_scale": pytest.approx(0.2)})]
+    # One phase: the fine-tune brains are there from the first step.
+    seen.clear()
+    one = dataclasses.replace(training, fine_tune_steps=0)
+    train_stack_pose([volume], None, model_config, one, fine_tune_volumes=[phantom])
+    assert seen == [2] * 5 and restarts[-1][1]["restart_at"] is None
+    # Worker processes see the same phases.
+    dataset = module._StepBatches(([volume], [volume, phantom]), 3, None, model_config, training)
+    seen.clear()
+    dataset[2], dataset[3]
+    assert seen == [1, 2]

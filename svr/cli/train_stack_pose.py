@@ -26,11 +26,13 @@ training brains at uniformly random orientations, with real fetal motion, thickn
 and overlaps, bias field, noise, signal voids and grown or shrunk masks, and teaches a small 3D
 CNN to bring a stack seen in a nearly right canonical frame (within 40 degrees, as the brain
 mask's principal axes give) to the right one, with the SE(3) geodesic loss on the stack's pose,
-and to tell right frames from wrong ones. Checkpoints go to --output-dir every
+and to tell right frames from wrong ones. The run has two phases: for the last
+--fine-tune-steps steps the learning rate restarts lower and --phantoms procedural brains join
+the atlas ones (anatomy unlike the atlas's). Checkpoints go to --output-dir every
 --checkpoint-every steps; running the same command again resumes from the newest. --minutes
-stops a run after a checkpoint once that much time has passed (the default recipe: 110 minutes
-on one CPU core; on a GPU, simulation is the bottleneck: add --device cuda --workers N, N about
-the number of free cores). Use the result with
+stops a run after a checkpoint once that much time has passed (the default recipe fits in 2
+hours on one CPU core; on a GPU, simulation is the bottleneck: add --device cuda --workers N, N
+about the number of free cores). Use the result with
 `svr reconstruct --registration cnn --model OUTPUT_DIR`.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
@@ -44,10 +46,11 @@ the checkpoint's.
 
 examples:
   svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
-      --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose --minutes 110
+      --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose
   svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
       --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose-ft \\
-      --init-from runs/stack-pose --steps 10000 --learning-rate 3e-4 --seed 1
+      --init-from runs/stack-pose --steps 10000 --fine-tune-steps 0 --learning-rate 3e-4 \\
+      --seed 1
 """
 
 log = logging.getLogger(__name__)
@@ -84,10 +87,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--phantoms",
         type=non_negative_int,
-        default=0,
+        default=4,
         help="also train on N procedural phantom brains (svr.sampling.phantom; seeds 1..N, ages "
-        "spread over 22-36 weeks): anatomy unlike the atlas's. Seed 0, the benchmarks' phantom, "
-        "is never used",
+        "spread over 22-36 weeks): anatomy unlike the atlas's, from the second phase on (from "
+        "the first step with --fine-tune-steps 0). Seed 0, the benchmarks' phantom, is never used",
     )
     p.add_argument(
         "--volume-downsample",
@@ -118,6 +121,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="Adam's initial rate (cosine decay to 5 %% of it)",
     )
     p.add_argument(
+        "--fine-tune-steps",
+        type=non_negative_int,
+        default=t.fine_tune_steps,
+        help="the last steps of --steps, a second phase: the learning rate restarts at "
+        "--fine-tune-learning-rate and the phantoms join the atlas brains (0: one phase)",
+    )
+    p.add_argument(
+        "--fine-tune-learning-rate",
+        type=positive_float,
+        default=t.fine_tune_learning_rate,
+        help="Adam's rate at the start of the second phase (cosine decay to 5 %% of it)",
+    )
+    p.add_argument(
         "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
     )
     p.add_argument(
@@ -143,6 +159,8 @@ _OPTIONS = {
     "representation": "--loss",
     "steps": "--steps",
     "learning_rate": "--learning-rate",
+    "fine_tune_steps": "--fine-tune-steps",
+    "fine_tune_learning_rate": "--fine-tune-learning-rate",
     "checkpoint_every": "--checkpoint-every",
     "seed": "--seed",
 }
@@ -187,6 +205,15 @@ def run(args: argparse.Namespace) -> int:
     if args.minutes is not None and not args.minutes > 0:
         raise CliError(f"--minutes must be > 0, got {args.minutes:g}")
     check_run_folder(args.output_dir)
+    with option_errors(_OPTIONS):
+        training = StackPoseTrainingConfig(
+            steps=args.steps,
+            learning_rate=args.learning_rate,
+            fine_tune_steps=args.fine_tune_steps,
+            fine_tune_learning_rate=args.fine_tune_learning_rate,
+            checkpoint_every=args.checkpoint_every,
+            seed=args.seed,
+        )
     device = resolve_device(args.device)
     try:
         pairs = atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)
@@ -196,9 +223,10 @@ def run(args: argparse.Namespace) -> int:
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
     phantoms = phantom_sources(args.phantoms)
+    phantom_volumes = []
     for age, seed in phantoms:
         image, mask = make_phantom(gestational_age_config(age, seed=seed))
-        volumes.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
+        phantom_volumes.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
     asked = {
         "head": args.head,
@@ -225,39 +253,37 @@ def run(args: argparse.Namespace) -> int:
     else:
         with option_errors(_OPTIONS):
             model = StackPoseConfig(**asked)
-    with option_errors(_OPTIONS):
-        training = StackPoseTrainingConfig(
-            steps=args.steps,
-            learning_rate=args.learning_rate,
-            checkpoint_every=args.checkpoint_every,
-            seed=args.seed,
-        )
+    threads = torch.get_num_threads()  # restored after, for a caller in this process
     if torch.device(device).type == "cpu":
         torch.set_num_threads(1)  # one process per core trains fastest (measured)
     began = time.time()
-    train_stack_pose(
-        volumes,
-        trajectories,
-        model,
-        training,
-        folder=args.output_dir,
-        progress=not args.quiet,
-        time_limit_s=None if args.minutes is None else args.minutes * 60,
-        extra_config={
-            "data": {
-                "volumes": [str(v) for v, _ in pairs],
-                "hold_out_weeks": list(args.hold_out),
-                "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
-                "motion": args.motion_path,
-                "volume_downsample": args.volume_downsample,
+    try:
+        train_stack_pose(
+            volumes,
+            trajectories,
+            model,
+            training,
+            folder=args.output_dir,
+            progress=not args.quiet,
+            time_limit_s=None if args.minutes is None else args.minutes * 60,
+            extra_config={
+                "data": {
+                    "volumes": [str(v) for v, _ in pairs],
+                    "hold_out_weeks": list(args.hold_out),
+                    "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
+                    "motion": args.motion_path,
+                    "volume_downsample": args.volume_downsample,
+                },
+                "command": shlex.join(["svr", *sys.argv[1:]]),
+                "init_from": args.init_from,
+                "workers": args.workers,
             },
-            "command": shlex.join(["svr", *sys.argv[1:]]),
-            "init_from": args.init_from,
-            "workers": args.workers,
-        },
-        device=device,
-        init=init,
-        workers=args.workers,
-    )
+            device=device,
+            init=init,
+            workers=args.workers,
+            fine_tune_volumes=phantom_volumes,
+        )
+    finally:
+        torch.set_num_threads(threads)
     print(f"trained in {time.time() - began:.0f} s; checkpoints in {args.output_dir}")
     return 0
