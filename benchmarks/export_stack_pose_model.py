@@ -32,8 +32,8 @@ the seven kept).
 **Training data.** Simulated only: stacks cut on the fly from 12 ages of the sb-fidon2021 atlas
 (Fidon et al. 2021, CC0; GA 24, 28 and 32 held out){phantoms}, with real fetal head motion (SVoRT's
 trajectories, Apache-2.0) and the artefacts listed in `svr.models.stack_pose_train`.
-Steps: {step} (the last run: {minutes}). Loss: the SE(3) geodesic loss on the stack pose, plus
-the score's cross-entropy.
+Steps: {step}{phases} ({minutes}). Loss: the SE(3) geodesic loss on the stack pose, plus the
+score's cross-entropy.
 
 **Reproduce** (from the repository root; a run resumes from its newest checkpoint; ATLAS and the
 trajectories as in `docs/training.md`):
@@ -44,9 +44,10 @@ trajectories as in `docs/training.md`):
 
 **Evaluation.** `benchmarks/bench_learned_stack_poses.py` (per-stack accuracy) and
 `benchmarks/bench_reconstruct.py --registrations stack cnn --model stack-pose` (reconstruction);
-figures in `benchmarks/results/learned-stack-poses.md` (and, for the restarts,
-`benchmarks/results/stack-pose-restarts.md`: 89.5 % of held-out stacks within 10 degrees, 84.6 %
-without; reconstruction starts from the frame without them).
+figures in `benchmarks/results/learned-stack-poses.md` (the one-command recipe against the
+two-run model: `benchmarks/results/learned-stack-poses-one-command.md`). Check the real scan's
+output frame too (`benchmarks/bench_real_frame.py`): simulated stacks did not tell a model that
+fails there.
 """
 
 
@@ -61,13 +62,24 @@ def _phantom_sentence(phantoms: object) -> str:
     )
 
 
+def _phases_sentence(train: dict) -> str:
+    """The card's words for a two-phase run (one phase: empty)."""
+    last = int(train.get("fine_tune_steps") or 0)
+    if not last:
+        return ""
+    return (
+        f", the last {last} with the learning rate restarted at "
+        f"{train.get('fine_tune_learning_rate'):g} and the phantoms added"
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("--out", type=Path, default=Path("models/pretrained/stack_pose"))
     parser.add_argument(
         "--minutes",
-        default="110 minutes on one CPU core",
+        default="one run on one CPU core",
         help="the last run's training time and machine, for the card",
     )
     parser.add_argument(
@@ -92,7 +104,7 @@ def main() -> int:
     step = int(checkpoint.training_state["step"])
     recipe = args.recipe or [
         "svr train-stack-pose --atlas-dir ATLAS --hold-out 24 28 32 --motion-path "
-        "svort_fetal_motion_trajectories.npz --output-dir RUN --minutes 110"
+        "svort_fetal_motion_trajectories.npz --output-dir RUN"
     ]
     data = config.get("data", {})
     provenance = {
@@ -115,6 +127,7 @@ def main() -> int:
         grid=model["grid_size"],
         spacing=model["grid_spacing_mm"],
         step=step,
+        phases=_phases_sentence(config.get("train") or {}),
         minutes=args.minutes,
         phantoms=_phantom_sentence(data.get("phantoms")),
         recipe="\n".join(f"    {line}" for line in recipe),
