@@ -31,9 +31,10 @@ and to tell right frames from wrong ones. The run has two phases: for the last
 the atlas ones (anatomy unlike the atlas's). Checkpoints go to --output-dir every
 --checkpoint-every steps; running the same command again resumes from the newest. --minutes
 stops a run after a checkpoint once that much time has passed (the default recipe fits in 2
-hours on one CPU core; on a GPU, simulation is the bottleneck: add --device cuda --workers N, N
-about the number of free cores). Use the result with
-`svr reconstruct --registration cnn --model OUTPUT_DIR`.
+hours on one CPU core; the shipped model took two runs, see docs/training.md; on a GPU,
+simulation is the bottleneck: add --device cuda --workers N, N about the number of free cores).
+Use the result with `svr reconstruct --registration cnn --model OUTPUT_DIR`, and check its output
+frame on a real scan before trusting it.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
 srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
