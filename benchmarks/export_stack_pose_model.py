@@ -62,14 +62,15 @@ def _phantom_sentence(phantoms: object) -> str:
     )
 
 
-def _phases_sentence(train: dict) -> str:
+def _phases_sentence(train: dict, phantoms: object) -> str:
     """The card's words for a two-phase run (one phase: empty)."""
     last = int(train.get("fine_tune_steps") or 0)
     if not last:
         return ""
+    added = " and the phantoms added" if phantoms else ""
     return (
         f", the last {last} with the learning rate restarted at "
-        f"{train.get('fine_tune_learning_rate'):g} and the phantoms added"
+        f"{train.get('fine_tune_learning_rate'):g}{added}"
     )
 
 
@@ -127,7 +128,7 @@ def main() -> int:
         grid=model["grid_size"],
         spacing=model["grid_spacing_mm"],
         step=step,
-        phases=_phases_sentence(config.get("train") or {}),
+        phases=_phases_sentence(config.get("train") or {}, data.get("phantoms")),
         minutes=args.minutes,
         phantoms=_phantom_sentence(data.get("phantoms")),
         recipe="\n".join(f"    {line}" for line in recipe),

@@ -357,7 +357,7 @@ def run_participant(job: ParticipantJob) -> ParticipantSummary:
             level=logging.WARNING if job.settings.quiet else logging.INFO,
             format=f"%(asctime)s %(levelname)s {participant.label}: %(message)s",
         )
-    threads = torch.get_num_threads()  # restored after: an in-process call leaves the caller's
+    threads = torch.get_num_threads()  # the caller's, restored after (an in-process call)
     torch.set_num_threads(job.threads)
     handler = _Warnings()
     logging.getLogger().addHandler(handler)
