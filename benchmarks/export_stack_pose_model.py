@@ -30,8 +30,9 @@ again from itself and six starts turned 10 degrees about the canonical axes, the
 the seven kept).
 
 **Training data.** Simulated only: stacks cut on the fly from 12 ages of the sb-fidon2021 atlas
-(Fidon et al. 2021, CC0; GA 24, 28 and 32 held out){phantoms}, with real fetal head motion (SVoRT's
-trajectories, Apache-2.0) and the artefacts listed in `svr.models.stack_pose_train`.
+(Fidon et al. 2021, CC0; GA 24, 28 and 32 held out){variants}{phantoms}, with real fetal head
+motion (SVoRT's trajectories, Apache-2.0) and the artefacts listed in
+`svr.models.stack_pose_train`.
 Steps: {step}{phases} ({minutes}). Loss: the SE(3) geodesic loss on the stack pose, plus the
 score's cross-entropy.
 
@@ -59,6 +60,16 @@ def _phantom_sentence(phantoms: object) -> str:
     return (
         f" and {count} procedural phantom brains (`svr.sampling.phantom`, seeds 1-{count}, ages "
         "spread over 22-36 weeks; seed 0, the benchmarks' phantom, never)"
+    )
+
+
+def _variants_sentence(variants: object) -> str:
+    """The card's words for the anatomy variants a run trained on (none: empty)."""
+    if not variants:
+        return ""
+    return (
+        f", {variants} label-edited variants of each (`svr.sampling.anatomy`: ventricles shrunk, "
+        "cerebellum grown, contrast re-drawn per tissue label)"
     )
 
 
@@ -116,6 +127,11 @@ def main() -> int:
             "hold_out_weeks": [24, 28, 32],
             "motion": "SVoRT fetal head-motion trajectories (Apache-2.0)",
             **({"phantoms": data["phantoms"]} if data.get("phantoms") else {}),
+            **(
+                {"anatomy_variants": data["anatomy_variants"]}
+                if data.get("anatomy_variants")
+                else {}
+            ),
         },
         "step": step,
         "train": config.get("train"),
@@ -131,6 +147,7 @@ def main() -> int:
         phases=_phases_sentence(config.get("train") or {}, data.get("phantoms")),
         minutes=args.minutes,
         phantoms=_phantom_sentence(data.get("phantoms")),
+        variants=_variants_sentence(data.get("anatomy_variants")),
         recipe="\n".join(f"    {line}" for line in recipe),
     )
     (out / "README.md").write_text(card, encoding="utf-8")

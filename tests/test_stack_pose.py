@@ -871,3 +871,54 @@ def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> Non
     seen.clear()
     dataset[2], dataset[3]
     assert seen == [1, 2]
+
+
+def test_the_training_command_adds_anatomy_variants(tmp_path, capsys) -> None:
+    from svr.cli import main
+    from svr.image import Image, load_nifti, save_nifti
+    from svr.models.checkpoint import latest_checkpoint, load_checkpoint
+    from svr.models.stack_pose import load_stack_pose_model
+    from svr.sampling.anatomy import anatomy_variant
+    from svr.sampling.volume import canonicalize, load_canonical_volume
+
+    folder = _one_age_atlas(tmp_path)
+    command = [
+        "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+        str(tmp_path / "run"), "--steps", "2", "--fine-tune-steps", "0", "--width", "4",
+        "--phantoms", "0", "--anatomy-variants", "1", "--volume-downsample", "1", "--quiet",
+    ]  # fmt: skip
+    # Without the tissue labels: one line naming the missing file.
+    assert main(command) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "parcellation.nii.gz is missing" in err
+    volume, mask = load_nifti(folder / "srr.nii.gz"), load_nifti(folder / "mask.nii.gz")
+    # Labels on another grid: one line naming the file.
+    save_nifti(Image(torch.ones(3, 3, 3), volume.affine), folder / "parcellation.nii.gz")
+    assert main(command) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "parcellation.nii.gz: anatomy_variant(): 'labels'" in err
+    labels = (mask.data > 0.5).float() + (volume.data > volume.data[mask.data > 0.5].median())
+    save_nifti(Image(labels, volume.affine), folder / "parcellation.nii.gz", overwrite=True)
+    assert main(command) == 0
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data"]["anatomy_variants"] == 1
+    # The command trains on the brain and its variant (seed 0), as the library does.
+    brain = mask.data > 0.5
+    variant = canonicalize(
+        anatomy_variant(volume, brain, labels, seed=0), Image(brain.float(), volume.affine)
+    )
+    original = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        library = train_stack_pose(
+            [original, variant],
+            None,
+            StackPoseConfig(width=4),
+            StackPoseTrainingConfig(steps=2, fine_tune_steps=0),
+        )
+    finally:
+        torch.set_num_threads(threads)
+    trained = load_stack_pose_model(tmp_path / "run")
+    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)

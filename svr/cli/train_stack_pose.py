@@ -33,8 +33,10 @@ the atlas ones (anatomy unlike the atlas's). Checkpoints go to --output-dir ever
 stops a run after a checkpoint once that much time has passed (the default recipe fits in 2
 hours on one CPU core; the shipped model took two runs, see docs/training.md; on a GPU,
 simulation is the bottleneck: add --device cuda --workers N, N about the number of free cores).
-Use the result with `svr reconstruct --registration cnn --model OUTPUT_DIR`, and check its output
-frame on a real scan before trusting it.
+--anatomy-variants adds label-edited variants of each atlas brain (smaller ventricles, a larger
+cerebellum, re-drawn contrast) for scans of fetuses unlike the spina bifida atlas's. Use the
+result with `svr reconstruct --registration cnn --model OUTPUT_DIR`, and check its output frame
+on a real scan before trusting it.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
 srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
@@ -92,6 +94,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="also train on N procedural phantom brains (svr.sampling.phantom; seeds 1..N, ages "
         "spread over 22-36 weeks): anatomy unlike the atlas's, from the second phase on (from "
         "the first step with --fine-tune-steps 0). Seed 0, the benchmarks' phantom, is never used",
+    )
+    p.add_argument(
+        "--anatomy-variants",
+        type=non_negative_int,
+        default=0,
+        help="also train, from the first step, on N variants of each training atlas brain with "
+        "shrunk ventricles, a grown cerebellum and re-drawn contrast per tissue label "
+        "(svr.sampling.anatomy; needs each GA folder's parcellation.nii.gz): anatomy and "
+        "contrast unlike the spina bifida atlas's",
     )
     p.add_argument(
         "--volume-downsample",
@@ -189,10 +200,12 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
 
+    from svr.image import Image, load_nifti
     from svr.models.checkpoint import CheckpointError
     from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
     from svr.representation_registry import representations_by_cli_name
+    from svr.sampling.anatomy import anatomy_variant
     from svr.sampling.motion import load_trajectories
     from svr.sampling.phantom import gestational_age_config, make_phantom
     from svr.sampling.volume import (
@@ -223,6 +236,26 @@ def run(args: argparse.Namespace) -> int:
     volumes = [
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
+    variants = []
+    for index, (volume_path, mask_path) in enumerate(pairs):
+        if args.anatomy_variants == 0:
+            break
+        labels_path = volume_path.parent / "parcellation.nii.gz"
+        if not labels_path.exists():
+            raise CliError(f"--anatomy-variants: {labels_path} is missing (the tissue labels)")
+        source, mask = load_nifti(volume_path), load_nifti(mask_path)
+        labels = load_nifti(labels_path).data.round()
+        brain = mask.data > 0.5
+        for number in range(args.anatomy_variants):
+            try:
+                image = anatomy_variant(source, brain, labels, seed=index * 1000 + number)
+            except ValueError as err:
+                raise CliError(f"--anatomy-variants: {labels_path}: {err}") from err
+            canonical = canonicalize(
+                image, Image(brain.float(), source.affine), name=str(volume_path)
+            )
+            variants.append(downsample_volume(canonical, args.volume_downsample))
+    volumes += variants
     phantoms = phantom_sources(args.phantoms)
     phantom_volumes = []
     for age, seed in phantoms:
@@ -272,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
                     "volumes": [str(v) for v, _ in pairs],
                     "hold_out_weeks": list(args.hold_out),
                     "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
+                    "anatomy_variants": args.anatomy_variants,
                     "motion": args.motion_path,
                     "volume_downsample": args.volume_downsample,
                 },

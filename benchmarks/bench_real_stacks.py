@@ -1,0 +1,193 @@
+"""Per stack on the real scan: does a stack-pose model place each stack, or its front-back twin?
+
+``bench_real_frame.py`` checks the real scan's output frame, one number per run, which rests on
+which stacks' poses the reconstruction's frame follows. This checks every stack: each of the six
+stacks' canonical frame by the model (:func:`svr.models.stack_pose.estimate_stack_pose`, as the
+reconstruction calls it: no restarts, no atlas) against the stack's reference frame, and the
+model's score (logit) at the reference frame against its score at the reference turned by 180
+degrees about each canonical axis (its twins), both refined by the model as it refines its own
+hypotheses. A stack is *placed* when the model's frame is within 45 degrees of the reference (the
+wrong twins are 150-180 degrees away); the *margin* is the reference's score minus the best
+twin's (positive: the model prefers the right frame).
+
+The reference frames (``benchmarks/results/real-scan-stack-frames.json``) come from a
+reconstruction of the six stacks whose stacks all kept stack registration (so their relative
+poses are classical registration's) and whose output frame was corrected to the reference frame
+of ``bench_real_frame.py`` (an output whose axial, coronal and sagittal views were looked at):
+``--make-truth TRANSFORMS.csv OUTPUT.nii.gz`` writes them. They are good to a few degrees
+(the reference frame was judged by eye; the stack registration is within about a degree), which
+is ample for telling a stack from its twin; the angles below the 45 degree line are not a
+precision measure.
+
+Run from the repository root (about 10 s per model on one core)::
+
+    python benchmarks/bench_real_stacks.py --model stack-pose runs/stack-pose [--threads 1] \
+        [--results benchmarks/results/real-scan-stacks.md]
+    python benchmarks/bench_real_stacks.py --make-truth runs/real.csv runs/real.nii.gz
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import torch
+from bench_common import SHARED, write_results
+from bench_real_frame import REFERENCE
+
+ROOT = Path(__file__).resolve().parents[1]
+TRUTH = ROOT / "benchmarks" / "results" / "real-scan-stack-frames.json"
+SCAN = SHARED / "data" / "stacks" / "real-mialsrtk-sub01"
+PLACED_DEG = 45.0
+RUNS = range(1, 7)
+
+
+def _paths(scan: Path) -> tuple[list[Path], list[Path]]:
+    stacks = [scan / f"sub-01_run-{i}_T2w.nii.gz" for i in RUNS]
+    masks = [scan / f"sub-01_run-{i}_T2w_desc-brain_mask.nii.gz" for i in RUNS]
+    return stacks, masks
+
+
+def _rotation(affine: np.ndarray) -> np.ndarray:
+    return affine[:3, :3] / np.linalg.norm(affine[:3, :3], axis=0)
+
+
+def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
+    """Write each stack's reference frame (scanner mm -> canonical mm) from a reconstruction."""
+    from svr.geometry import se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry.averaging import robust_mean_pose
+    from svr.image import load_nifti, stack_slice_poses
+    from svr.pose_io import read_pose_table
+
+    reference = np.asarray(json.loads(REFERENCE.read_text(encoding="utf-8"))["affine"])
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:3, :3] = torch.from_numpy(_rotation(reference) @ _rotation(nib.load(output).affine).T)
+    table = read_pose_table(transforms)
+    canonical = vector_to_se3(table.poses)
+    frames = {}
+    for path in _paths(scan)[0]:
+        rows = [i for i, f in enumerate(table.files) if Path(f).name == path.name]
+        if not rows:
+            raise SystemExit(f"{transforms}: no slices of {path.name}")
+        image = load_nifti(path)
+        planes = stack_slice_poses(image)[table.slice_indices[rows].long()]
+        # Each slice's canonical pose times its scanner pose's inverse: the stack's frame.
+        frame = robust_mean_pose(se3_compose(canonical[rows], se3_inverse(planes)))
+        frames[path.name] = se3_compose(turn, frame).tolist()
+    record = {
+        "what": "each real-scan stack's scanner mm -> canonical mm frame (4x4): the final slice "
+        f"poses of {output.name} (svr reconstruct --registration cnn, every stack kept stack "
+        "registration), turned by the rotation from its output frame to the reference frame of "
+        "bench_real_frame.py",
+        "frames": frames,
+    }
+    out.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {out}")
+
+
+def measure(model_path: str, scan: Path, truth: dict) -> tuple[list[str], dict[str, float]]:
+    """The table rows of one model and its summary."""
+    from svr.geometry import rotation_angle, se3_compose, so3_exp
+    from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
+    from svr.reconstruction.stacks import load_stacks
+    from svr.sampling.blocks import coarsen_stack
+
+    net = load_stack_pose_model(model_path)
+    stack_paths, mask_paths = _paths(scan)
+    stacks = load_stacks(stack_paths, mask_paths)
+    twins = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+    twins[:, :3, :3] = so3_exp(torch.eye(3, dtype=torch.float64) * math.pi)
+    rows, angles, margins = [], [], []
+    for path, stack in zip(stack_paths, stacks, strict=True):
+        true = torch.tensor(truth[path.name], dtype=torch.float64)
+        mask = stack.mask.data > 0.5
+        estimate = estimate_stack_pose(net, stack.image, mask, restart_deg=0.0)
+        angle = math.degrees(rotation_angle(estimate.frame, true))
+        image, fractions = coarsen_stack(stack.image, mask, net.config.in_plane_mm)
+        starts = torch.cat([true[None], se3_compose(twins, true.expand(3, 4, 4))])
+        _, scores = refine_frames(net, image, fractions, starts)
+        margin = float(scores[0] - scores[1:].max())
+        angles.append(angle)
+        margins.append(margin)
+        twin = " / ".join(f"{float(s):.1f}" for s in scores[1:])
+        rows.append(
+            f"| {model_path} | {path.name.split('_')[1]} | {angle:.1f} | "
+            f"{'yes' if angle <= PLACED_DEG else 'no'} | {float(scores[0]):.1f} | {twin} | "
+            f"{margin:+.1f} |"
+        )
+    placed = [a for a in angles if a <= PLACED_DEG]
+    summary = {
+        "placed": len(placed),
+        "median_placed_deg": statistics.median(placed) if placed else float("nan"),
+        "mean_margin": statistics.fmean(margins),
+        "right_preferred": sum(m > 0 for m in margins),
+    }
+    return rows, summary
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", nargs="+", default=["stack-pose"], help="stack-pose models")
+    parser.add_argument("--scan", type=Path, default=SCAN, help="the real scan's folder")
+    parser.add_argument("--truth", type=Path, default=TRUTH, help="the stacks' reference frames")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--results", type=Path, help="also write the tables here (markdown)")
+    parser.add_argument(
+        "--make-truth",
+        nargs=2,
+        type=Path,
+        metavar=("TRANSFORMS", "OUTPUT"),
+        help="write --truth from a reconstruction's transforms table and output volume",
+    )
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    if args.make_truth is not None:
+        make_truth(*args.make_truth, args.scan, args.truth)
+        return 0
+    if not args.scan.is_dir():
+        print(f"{args.scan}: no such folder (the real scan)", file=sys.stderr)
+        return 1
+    truth = json.loads(args.truth.read_text(encoding="utf-8"))["frames"]
+    header = [
+        "| model | stack | model's frame vs reference (deg) | placed | score at reference "
+        "| scores at its twins (x / y / z) | margin |",
+        "|---|---|---:|---|---:|---|---:|",
+    ]
+    rows, summaries = [], {}
+    for model in args.model:
+        model_rows, summaries[model] = measure(model, args.scan, truth)
+        rows += model_rows
+        print("\n".join(model_rows), flush=True)
+    first = summaries[args.model[0]]
+    lines = [
+        "| model | stacks placed (of 6) | median angle of those (deg) | right frame preferred "
+        "(of 6) | mean margin | placed vs first model |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for model, s in summaries.items():
+        ratio = s["placed"] / first["placed"] if first["placed"] else float("inf")
+        lines.append(
+            f"| {model} | {s['placed']} | {s['median_placed_deg']:.1f} | "
+            f"{s['right_preferred']} | {s['mean_margin']:+.2f} | x{ratio:.2f} |"
+        )
+    text = "\n".join([*lines, "", *header, *rows])
+    print("\n".join(lines))
+    if args.results is not None:
+        write_results(
+            args.results,
+            "The real scan's stacks, one by one",
+            text,
+            f" ({datetime.date.today().isoformat()}, {args.threads} thread(s), the 2-core VM)",
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
