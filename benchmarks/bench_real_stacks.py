@@ -14,10 +14,10 @@ The reference frames (``benchmarks/results/real-scan-stack-frames.json``) come f
 reconstruction of the six stacks whose stacks all kept stack registration (so their relative
 poses are classical registration's) and whose output frame was corrected to the reference frame
 of ``bench_real_frame.py`` (an output whose axial, coronal and sagittal views were looked at):
-``--make-truth TRANSFORMS.csv OUTPUT.nii.gz`` writes them. They are good to a few degrees
-(the reference frame was judged by eye; the stack registration is within about a degree), which
-is ample for telling a stack from its twin; the angles below the 45 degree line are not a
-precision measure.
+``--make-truth TRANSFORMS.csv OUTPUT.nii.gz`` writes them. Their absolute accuracy is that of
+a frame judged by eye (the stacks every model places are 12-24 degrees from them, so the models
+or the references carry a tilt of that order on this scan), ample for telling a stack from its
+twin; the angles of placed stacks are not a precision measure.
 
 Run from the repository root (about 10 s per model on one core)::
 
