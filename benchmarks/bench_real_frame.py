@@ -43,10 +43,14 @@ FRAME_LINE = re.compile(
 )
 
 
+def rotation_part(affine: np.ndarray) -> np.ndarray:
+    """The (3, 3) rotation of a voxel-to-world affine (4, 4): its columns divided by the spacing."""
+    return affine[:3, :3] / np.linalg.norm(affine[:3, :3], axis=0)
+
+
 def frame_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle (degrees) between the rotation parts of two voxel-to-world affines (4, 4)."""
-    ra = a[:3, :3] / np.linalg.norm(a[:3, :3], axis=0)
-    rb = b[:3, :3] / np.linalg.norm(b[:3, :3], axis=0)
+    ra, rb = rotation_part(a), rotation_part(b)
     cosine = (np.trace(rb @ ra.T) - 1.0) / 2.0
     return math.degrees(math.acos(float(np.clip(cosine, -1.0, 1.0))))
 

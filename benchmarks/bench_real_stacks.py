@@ -40,7 +40,7 @@ import nibabel as nib
 import numpy as np
 import torch
 from bench_common import SHARED, write_results
-from bench_real_frame import REFERENCE
+from bench_real_frame import REFERENCE, rotation_part
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUTH = ROOT / "benchmarks" / "results" / "real-scan-stack-frames.json"
@@ -55,10 +55,6 @@ def _paths(scan: Path) -> tuple[list[Path], list[Path]]:
     return stacks, masks
 
 
-def _rotation(affine: np.ndarray) -> np.ndarray:
-    return affine[:3, :3] / np.linalg.norm(affine[:3, :3], axis=0)
-
-
 def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
     """Write each stack's reference frame (scanner mm -> canonical mm) from a reconstruction."""
     from svr.geometry import se3_compose, se3_inverse, vector_to_se3
@@ -68,7 +64,9 @@ def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
 
     reference = np.asarray(json.loads(REFERENCE.read_text(encoding="utf-8"))["affine"])
     turn = torch.eye(4, dtype=torch.float64)
-    turn[:3, :3] = torch.from_numpy(_rotation(reference) @ _rotation(nib.load(output).affine).T)
+    turn[:3, :3] = torch.from_numpy(
+        rotation_part(reference) @ rotation_part(nib.load(output).affine).T
+    )
     table = read_pose_table(transforms)
     canonical = vector_to_se3(table.poses)
     frames = {}

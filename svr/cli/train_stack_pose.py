@@ -7,6 +7,8 @@ import logging
 import shlex
 import sys
 import time
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from svr.cli.common import (
     CliError,
@@ -19,6 +21,9 @@ from svr.cli.common import (
     positive_int,
     resolve_device,
 )
+
+if TYPE_CHECKING:
+    from svr.sampling.volume import CanonicalVolume
 
 DESCRIPTION = """\
 Train the stack-pose network (svr.models.stack_pose): each step simulates stacks from the
@@ -196,16 +201,45 @@ def phantom_sources(count: int) -> list[tuple[float, int]]:
     return [(22.0 + 14.0 * i / (count - 1), i + 1) for i in range(count)]
 
 
+def _anatomy_variants(
+    pairs: list[tuple[Path, Path]], count: int, downsample: int
+) -> list[CanonicalVolume]:
+    """``count`` label-edited variants of each (volume, mask) atlas pair, canonical and coarsened.
+
+    Variant ``n`` of the ``i``-th pair has seed ``1000 i + n``. Raises :class:`CliError` naming
+    a missing or unusable ``parcellation.nii.gz``.
+    """
+    from svr.image import Image, load_nifti
+    from svr.sampling.anatomy import anatomy_variant
+    from svr.sampling.volume import canonicalize, downsample_volume
+
+    variants = []
+    for index, (volume_path, mask_path) in enumerate(pairs):
+        labels_path = volume_path.parent / "parcellation.nii.gz"
+        if not labels_path.exists():
+            raise CliError(f"--anatomy-variants: {labels_path} is missing (the tissue labels)")
+        source, labels = load_nifti(volume_path), load_nifti(labels_path).data.round()
+        brain = load_nifti(mask_path).data > 0.5
+        for number in range(count):
+            try:
+                image = anatomy_variant(source, brain, labels, seed=index * 1000 + number)
+            except ValueError as err:
+                raise CliError(f"--anatomy-variants: {labels_path}: {err}") from err
+            mask = Image(brain.float(), source.affine)
+            variants.append(
+                downsample_volume(canonicalize(image, mask, name=str(volume_path)), downsample)
+            )
+    return variants
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
 
-    from svr.image import Image, load_nifti
     from svr.models.checkpoint import CheckpointError
     from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
     from svr.representation_registry import representations_by_cli_name
-    from svr.sampling.anatomy import anatomy_variant
     from svr.sampling.motion import load_trajectories
     from svr.sampling.phantom import gestational_age_config, make_phantom
     from svr.sampling.volume import (
@@ -236,26 +270,8 @@ def run(args: argparse.Namespace) -> int:
     volumes = [
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
-    variants = []
-    for index, (volume_path, mask_path) in enumerate(pairs):
-        if args.anatomy_variants == 0:
-            break
-        labels_path = volume_path.parent / "parcellation.nii.gz"
-        if not labels_path.exists():
-            raise CliError(f"--anatomy-variants: {labels_path} is missing (the tissue labels)")
-        source, mask = load_nifti(volume_path), load_nifti(mask_path)
-        labels = load_nifti(labels_path).data.round()
-        brain = mask.data > 0.5
-        for number in range(args.anatomy_variants):
-            try:
-                image = anatomy_variant(source, brain, labels, seed=index * 1000 + number)
-            except ValueError as err:
-                raise CliError(f"--anatomy-variants: {labels_path}: {err}") from err
-            canonical = canonicalize(
-                image, Image(brain.float(), source.affine), name=str(volume_path)
-            )
-            variants.append(downsample_volume(canonical, args.volume_downsample))
-    volumes += variants
+    if args.anatomy_variants:
+        volumes += _anatomy_variants(pairs, args.anatomy_variants, args.volume_downsample)
     phantoms = phantom_sources(args.phantoms)
     phantom_volumes = []
     for age, seed in phantoms:
