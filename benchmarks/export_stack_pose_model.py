@@ -73,12 +73,15 @@ def _variants_sentence(variants: object) -> str:
     )
 
 
-def _phases_sentence(train: dict, phantoms: object) -> str:
+def _phases_sentence(train: dict, data: dict) -> str:
     """The card's words for a two-phase run (one phase: empty)."""
     last = int(train.get("fine_tune_steps") or 0)
     if not last:
         return ""
-    added = " and the phantoms added" if phantoms else ""
+    joined = ["the phantoms"] if data.get("phantoms") else []
+    if data.get("anatomy_variants") and data.get("variants_phase") == "second":
+        joined.append("the variants")
+    added = f" and {' and '.join(joined)} added" if joined else ""
     return (
         f", the last {last} with the learning rate restarted at "
         f"{train.get('fine_tune_learning_rate'):g}{added}"
@@ -128,7 +131,10 @@ def main() -> int:
             "motion": "SVoRT fetal head-motion trajectories (Apache-2.0)",
             **({"phantoms": data["phantoms"]} if data.get("phantoms") else {}),
             **(
-                {"anatomy_variants": data["anatomy_variants"]}
+                {
+                    "anatomy_variants": data["anatomy_variants"],
+                    "variants_phase": data.get("variants_phase", "all"),
+                }
                 if data.get("anatomy_variants")
                 else {}
             ),
@@ -144,7 +150,7 @@ def main() -> int:
         grid=model["grid_size"],
         spacing=model["grid_spacing_mm"],
         step=step,
-        phases=_phases_sentence(config.get("train") or {}, data.get("phantoms")),
+        phases=_phases_sentence(config.get("train") or {}, data),
         minutes=args.minutes,
         phantoms=_phantom_sentence(data.get("phantoms")),
         variants=_variants_sentence(data.get("anatomy_variants")),

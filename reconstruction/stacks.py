@@ -34,7 +34,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import SimpleITK as sitk  # noqa: N813 (the usual alias)
 import torch
 from torch import Tensor
 
@@ -300,6 +299,8 @@ def _n4_correct(
     Returns:
         (I, J, K) float32 corrected intensities.
     """
+    import SimpleITK as sitk  # noqa: N813 (the usual alias; imported only where N4 runs)
+
     # SimpleITK arrays are (z, y, x): NIfTI's (i, j, k) reversed.
     image = sitk.GetImageFromArray(data.numpy().T.copy())
     image.SetSpacing([float(s) for s in spacing])

@@ -922,3 +922,27 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys) -> None:
     trained = load_stack_pose_model(tmp_path / "run")
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+    # --variants-phase second: the variant joins for the second phase only, as the phantoms do.
+    second = [
+        *command[:4], str(tmp_path / "second"), "--steps", "3", "--fine-tune-steps", "1",
+        *command[9:], "--variants-phase", "second",
+    ]  # fmt: skip
+    assert main(second) == 0
+    assert (
+        load_checkpoint(latest_checkpoint(tmp_path / "second")).config["data"]["variants_phase"]
+        == "second"
+    )
+    torch.set_num_threads(1)
+    try:
+        library = train_stack_pose(
+            [original],
+            None,
+            StackPoseConfig(width=4),
+            StackPoseTrainingConfig(steps=3, fine_tune_steps=1),
+            fine_tune_volumes=[variant],
+        )
+    finally:
+        torch.set_num_threads(threads)
+    trained = load_stack_pose_model(tmp_path / "second")
+    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)

@@ -104,10 +104,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--anatomy-variants",
         type=non_negative_int,
         default=0,
-        help="also train, from the first step, on N variants of each training atlas brain with "
-        "shrunk ventricles, a grown cerebellum and re-drawn contrast per tissue label "
-        "(svr.sampling.anatomy; needs each GA folder's parcellation.nii.gz): anatomy and "
-        "contrast unlike the spina bifida atlas's",
+        help="also train on N variants of each training atlas brain with shrunk ventricles, a "
+        "grown cerebellum and re-drawn contrast per tissue label (svr.sampling.anatomy; needs "
+        "each GA folder's parcellation.nii.gz): anatomy and contrast unlike the spina bifida "
+        "atlas's, from the phase that --variants-phase names",
+    )
+    p.add_argument(
+        "--variants-phase",
+        choices=("all", "second"),
+        default="all",
+        help="when the anatomy variants join: all (from the first step) or second (with the "
+        "phantoms, for the last --fine-tune-steps steps; from the first step with "
+        "--fine-tune-steps 0)",
     )
     p.add_argument(
         "--volume-downsample",
@@ -270,13 +278,20 @@ def run(args: argparse.Namespace) -> int:
     volumes = [
         downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
     ]
-    if args.anatomy_variants:
-        volumes += _anatomy_variants(pairs, args.anatomy_variants, args.volume_downsample)
+    variants = (
+        _anatomy_variants(pairs, args.anatomy_variants, args.volume_downsample)
+        if args.anatomy_variants
+        else []
+    )
+    if args.variants_phase == "all":
+        volumes += variants
     phantoms = phantom_sources(args.phantoms)
-    phantom_volumes = []
+    # The second phase's brains (every step's with --fine-tune-steps 0): the phantoms, and the
+    # variants where --variants-phase second.
+    second_phase = list(variants) if args.variants_phase == "second" else []
     for age, seed in phantoms:
         image, mask = make_phantom(gestational_age_config(age, seed=seed))
-        phantom_volumes.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
+        second_phase.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
     asked = {
         "head": args.head,
@@ -322,6 +337,7 @@ def run(args: argparse.Namespace) -> int:
                     "hold_out_weeks": list(args.hold_out),
                     "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
                     "anatomy_variants": args.anatomy_variants,
+                    "variants_phase": args.variants_phase,
                     "motion": args.motion_path,
                     "volume_downsample": args.volume_downsample,
                 },
@@ -332,7 +348,7 @@ def run(args: argparse.Namespace) -> int:
             device=device,
             init=init,
             workers=args.workers,
-            fine_tune_volumes=phantom_volumes,
+            fine_tune_volumes=second_phase,
         )
     finally:
         torch.set_num_threads(threads)
