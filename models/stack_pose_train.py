@@ -15,7 +15,9 @@ blocks from each, in frames drawn around the truth:
 Blocks use every slice of the stack (probability ``1 - subset_fraction``) or a subset: one
 interleaved packet, or k neighbouring slices (k from 1 to ``max_subset``). The run has two
 phases: the last ``fine_tune_steps`` steps restart the learning rate lower and add the fine-tune
-brains (procedural phantoms: anatomy unlike the atlas's) to the training ones. Checkpoints
+brains (procedural phantoms: anatomy unlike the atlas's) to the training ones; with
+``fine_tune_seed`` the second phase starts as a separate fine-tuning run from the first phase's
+weights would (a fresh Adam, the random stream reseeded), so two commands become one. Checkpoints
 (:mod:`svr.models.checkpoint`) are written every ``checkpoint_every`` steps and the newest is
 resumed, with the RNG state, so a run that is stopped and started again continues where it was.
 """
@@ -25,7 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -96,6 +98,11 @@ class StackPoseTrainingConfig:
             volumes (``train_stack_pose``'s ``fine_tune_volumes``: the procedural phantoms)
             join the training brains. 0 for one phase; < ``steps``.
         fine_tune_learning_rate: Adam's rate at the start of the second phase.
+        fine_tune_seed: ``None``: the second phase continues the first's random stream and
+            Adam's moments (one schedule with a warm restart). An int: the second phase is the
+            run that fine-tuning the first phase's weights with this seed would be (Adam's
+            moments reset, the random stream reseeded with it, its rate
+            ``fine_tune_learning_rate`` times the cosine as that run's own), to the last bit.
         max_start_deg: Largest start error within reach (degrees).
         start_shift_mm: Per-axis standard deviation of the start's shift (mm).
         positive_fraction: Share of blocks within reach.
@@ -118,6 +125,7 @@ class StackPoseTrainingConfig:
     learning_rate: float = 1e-3
     fine_tune_steps: int = 12000
     fine_tune_learning_rate: float = 3e-4
+    fine_tune_seed: int | None = None
     max_start_deg: float = 40.0
     start_shift_mm: float = 5.0
     positive_fraction: float = 0.65
@@ -154,6 +162,14 @@ class StackPoseTrainingConfig:
         for name in ("start_shift_mm", "score_weight", "coords_weight"):
             check_number(owner, name, getattr(self, name), ge=0)
         check_int(owner, "seed", self.seed)
+        check_int(owner, "fine_tune_seed", self.fine_tune_seed, allow_none=True)
+        if self.fine_tune_seed is not None and not self.fine_tune_steps:
+            raise ConfigFieldError(
+                owner,
+                "fine_tune_seed",
+                "unset without a second phase (fine_tune_steps 0)",
+                self.fine_tune_seed,
+            )
         check_instance(owner, "stacks", self.stacks, TrainingStackConfig)
 
 
@@ -269,7 +285,8 @@ def step_seed(seed: int, step: int) -> int:
 class _StepBatches(Dataset):
     """Step ``i``'s batch, simulated from a generator seeded by :func:`step_seed`.
 
-    ``phases`` are the training brains before and from step ``turn`` on.
+    ``phases`` are the training brains before and from step ``turn`` on; with the config's
+    ``fine_tune_seed`` the steps from ``turn`` on are seeded as a separate run's steps 0, 1, ...
     """
 
     def __init__(
@@ -290,7 +307,10 @@ class _StepBatches(Dataset):
         return self.config.steps
 
     def __getitem__(self, step: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        generator = torch.Generator().manual_seed(step_seed(self.config.seed, step))
+        seed, index = self.config.seed, step
+        if self.config.fine_tune_seed is not None and step >= self.turn:
+            seed, index = self.config.fine_tune_seed, step - self.turn
+        generator = torch.Generator().manual_seed(step_seed(seed, index))
         return simulate_batch(
             self.phases[step >= self.turn],
             self.trajectories,
@@ -366,6 +386,21 @@ def stack_pose_loss(
     return total, parts
 
 
+def _restart_as_new_run(
+    optimiser: torch.optim.Optimizer, schedule: torch.optim.lr_scheduler.LambdaLR, rate: float
+) -> None:
+    """Make the optimiser and its schedule those of a new run from here.
+
+    Adam's moments and step counts reset; ``rate`` becomes the base rate that the schedule's
+    (restarted) cosine multiplies.
+    """
+    optimiser.state.clear()
+    schedule.base_lrs = [rate] * len(optimiser.param_groups)
+    for group, function in zip(optimiser.param_groups, schedule.lr_lambdas, strict=True):
+        group["initial_lr"] = rate
+        group["lr"] = rate * function(schedule.last_epoch)
+
+
 def train_stack_pose(
     volumes: list[CanonicalVolume],
     trajectories: list[Trajectory] | None,
@@ -421,11 +456,14 @@ def train_stack_pose(
     net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     turn = config.steps - config.fine_tune_steps
+    # A second phase as a new run takes its own base rate at the turn (_restart_as_new_run);
+    # the config allows a fine_tune_seed only with a second phase.
+    as_new_run = config.fine_tune_seed is not None
     schedule = cosine_schedule(
         optimiser,
         config.steps,
         restart_at=turn if config.fine_tune_steps else None,
-        restart_scale=config.fine_tune_learning_rate / config.learning_rate,
+        restart_scale=1.0 if as_new_run else config.fine_tune_learning_rate / config.learning_rate,
     )
     start = resume_training(folder, net, optimiser, schedule, generator, device)
     every = [*volumes, *(fine_tune_volumes or [])]
@@ -436,10 +474,16 @@ def train_stack_pose(
     count = 0
     began = time.time()
     if workers == 0:
-        batches: Iterable[tuple[Tensor, ...]] = (
-            simulate_batch(phases[step >= turn], trajectories, model_config, config, generator)
-            for step in range(start, config.steps)
-        )
+
+        def stream() -> Iterator[tuple[Tensor, ...]]:
+            for step in range(start, config.steps):
+                if as_new_run and step == turn:
+                    generator.manual_seed(config.fine_tune_seed)
+                yield simulate_batch(
+                    phases[step >= turn], trajectories, model_config, config, generator
+                )
+
+        batches: Iterable[tuple[Tensor, ...]] = stream()
     else:
         batches = DataLoader(
             _StepBatches(phases, turn, trajectories, model_config, config),
@@ -451,6 +495,8 @@ def train_stack_pose(
             pin_memory=torch.device(device).type == "cuda",
         )
     for step, batch in zip(range(start, config.steps), batches, strict=True):
+        if as_new_run and step == turn:
+            _restart_as_new_run(optimiser, schedule, config.fine_tune_learning_rate)
         blocks, starts, targets, labels = (part.to(device) for part in batch)
         loss, parts = stack_pose_loss(
             net(blocks), starts, targets, labels, config, cells, model_config.representation

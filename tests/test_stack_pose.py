@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -608,6 +609,23 @@ def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
     )
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+    # --fine-tune-seed: the second phase as a new run, as the library's fine_tune_seed.
+    code = main(
+        [
+            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+            str(tmp_path / "new-run"), "--steps", "3", "--fine-tune-steps", "1", "--phantoms",
+            "0", "--fine-tune-seed", "5", "--width", "4", "--volume-downsample", "1", "--quiet",
+        ]
+    )  # fmt: skip
+    assert code == 0
+    trained = load_stack_pose_model(tmp_path / "new-run")
+    library = _library_run(
+        folder,
+        StackPoseConfig(width=4),
+        StackPoseTrainingConfig(steps=3, fine_tune_steps=1, fine_tune_seed=5),
+    )
+    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
 
 
 def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, capsys) -> None:
@@ -797,6 +815,16 @@ def test_the_training_command_names_a_second_phase_longer_than_the_run(tmp_path,
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1
     assert "--fine-tune-steps must be < steps (200; 0 for one phase), got 12000" in err
+    code = main(
+        [
+            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+            str(tmp_path / "run"), "--steps", "200", "--fine-tune-steps", "0",
+            "--fine-tune-seed", "2", "--phantoms", "0", "--quiet",
+        ]
+    )  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1
+    assert "--fine-tune-seed must be unset without a second phase" in err
     with pytest.raises(ValueError, match="'fine_tune_steps'"):
         StackPoseTrainingConfig(steps=10, fine_tune_steps=10)
     with pytest.raises(ValueError, match="'fine_tune_learning_rate'"):
@@ -946,3 +974,56 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys) -> None:
     trained = load_stack_pose_model(tmp_path / "second")
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+
+
+def test_a_second_phase_run_as_a_new_run_is_the_two_command_recipe(tmp_path) -> None:
+    """fine_tune_seed: one run of 5 steps (2 in the second phase) ends bit for bit where a 3-step
+    run and a 2-step fine-tuning run of its weights (seed 7, the second phase's rate) end, and
+    resumed from the turn; worker processes seed the second phase as that run's steps."""
+    model_config, training = _tiny_training()
+    first = dataclasses.replace(training, steps=3, checkpoint_every=3)
+    volume, phantom = _volume(), _volume(semi_axes=(26.0, 36.0, 22.0))
+
+    def values(net) -> list[torch.Tensor]:
+        return list(net.state_dict().values())
+
+    def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+        return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+    one_run = dataclasses.replace(
+        training, steps=5, fine_tune_steps=2, fine_tune_learning_rate=1e-3, fine_tune_seed=7
+    )
+    second = dataclasses.replace(training, steps=2, learning_rate=1e-3, seed=7, checkpoint_every=2)
+    weights = train_stack_pose([volume], None, model_config, first)
+    two = train_stack_pose([volume, phantom], None, model_config, second, init=weights.state_dict())
+    one = values(
+        train_stack_pose([volume], None, model_config, one_run, fine_tune_volumes=[phantom])
+    )
+    assert same(one, values(two))
+    # Worker processes: the second phase's steps are seeded as the second run's 0, 1, ...
+    from svr.models.stack_pose_train import _StepBatches
+
+    dataset = _StepBatches(([volume], [volume, phantom]), 3, None, model_config, one_run)
+    for step, seed, index, brains in ((1, 0, 1, [volume]), (4, 7, 1, [volume, phantom])):
+        generator = torch.Generator().manual_seed(step_seed(seed, index))
+        expected = simulate_batch(brains, None, model_config, one_run, generator)
+        assert all(torch.equal(a, b) for a, b in zip(dataset[step], expected, strict=True))
+    # Without the seed the second phase continues the stream and the moments: another network.
+    warm = dataclasses.replace(one_run, fine_tune_seed=None)
+    assert not same(
+        values(train_stack_pose([volume], None, model_config, warm, fine_tune_volumes=[phantom])),
+        one,
+    )
+    # Stopped at the turn (checkpoint 3), resumed: the same network.
+    resumable = dataclasses.replace(one_run, checkpoint_every=3)
+    folder = tmp_path / "run"
+    train_stack_pose(
+        [volume], None, model_config, resumable, folder=folder, fine_tune_volumes=[phantom]
+    )
+    shutil.rmtree(folder / "step_000000005")
+    resumed = train_stack_pose(
+        [volume], None, model_config, resumable, folder=folder, fine_tune_volumes=[phantom]
+    )
+    assert same(values(resumed), one)
+    with pytest.raises(ValueError, match="'fine_tune_seed'"):
+        StackPoseTrainingConfig(steps=5, fine_tune_steps=0, fine_tune_seed=1)

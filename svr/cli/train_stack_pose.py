@@ -159,6 +159,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="Adam's rate at the start of the second phase (cosine decay to 5 %% of it)",
     )
     p.add_argument(
+        "--fine-tune-seed",
+        type=int,
+        default=t.fine_tune_seed,
+        help="run the second phase as the separate fine-tuning run of the first phase's weights "
+        "with this --seed would be (a fresh Adam at --fine-tune-learning-rate, the random stream "
+        "reseeded): two commands as one. Default: the second phase continues the first's",
+    )
+    p.add_argument(
         "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
     )
     p.add_argument(
@@ -186,6 +194,7 @@ _OPTIONS = {
     "learning_rate": "--learning-rate",
     "fine_tune_steps": "--fine-tune-steps",
     "fine_tune_learning_rate": "--fine-tune-learning-rate",
+    "fine_tune_seed": "--fine-tune-seed",
     "checkpoint_every": "--checkpoint-every",
     "seed": "--seed",
 }
@@ -267,6 +276,7 @@ def run(args: argparse.Namespace) -> int:
             learning_rate=args.learning_rate,
             fine_tune_steps=args.fine_tune_steps,
             fine_tune_learning_rate=args.fine_tune_learning_rate,
+            fine_tune_seed=args.fine_tune_seed,
             checkpoint_every=args.checkpoint_every,
             seed=args.seed,
         )
