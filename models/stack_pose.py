@@ -58,7 +58,13 @@ from svr.models.pretrained import stack_pose_model_path
 from svr.representation_registry import REPRESENTATIONS, Representation
 from svr.sampling.blocks import BlockGrid, block_inputs, coarsen_stack, stack_frame
 from svr.sampling.volume import CanonicalVolume
-from svr.validation import check_choice, check_int, check_number, check_number_tuple
+from svr.validation import (
+    check_choice,
+    check_instance,
+    check_int,
+    check_number,
+    check_number_tuple,
+)
 
 __all__ = [
     "STACK_POSE_MODEL",
@@ -99,6 +105,10 @@ class StackPoseConfig:
             (:data:`svr.representation_registry.REPRESENTATIONS`): ``"se3"`` (the rotation vector
             and translation, trained with the SE(3) geodesic loss on the final pose: the shipped
             model) or a baseline trained with its own loss on the residual.
+        hidden_norm: Batch normalisation before the ReLU of the hidden layer that the heads
+            share. Without it (the models trained before it, which load so) the hidden units
+            can all stop firing in the first steps, a run that never learns (measured), and most
+            of them did so even in runs that learned.
 
     Raises:
         ConfigFieldError: On construction, naming the field, for a value of the wrong type or
@@ -112,9 +122,11 @@ class StackPoseConfig:
     in_plane_mm: float = 2.0
     translation_scale_mm: float = 10.0
     representation: Representation = "se3"
+    hidden_norm: bool = True
 
     def __post_init__(self) -> None:
         owner = "StackPoseConfig"
+        check_instance(owner, "hidden_norm", self.hidden_norm, bool)
         check_choice(owner, "head", self.head, get_args(Head))
         check_choice(owner, "representation", self.representation, tuple(REPRESENTATIONS))
         check_int(owner, "width", self.width, minimum=4)
@@ -184,7 +196,8 @@ class StackPoseNet(nn.Module):
         w, s = config.width, config.grid_size
         self.stages = nn.ModuleList([_stage(3, w), _stage(w, 2 * w), _stage(2 * w, 4 * w)])
         flat = 4 * w * (s // 8) ** 3
-        self.fc = nn.Sequential(nn.Flatten(), nn.Linear(flat, 8 * w), nn.ReLU(inplace=True))
+        norm = [nn.BatchNorm1d(8 * w)] if config.hidden_norm else []
+        self.fc = nn.Sequential(nn.Flatten(), nn.Linear(flat, 8 * w), *norm, nn.ReLU(inplace=True))
         self.score = nn.Linear(8 * w, 1)
         if config.head == "regress":
             self.pose = PoseHead(8 * w, config.representation, config.translation_scale_mm)
@@ -734,7 +747,8 @@ def load_stack_pose_model(
             f"not a stack-pose model (architecture {checkpoint.config.get('architecture')!r})",
         )
     try:
-        config = StackPoseConfig(**checkpoint.config["model"])
+        # Models from before the field have no normalisation in the hidden layer.
+        config = StackPoseConfig(**{"hidden_norm": False, **checkpoint.config["model"]})
     except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(folder, f"bad 'model' section in config.json: {exc}") from exc
     net = StackPoseNet(config)

@@ -442,12 +442,19 @@ def train_stack_pose(
         The network (eval mode).
 
     Raises:
-        ValueError: If ``volumes`` is empty or ``workers`` is negative.
+        ValueError: If ``volumes`` is empty, ``workers`` is negative, or a step has a single
+            block for a network with ``hidden_norm``.
     """
     if not volumes:
         raise ValueError("train_stack_pose(): 'volumes' is empty")
     if not (is_integer(workers) and workers >= 0):
         raise ValueError(f"train_stack_pose(): 'workers' must be an int >= 0, got {workers!r}")
+    if model_config.hidden_norm and config.stacks_per_step * config.samples_per_stack < 2:
+        raise ValueError(
+            "train_stack_pose(): 'config' must give >= 2 blocks per step (stacks_per_step x "
+            "samples_per_stack) for the hidden layer's batch normalisation, got "
+            f"{config.stacks_per_step} x {config.samples_per_stack}"
+        )
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     net = StackPoseNet(model_config)

@@ -17,6 +17,7 @@ from svr.geometry import ANCHOR_HALF_SIZE_MM, se3_compose, se3_inverse, se3_to_v
 from svr.image import Image, sample_world, stack_slice_poses, voxel_to_world
 from svr.models.checkpoint import CheckpointError, save_checkpoint
 from svr.models.stack_pose import (
+    STACK_POSE_MODEL,
     StackPoseConfig,
     StackPoseNet,
     StackPoseOutput,
@@ -323,6 +324,35 @@ def test_checkpoints_from_before_the_pose_head_load() -> None:
     fresh = StackPoseNet(StackPoseConfig(width=4, grid_size=16))
     fresh.load_state_dict(state)
     assert torch.equal(fresh.pose.linear.weight, expected)
+
+
+def test_models_from_before_the_hidden_norm_load_without_it(tmp_path) -> None:
+    """A config without ``hidden_norm`` (the shipped model's) builds the hidden layer without
+    batch normalisation, so its weights load exactly; new models have it."""
+    old = StackPoseNet(StackPoseConfig(width=4, grid_size=16, hidden_norm=False))
+    model = old.config.to_dict()
+    del model["hidden_norm"]
+    save_checkpoint(
+        tmp_path / "m", old.state_dict(), {"architecture": "stack_pose", "model": model}
+    )
+    loaded = load_stack_pose_model(tmp_path / "m")
+    assert loaded.config.hidden_norm is False
+    assert [type(m) for m in loaded.fc] == [torch.nn.Flatten, torch.nn.Linear, torch.nn.ReLU]
+    for a, b in zip(loaded.state_dict().values(), old.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    assert load_stack_pose_model(STACK_POSE_MODEL).config.hidden_norm is False
+    new = StackPoseNet(StackPoseConfig(width=4, grid_size=16))
+    assert isinstance(new.fc[2], torch.nn.BatchNorm1d)
+    config = {"architecture": "stack_pose", "model": new.config.to_dict()}
+    save_checkpoint(tmp_path / "n", new.state_dict(), config)
+    assert load_stack_pose_model(tmp_path / "n").config.hidden_norm is True
+    with pytest.raises(ValueError, match="'hidden_norm'"):
+        StackPoseConfig(hidden_norm=1)  # type: ignore[arg-type]
+    # Batch normalisation needs two blocks per step.
+    model_config, training = _tiny_training()
+    single = dataclasses.replace(training, steps=1, samples_per_stack=1)
+    with pytest.raises(ValueError, match="'config' must give >= 2 blocks per step"):
+        train_stack_pose([_volume()], None, model_config, single)
 
 
 def test_a_tiny_model_learns_and_resumes(tmp_path) -> None:
@@ -692,8 +722,8 @@ def test_simulated_fetus_turns_between_stacks_within_the_range() -> None:
 
 
 def test_a_tiny_network_learns_a_known_rotation_of_a_synthetic_brain() -> None:
-    # Blocks of one stack seen in frames turned by +-20 degrees about z (and nothing else): the
-    # network must learn to undo the turn from the image alone, through the SE(3) loss.
+    # Blocks of one stack seen in frames turned by +-10 and +-20 degrees about z (and nothing
+    # else): the network must learn to undo the turn from the image alone, through the SE(3) loss.
     torch.manual_seed(0)
     volume = _volume()
     case = simulate_case(
@@ -707,20 +737,21 @@ def test_a_tiny_network_learns_a_known_rotation_of_a_synthetic_brain() -> None:
     to_canonical[:3, 3] = -volume.centre_mm
     truth = stack_pose_from_slices(se3_compose(to_canonical[None], stack.atlas_poses), stack.image)
     true_frame = se3_compose(truth, se3_inverse(stack_frame(stack.image)))
-    turns = torch.zeros(2, 4, 4, dtype=torch.float64)
-    for i, sign in enumerate((1.0, -1.0)):
-        turns[i] = torch.eye(4, dtype=torch.float64)
-        turns[i, :3, :3] = so3_exp(torch.tensor([0.0, 0.0, sign * math.radians(20)]).double())
-    frames = se3_compose(turns, true_frame.expand(2, 4, 4))
+    degrees = (20.0, -20.0, 10.0, -10.0)
+    turns = torch.eye(4, dtype=torch.float64).repeat(len(degrees), 1, 1)
+    for i, angle in enumerate(degrees):
+        turns[i, :3, :3] = so3_exp(torch.tensor([0.0, 0.0, math.radians(angle)]).double())
+    n = len(degrees)
+    frames = se3_compose(turns, true_frame.expand(n, 4, 4))
     config = StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=6.0)
     blocks = block_inputs(stack.image, stack.mask.data, frames, config.grid)
-    starts = se3_compose(frames, stack_frame(stack.image).expand(2, 4, 4))
-    targets = truth.expand(2, 4, 4)
+    starts = se3_compose(frames, stack_frame(stack.image).expand(n, 4, 4))
+    targets = truth.expand(n, 4, 4)
     net = StackPoseNet(config)
     optimiser = torch.optim.Adam(net.parameters(), lr=3e-3)
     training = StackPoseTrainingConfig()
     for _ in range(150):
-        loss, _parts = stack_pose_loss(net(blocks), starts, targets, torch.ones(2), training)
+        loss, _parts = stack_pose_loss(net(blocks), starts, targets, torch.ones(n), training)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -756,7 +787,6 @@ def test_stack_pose_from_slices_undoes_each_slice_offset_under_motion() -> None:
 
 def test_the_shipped_model_loads_and_estimates() -> None:
     from svr.models.pretrained import MAX_MODEL_BYTES, stack_pose_model_path
-    from svr.models.stack_pose import STACK_POSE_MODEL
 
     folder = stack_pose_model_path()
     assert sum(f.stat().st_size for f in folder.iterdir()) <= MAX_MODEL_BYTES
