@@ -698,6 +698,16 @@ def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, caps
     err = capsys.readouterr().err.strip()
     assert code != 0 and len(err.splitlines()) == 1
     assert "--loss se3 differs from the --init-from model's anchor_points" in err
+    code = main(["train-stack-pose", "--output-dir", str(tmp_path / "bad3"), "--init-from",
+                 str(tmp_path / "a"), "--no-hidden-norm", *common])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1
+    assert "--no-hidden-norm differs from the --init-from model's network" in err
+    # --no-hidden-norm: the network of the models trained before the option (the shipped one).
+    assert main(["train-stack-pose", "--output-dir", str(tmp_path / "plain"), "--width", "4",
+                 "--no-hidden-norm", *common]) == 0  # fmt: skip
+    assert load_stack_pose_model(tmp_path / "plain").config.hidden_norm is False
+    assert baseline.config.hidden_norm is True
     code = main(["train-stack-pose", "--output-dir", str(tmp_path / "bad2"), "--init-from",
                  str(tmp_path / "missing"), *common])  # fmt: skip
     assert code != 0 and "--init-from" in capsys.readouterr().err

@@ -127,6 +127,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--head", choices=("regress", "coords"), help=f"pose head (default: {m.head})")
     p.add_argument("--width", type=positive_int, help=f"first-stage channels (default: {m.width})")
     p.add_argument(
+        "--hidden-norm",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="batch normalisation in the hidden layer (default: on; --no-hidden-norm is the "
+        "network of the models trained before it, the shipped one included)",
+    )
+    p.add_argument(
         "--loss",
         choices=list(representations_by_cli_name()),
         help="pose output and loss: se3 (the SE(3) geodesic loss, default), or the posenet, "
@@ -189,6 +196,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 _OPTIONS = {
     "head": "--head",
     "width": "--width",
+    "hidden_norm": "--hidden-norm",
     "representation": "--loss",
     "steps": "--steps",
     "learning_rate": "--learning-rate",
@@ -306,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
     asked = {
         "head": args.head,
         "width": args.width,
+        "hidden_norm": args.hidden_norm,
         "representation": None
         if args.loss is None
         else representations_by_cli_name()[args.loss].name,
@@ -319,11 +328,15 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"--init-from {args.init_from}: {err}") from err
         model = start.config
         for key, value in asked.items():
-            if getattr(model, key) != value:
-                raise CliError(
-                    f"--{'loss' if key == 'representation' else key} {value} differs from the "
-                    f"--init-from model's {getattr(model, key)}; leave it out"
-                )
+            if getattr(model, key) == value:
+                continue
+            if isinstance(value, bool):  # --hidden-norm / --no-hidden-norm
+                flag = _OPTIONS[key].replace("--", "--" if value else "--no-", 1)
+                raise CliError(f"{flag} differs from the --init-from model's network; leave it out")
+            raise CliError(
+                f"{_OPTIONS[key]} {value} differs from the --init-from model's "
+                f"{getattr(model, key)}; leave it out"
+            )
         init = start.state_dict()
     else:
         with option_errors(_OPTIONS):
