@@ -13,7 +13,7 @@ from svr.geometry import se3_compose, so3_exp
 from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet, estimate_stack_pose
 from svr.reconstruction.atlas_frame import KEEP_MARGIN, atlas_transform
-from svr.reconstruction.cnn_init import stack_pose_initialisation
+from svr.reconstruction.cnn_init import agreeing_stacks, stack_pose_initialisation
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.slices import extract_slices
 from svr.sampling.blocks import stack_pose_from_slices
@@ -275,3 +275,35 @@ def test_stack_ncc_with_leave_out_scores_each_stack_against_the_others(turned_sc
     # With one stack there is nothing to leave it out from: the plain score.
     single = extract_slices(stacks[:1])
     torch.testing.assert_close(stack_ncc(single, 2.5, leave_out=True), stack_ncc(single, 2.5))
+
+
+def test_the_output_frame_follows_the_larger_group_of_agreeing_stacks() -> None:
+    """Three stacks in a frame and three in its front-back twin: the robust mean of all slices
+    lands far from both, so the frame comes from the group with the larger vote."""
+    from scipy.spatial.transform import Rotation
+
+    from svr.geometry import rotation_angle
+    from svr.geometry.averaging import robust_mean_pose
+
+    def pose(rotvec: list[float], shift: float) -> torch.Tensor:
+        out = torch.eye(4, dtype=torch.float64)
+        out[:3, :3] = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix())
+        out[:3, 3] = shift
+        return out
+
+    right = [pose([0.02 * s, -0.03, 0.01 * s], s) for s in range(3)]
+    twin = [pose([0.01 * s, 0.02, math.pi - 0.02 * s], -s) for s in range(3)]
+    per_slice = torch.stack([p for p in right + twin for _ in range(5)])  # 5 slices per stack
+    ids = torch.arange(6).repeat_interleave(5)
+    mean = robust_mean_pose(per_slice)
+    assert min(math.degrees(float(rotation_angle(mean, f[0]))) for f in (right, twin)) > 45
+    confident_right = torch.tensor([0.99, 0.98, 0.97, 0.6, 0.7, 0.9], dtype=torch.float64)
+    assert agreeing_stacks(per_slice, ids, confident_right).tolist() == [True] * 3 + [False] * 3
+    assert agreeing_stacks(per_slice, ids, 1.0 - confident_right + 0.5).tolist() == (
+        [False] * 3 + [True] * 3
+    )
+    # All agreeing: every stack; a stack without slices is never in the group.
+    near = torch.stack([p for p in right for _ in range(5)])
+    ids3 = torch.arange(3).repeat_interleave(5)
+    assert agreeing_stacks(near, ids3, torch.ones(3)).tolist() == [True] * 3
+    assert agreeing_stacks(near, ids3, torch.ones(4)).tolist() == [True] * 3 + [False]

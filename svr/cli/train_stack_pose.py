@@ -36,8 +36,10 @@ and to tell right frames from wrong ones. The run has two phases: for the last
 the atlas ones (anatomy unlike the atlas's). Checkpoints go to --output-dir every
 --checkpoint-every steps; running the same command again resumes from the newest. --minutes
 stops a run after a checkpoint once that much time has passed (the default recipe fits in 2
-hours on one CPU core; the shipped model took two runs, see docs/training.md; on a GPU,
-simulation is the bottleneck: add --device cuda --workers N, N about the number of free cores).
+hours on one CPU core; on a GPU, simulation is the bottleneck: add --device cuda --workers N, N
+about the number of free cores). --fine-tune-seed runs the second phase as a separate
+fine-tuning run of the first phase's weights would be: the shipped model's two runs as one
+command (see docs/training.md).
 --anatomy-variants adds label-edited variants of each atlas brain (smaller ventricles, a larger
 cerebellum, re-drawn contrast) for scans of fetuses unlike the spina bifida atlas's. Use the
 result with `svr reconstruct --registration cnn --model OUTPUT_DIR`, and check its output frame
