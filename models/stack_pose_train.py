@@ -98,11 +98,12 @@ class StackPoseTrainingConfig:
             volumes (``train_stack_pose``'s ``fine_tune_volumes``: the procedural phantoms)
             join the training brains. 0 for one phase; < ``steps``.
         fine_tune_learning_rate: Adam's rate at the start of the second phase.
-        fine_tune_seed: ``None``: the second phase continues the first's random stream and
-            Adam's moments (one schedule with a warm restart). An int: the second phase is the
-            run that fine-tuning the first phase's weights with this seed would be (Adam's
-            moments reset, the random stream reseeded with it, its rate
-            ``fine_tune_learning_rate`` times the cosine as that run's own), to the last bit.
+        fine_tune_seed: An int: the second phase is the run that fine-tuning the first
+            phase's weights with this seed would be (Adam's moments reset, the random stream
+            reseeded with it, its rate ``fine_tune_learning_rate`` times the cosine as that
+            run's own), to the last bit: the shipped model's recipe. ``None``: the second phase
+            continues the first's random stream and Adam's moments (one schedule with a warm
+            restart). Unused without a second phase.
         max_start_deg: Largest start error within reach (degrees).
         start_shift_mm: Per-axis standard deviation of the start's shift (mm).
         positive_fraction: Share of blocks within reach.
@@ -119,13 +120,13 @@ class StackPoseTrainingConfig:
             out of range.
     """
 
-    steps: int = 28000
+    steps: int = 23000
     stacks_per_step: int = 2
     samples_per_stack: int = 4
     learning_rate: float = 1e-3
-    fine_tune_steps: int = 12000
+    fine_tune_steps: int = 9000
     fine_tune_learning_rate: float = 3e-4
-    fine_tune_seed: int | None = None
+    fine_tune_seed: int | None = 2
     max_start_deg: float = 40.0
     start_shift_mm: float = 5.0
     positive_fraction: float = 0.65
@@ -163,13 +164,6 @@ class StackPoseTrainingConfig:
             check_number(owner, name, getattr(self, name), ge=0)
         check_int(owner, "seed", self.seed)
         check_int(owner, "fine_tune_seed", self.fine_tune_seed, allow_none=True)
-        if self.fine_tune_seed is not None and not self.fine_tune_steps:
-            raise ConfigFieldError(
-                owner,
-                "fine_tune_seed",
-                "unset without a second phase (fine_tune_steps 0)",
-                self.fine_tune_seed,
-            )
         check_instance(owner, "stacks", self.stacks, TrainingStackConfig)
 
 
@@ -463,9 +457,8 @@ def train_stack_pose(
     net = net.to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     turn = config.steps - config.fine_tune_steps
-    # A second phase as a new run takes its own base rate at the turn (_restart_as_new_run);
-    # the config allows a fine_tune_seed only with a second phase.
-    as_new_run = config.fine_tune_seed is not None
+    # A second phase as a new run takes its own base rate at the turn (_restart_as_new_run).
+    as_new_run = config.fine_tune_seed is not None and config.fine_tune_steps > 0
     schedule = cosine_schedule(
         optimiser,
         config.steps,

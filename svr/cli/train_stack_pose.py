@@ -173,7 +173,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=t.fine_tune_seed,
         help="run the second phase as the separate fine-tuning run of the first phase's weights "
         "with this --seed would be (a fresh Adam at --fine-tune-learning-rate, the random stream "
-        "reseeded): two commands as one. Default: the second phase continues the first's",
+        "reseeded): the shipped model's recipe (default: %(default)s; --no-fine-tune-seed: the "
+        "second phase continues the first's stream and Adam's moments)",
+    )
+    p.add_argument(
+        "--no-fine-tune-seed",
+        dest="fine_tune_seed",
+        action="store_const",
+        const=None,
+        help="continue the first phase's random stream and Adam's moments in the second",
     )
     p.add_argument(
         "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
