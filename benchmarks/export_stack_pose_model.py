@@ -82,8 +82,10 @@ def _phases_sentence(train: dict, data: dict) -> str:
     if data.get("anatomy_variants") and data.get("variants_phase") == "second":
         joined.append("the variants")
     added = f" and {' and '.join(joined)} added" if joined else ""
+    fresh = train.get("fine_tune_seed")
+    how = "" if fresh is None else f" as a fresh fine-tuning run (a new Adam, seed {fresh})"
     return (
-        f", the last {last} with the learning rate restarted at "
+        f", the last {last}{how} with the learning rate restarted at "
         f"{train.get('fine_tune_learning_rate'):g}{added}"
     )
 

@@ -478,6 +478,7 @@ def train_stack_pose(
         def stream() -> Iterator[tuple[Tensor, ...]]:
             for step in range(start, config.steps):
                 if as_new_run and step == turn:
+                    assert config.fine_tune_seed is not None
                     generator.manual_seed(config.fine_tune_seed)
                 yield simulate_batch(
                     phases[step >= turn], trajectories, model_config, config, generator

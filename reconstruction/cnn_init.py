@@ -750,6 +750,13 @@ def stack_pose_initialisation(
         # Stack s moved by M_s: E_s o M_s^-1 = placed_i o registered_i^-1 for its slices.
         each = se3_compose(placed, se3_inverse(registered))
         group = agreeing_stacks(each, ids, votes)
+        if not bool(group.all()):
+            log.warning(
+                "the stacks disagree on the canonical frame by more than %.0f deg (a wrong twin?): "
+                "the output frame follows %s",
+                AGREE_DEG,
+                ", ".join(stacks[s].name for s in range(len(stacks)) if group[s]),
+            )
         to_canonical = robust_mean_pose(each[group[ids]])
         return se3_compose(to_canonical[None], registered).to(slices.poses)
 
