@@ -617,62 +617,34 @@ def _library_run(folder, model_config, training, init=None):
 
 
 def test_the_training_command_is_the_library_recipe(tmp_path) -> None:
+    """The command trains what the library does: its defaults (the second phase as a new run,
+    fine_tune_seed 2), --fine-tune-seed N and --no-fine-tune-seed (the warm restart)."""
     from svr.cli import main
     from svr.models.stack_pose import load_stack_pose_model
 
     folder = _one_age_atlas(tmp_path)
     threads = torch.get_num_threads()
-    code = main(
-        [
-            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
-            str(tmp_path / "run"), "--steps", "3", "--fine-tune-steps", "1", "--phantoms", "0",
-            "--checkpoint-every", "1", "--width", "4", "--volume-downsample", "1", "--quiet",
-        ]
-    )  # fmt: skip
-    assert code == 0
-    assert torch.get_num_threads() == threads  # trained on one, the caller's count restored
-    trained = load_stack_pose_model(tmp_path / "run")
-    library = _library_run(
-        folder,
-        StackPoseConfig(width=4),
-        StackPoseTrainingConfig(steps=3, fine_tune_steps=1, checkpoint_every=1),
-    )
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
-    # --fine-tune-seed: the second phase as a new run, as the library's fine_tune_seed.
-    code = main(
-        [
-            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
-            str(tmp_path / "new-run"), "--steps", "3", "--fine-tune-steps", "1", "--phantoms",
-            "0", "--fine-tune-seed", "5", "--width", "4", "--volume-downsample", "1", "--quiet",
-        ]
-    )  # fmt: skip
-    assert code == 0
-    trained = load_stack_pose_model(tmp_path / "new-run")
-    library = _library_run(
-        folder,
-        StackPoseConfig(width=4),
-        StackPoseTrainingConfig(steps=3, fine_tune_steps=1, fine_tune_seed=5),
-    )
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
-    # --no-fine-tune-seed: the second phase continues the stream (fine_tune_seed None).
-    code = main(
-        [
-            "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
-            str(tmp_path / "warm"), "--steps", "3", "--fine-tune-steps", "1", "--phantoms",
-            "0", "--no-fine-tune-seed", "--width", "4", "--volume-downsample", "1", "--quiet",
-        ]
-    )  # fmt: skip
-    assert code == 0
-    trained = load_stack_pose_model(tmp_path / "warm")
-    library = _library_run(
-        folder,
-        StackPoseConfig(width=4),
-        StackPoseTrainingConfig(steps=3, fine_tune_steps=1, fine_tune_seed=None),
-    )
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
+    for name, options, training in (
+        ("run", [], StackPoseTrainingConfig(steps=3, fine_tune_steps=1, checkpoint_every=1)),
+        ("new-run", ["--fine-tune-seed", "5"],
+         StackPoseTrainingConfig(steps=3, fine_tune_steps=1, fine_tune_seed=5)),
+        ("warm", ["--no-fine-tune-seed"],
+         StackPoseTrainingConfig(steps=3, fine_tune_steps=1, fine_tune_seed=None)),
+    ):  # fmt: skip
+        code = main(
+            [
+                "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), "--output-dir",
+                str(tmp_path / name), "--steps", "3", "--fine-tune-steps", "1", "--phantoms", "0",
+                "--checkpoint-every", "1", "--width", "4", "--volume-downsample", "1", "--quiet",
+                *options,
+            ]
+        )  # fmt: skip
+        assert code == 0
+        assert torch.get_num_threads() == threads  # trained on one, the caller's count restored
+        trained = load_stack_pose_model(tmp_path / name)
+        library = _library_run(folder, StackPoseConfig(width=4), training)
+        for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+            assert torch.equal(a, b), name
 
 
 def test_the_training_command_fine_tunes_and_trains_the_baselines(tmp_path, capsys) -> None:
