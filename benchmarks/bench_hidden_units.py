@@ -42,12 +42,12 @@ def measure(model_path: str, volume, trajectories, batches: int) -> dict[str, fl
             for _ in range(batches)
         ]
     )
-    x = blocks
+    seen: list[torch.Tensor] = []
+    hook = net.fc.register_forward_hook(lambda _module, _inputs, out: seen.append(out))
     with torch.no_grad():
-        for stage in net.stages:
-            x = stage(x)
-        hidden = net.fc(x)
         output = net(blocks)
+    hook.remove()
+    hidden = seen[0]
     return {
         "blocks": float(len(blocks)),
         "units": float(hidden.shape[1]),

@@ -633,16 +633,14 @@ def agreeing_stacks(to_canonical: Tensor, stack_ids: Tensor, weights: Tensor) ->
     Returns:
         (S,) bool, the stacks of the chosen group.
     """
-    count = len(weights)
+    present = torch.stack([(stack_ids == s).any() for s in range(len(weights))])
+    identity = torch.eye(4, dtype=torch.float64)
     frames = torch.stack(
         [
-            robust_mean_pose(to_canonical[stack_ids == s])
-            if bool((stack_ids == s).any())
-            else torch.eye(4, dtype=torch.float64)
-            for s in range(count)
+            robust_mean_pose(to_canonical[stack_ids == s]) if bool(here) else identity
+            for s, here in enumerate(present)
         ]
     )
-    present = torch.stack([(stack_ids == s).any() for s in range(count)])
     angles = torch.rad2deg(rotation_angle(frames[:, None], frames[None, :]))
     near = (angles <= AGREE_DEG) & present[None, :] & present[:, None]
     votes = (near.to(torch.float64) * weights.to(torch.float64)[None, :]).sum(1)
