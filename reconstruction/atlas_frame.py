@@ -14,10 +14,15 @@ one, but on the real clinical scan (a fetus without spina bifida, unlike the atl
 front-back twin of the right frame fitted 0.008 better one time and 0.008 worse another: there, NCC
 alone flipped the output with the thread count, and the frame the learned stack poses agree on is
 the better evidence. (The stack-pose model does not choose among the starts: on the real scan it
-was confident of the frame turned by 180 degrees about z.) The origin is then put at the centroid
-of the volume's own brain mask, which is what canonical space means (``docs/conventions.md``): an
-atlas of a neighbouring age or another cohort differs in shape, and its fit pulled the centre by
-about 5 mm on sb28-moderate, where the mask's centroid does not depend on it. Everything is
+was confident of the frame turned by 180 degrees about z.) The origin is then put at the centre
+of the brain, which is what canonical space means (``docs/conventions.md``): an atlas of a
+neighbouring age or another cohort differs in shape, and its fit pulled the centre by about 5 mm on
+sb28-moderate, where the brain's own centre does not depend on it. That centre is the one the
+slices' brain masks give (:func:`svr.reconstruction.slices.mask_centre`), not the centroid of the
+volume's coverage mask, which reaches about 10 mm past the brain (the slice profile) and more on
+one side than the other: on the six benchmark outputs of five models, the masks' centre was 0.1-2.2
+mm from the true centre where the coverage's was 0.1-3.8 mm
+(``benchmarks/results/fabian-and-centre.md``). Everything is
 relabelled in that frame: the volume's and mask's affines and every slice pose. Nothing is
 resampled, so the volume's values are unchanged.
 """
@@ -41,6 +46,7 @@ from svr.models.stack_pose import (
     mask_axis_hypotheses,
 )
 from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.slices import mask_centre
 from svr.sampling.volume import CanonicalVolume
 
 __all__ = [
@@ -142,6 +148,7 @@ def atlas_transform(
     config: AtlasFitConfig | None = None,
     keep_margin: float = KEEP_MARGIN,
     alternatives: int = 2,
+    centre: Tensor | None = None,
 ) -> AtlasFrame:
     """The rigid transform from a volume's frame to an atlas's canonical frame.
 
@@ -160,6 +167,8 @@ def atlas_transform(
         keep_margin: NCC by which another frame must beat the volume's own, >= 0 (0: the best
             final NCC wins).
         alternatives: How many other starts are fitted finely, >= 1.
+        centre: (3,) the brain's centre in the volume's world frame (mm), put at the origin;
+            default the centroid of ``mask``.
 
     Returns:
         The :class:`AtlasFrame` found.
@@ -202,7 +211,8 @@ def atlas_transform(
         if ncc > own_ncc + keep_margin and ncc > best_ncc:
             best, best_ncc, won = frame, ncc, i
     best = best.clone()
-    best[:3, 3] = -best[:3, :3] @ points.mean(0)
+    origin = points.mean(0) if centre is None else centre.to(points)
+    best[:3, 3] = -best[:3, :3] @ origin
     return AtlasFrame(best, names[won], scores, final)
 
 
@@ -223,7 +233,8 @@ def align_to_atlas(
         pose premultiplied by the fitted transform.
     """
     volume = result.volume
-    found = atlas_transform(volume, result.mask.data > 0.5, atlas, config)
+    centre = mask_centre(result.slices, ~result.excluded.to(result.slices.device))
+    found = atlas_transform(volume, result.mask.data > 0.5, atlas, config, centre=centre)
     transform = found.transform
     angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(

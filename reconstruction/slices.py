@@ -18,7 +18,14 @@ from torch import Tensor
 from svr.image import Image, stack_slice_poses
 from svr.validation import check_choice
 
-__all__ = ["SliceSet", "Stack", "array_poses", "extract_slices", "plane_poses"]
+__all__ = [
+    "SliceSet",
+    "Stack",
+    "array_poses",
+    "extract_slices",
+    "mask_centre",
+    "plane_poses",
+]
 
 FRAMES = ("scanner", "canonical")
 # SliceSet fields that hold one entry per slice (moved and indexed together).
@@ -184,6 +191,43 @@ def array_poses(slices: SliceSet, planes: Tensor) -> Tensor:
         (N, 4, 4) float64 ``T_plane o Trans(+offset)`` (origin at the array centre).
     """
     return _shifted_in_plane(planes, slices.plane_offsets_mm)
+
+
+def mask_centre(slices: SliceSet, keep: Tensor | None = None) -> Tensor:
+    """The centre of the brain the slices' masks cover, in the slices' frame.
+
+    Every mask pixel of every kept slice is placed at its pose (pixel ``(a, b)`` at ``u = (a -
+    (H - 1) / 2) * spacing_u``, ``v = (b - (W - 1) / 2) * spacing_v`` in the slice plane, as the
+    projector places it) and weighted by the volume it stands for (pixel area times thickness,
+    so that stacks of finer pixels do not count more); the weighted mean is returned.
+
+    Args:
+        slices: The slices with their poses.
+        keep: (N,) bool slices to use (default all).
+
+    Returns:
+        (3,) float64 centre in mm, in ``slices.frame``.
+
+    Raises:
+        ValueError: If the kept slices have no mask pixel, or ``keep`` is not (N,).
+    """
+    if keep is None:
+        keep = torch.ones(len(slices), dtype=torch.bool, device=slices.device)
+    if tuple(keep.shape) != (len(slices),):
+        raise ValueError(
+            f"mask_centre(): 'keep' must have shape ({len(slices)},), got {tuple(keep.shape)}"
+        )
+    index = torch.nonzero(slices.masks & keep.to(slices.device)[:, None, None])  # (P, 3)
+    if len(index) == 0:
+        raise ValueError("mask_centre(): the kept slices have no mask pixel")
+    n, (h, w) = index[:, 0], slices.size
+    spacing = slices.spacing_mm.to(torch.float64)[n]
+    u = (index[:, 1] - (h - 1) / 2).to(torch.float64) * spacing[:, 0]
+    v = (index[:, 2] - (w - 1) / 2).to(torch.float64) * spacing[:, 1]
+    T = slices.poses.to(torch.float64)[n]
+    points = T[:, :3, 3] + u[:, None] * T[:, :3, 0] + v[:, None] * T[:, :3, 1]
+    weights = spacing.prod(dim=1) * slices.thickness_mm.to(torch.float64)[n]
+    return (points * weights[:, None]).sum(dim=0) / weights.sum()
 
 
 def extract_slices(stacks: list[Stack]) -> SliceSet:

@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from svr.image import Image, stack_slice_poses
-from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
+from svr.reconstruction.slices import (
+    SliceSet,
+    Stack,
+    array_poses,
+    extract_slices,
+    mask_centre,
+    plane_poses,
+)
 
 F64 = torch.float64
 
@@ -107,3 +114,30 @@ def test_slice_set_checks_and_copies(stacks):
         slices.with_poses(slices.poses[:, :3])
     with pytest.raises(ValueError, match=r"'images' must be \(N, H, W\)"):
         SliceSet(**{**slices.__dict__, "images": torch.tensor(0.0)})
+
+
+def _voxel_centroid(stack: Stack, planes: list[int]) -> tuple[torch.Tensor, int]:
+    """World centroid of a stack's mask voxels on the given planes (the affine's, no slices)."""
+    idx = torch.nonzero(stack.mask.data[:, :, planes]).to(F64)
+    idx[:, 2] = torch.tensor(planes, dtype=F64)[idx[:, 2].long()]
+    world = idx @ stack.image.affine[:3, :3].T + stack.image.affine[:3, 3]
+    return world.mean(dim=0), len(idx)
+
+
+def test_mask_centre_is_the_mask_voxels_centroid_weighted_by_voxel_volume(stacks):
+    slices = extract_slices(stacks)
+    (a, na), (c, nc) = _voxel_centroid(stacks[0], [0, 2]), _voxel_centroid(stacks[2], [0, 1])
+    # Voxel volumes: stack a 1 x 1.5 mm pixels, stack c 1 x 2 mm, both 2.5 mm thick.
+    wa, wc = na * 1.5 * 2.5, nc * 2.0 * 2.5
+    torch.testing.assert_close(mask_centre(slices), (wa * a + wc * c) / (wa + wc))
+    torch.testing.assert_close(mask_centre(slices, slices.stack_ids == 2), c)
+    # The centre moves with the poses: every slice turned and shifted moves it alike.
+    turn = torch.eye(4, dtype=F64)
+    turn[:3, :3] = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    turn[:3, 3] = torch.tensor([4.0, -3.0, 2.0], dtype=F64)
+    moved = slices.with_poses(turn @ slices.poses)
+    torch.testing.assert_close(mask_centre(moved), turn[:3, :3] @ mask_centre(slices) + turn[:3, 3])
+    with pytest.raises(ValueError, match="no mask pixel"):
+        mask_centre(slices, torch.zeros(len(slices), dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"'keep' must have shape \(4,\)"):
+        mask_centre(slices, torch.ones(3, dtype=torch.bool))

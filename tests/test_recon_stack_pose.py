@@ -157,6 +157,22 @@ def test_atlas_transform_keeps_the_volumes_own_frame_unless_another_fits_clearly
         atlas_transform(turned, atlas.mask, atlas, alternatives=0)
 
 
+def test_atlas_transform_puts_the_given_centre_at_the_origin() -> None:
+    _volume, _mask, atlas = _brain()
+    small = torch.eye(4, dtype=F64)
+    small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
+    moved = Image(atlas.image.data, small @ atlas.image.affine)
+    centre = torch.tensor([2.0, -5.0, 3.0], dtype=F64)
+    own = atlas_transform(moved, atlas.mask, atlas, alternatives=1)
+    given = atlas_transform(moved, atlas.mask, atlas, alternatives=1, centre=centre)
+    torch.testing.assert_close(given.transform[:3, :3], own.transform[:3, :3])
+    torch.testing.assert_close(
+        given.transform[:3, :3] @ centre + given.transform[:3, 3], torch.zeros(3, dtype=F64)
+    )
+    # Without one, the mask's centroid goes to the origin (the volume's world frame's origin).
+    assert float(own.transform[:3, 3].norm()) < 1.0
+
+
 def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None:
     from svr.models.stack_pose import AtlasFitConfig, atlas_levels, fit_to_atlas
 
