@@ -14,6 +14,15 @@ import torch
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 ATLAS = SHARED / "data" / "atlas" / "sb-fidon2021"
 MOTION = SHARED / "data" / "motion" / "svort_fetal_motion_trajectories.npz"
+# FaBiAN's simulated stacks of normal brains (3 subjects) and their masks (one mask's name lacks
+# the session); their world frame is the simulated brain's anatomical frame.
+FABIAN = SHARED / "data" / "stacks" / "sim-fabian"
+FABIAN_STACKS = {
+    "sub-simu005_ses-01_run-2_T2w.nii.gz": "sub-simu005_ses-01_run-2_mask.nii.gz",
+    "sub-simu005_ses-01_run-6_T2w.nii.gz": "sub-simu005_ses-01_run-6_mask.nii.gz",
+    "sub-simu009_ses-01_run-7_T2w.nii.gz": "sub-simu009_run-7_mask.nii.gz",
+    "sub-simu038_ses-01_run-2_T2w.nii.gz": "sub-simu038_ses-01_run-2_mask.nii.gz",
+}
 
 
 def write_results(path: Path, title: str, text: str, note: str = "") -> None:

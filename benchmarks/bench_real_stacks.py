@@ -1,4 +1,4 @@
-"""Per stack on the real scan: does a stack-pose model place each stack, or its front-back twin?
+"""Per stack on real-like scans: does a stack-pose model place each stack, or its front-back twin?
 
 ``bench_real_frame.py`` checks the real scan's output frame, one number per run, which rests on
 which stacks' poses the reconstruction's frame follows. This checks every stack: each of the six
@@ -10,7 +10,20 @@ hypotheses. A stack is *placed* when the model's frame is within 45 degrees of t
 wrong twins are 150-180 degrees away); the *margin* is the reference's score minus the best
 twin's (positive: the model prefers the right frame).
 
-The reference frames (``benchmarks/results/real-scan-stack-frames.json``) come from a
+Two scans, each with its own references (``--scans``, default both):
+
+- ``real``: the real clinical scan (6 stacks of a fetus without spina bifida, maternal tissue
+  around the brain, manual masks).
+- ``fabian``: the 4 FaBiAN stacks (3 subjects; a physics-based MR simulator's stacks of normal
+  fetal brains from another atlas family, brain-extracted, thick slices at 3.2 mm): anatomy and
+  contrast unlike the training atlas's, with a reference from the files themselves. Their world
+  frame is the simulated brain's anatomical frame (RAS: the axial stacks' slices are the brain's
+  axial planes, front to the front; looked at), so each stack's reference maps scanner mm to
+  canonical mm by the identity turn and the shift that puts the brain mask's centre at the
+  origin (``--make-header-truth`` writes them). It is the frame of that atlas family, a few
+  degrees from the training atlas's: ample for telling a stack from its twin.
+
+The real scan's reference frames (``benchmarks/results/real-scan-stack-frames.json``) come from a
 reconstruction of the six stacks whose stacks all kept stack registration (so their relative
 poses are classical registration's) and whose output frame was corrected to the reference frame
 of ``bench_real_frame.py`` (an output whose axial, coronal and sagittal views were looked at):
@@ -22,8 +35,9 @@ twin; the angles of placed stacks are not a precision measure.
 Run from the repository root (about 10 s per model on one core)::
 
     python benchmarks/bench_real_stacks.py --model stack-pose runs/stack-pose [--threads 1] \
-        [--results benchmarks/results/real-scan-stacks.md]
+        [--scans real fabian] [--results benchmarks/results/real-scan-stacks.md]
     python benchmarks/bench_real_stacks.py --make-truth runs/real.csv runs/real.nii.gz
+    python benchmarks/bench_real_stacks.py --make-header-truth
 """
 
 from __future__ import annotations
@@ -39,20 +53,47 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import torch
-from bench_common import SHARED, write_results
+from bench_common import FABIAN, FABIAN_STACKS, SHARED, write_results
 from bench_real_frame import REFERENCE, rotation_part
 
 ROOT = Path(__file__).resolve().parents[1]
 TRUTH = ROOT / "benchmarks" / "results" / "real-scan-stack-frames.json"
 SCAN = SHARED / "data" / "stacks" / "real-mialsrtk-sub01"
+FABIAN_TRUTH = ROOT / "benchmarks" / "results" / "fabian-stack-frames.json"
+SCANS = {"real": (SCAN, TRUTH), "fabian": (FABIAN, FABIAN_TRUTH)}
 PLACED_DEG = 45.0
 RUNS = range(1, 7)
 
 
-def _paths(scan: Path) -> tuple[list[Path], list[Path]]:
+def _paths(scan: Path, truth: dict | None = None) -> tuple[list[Path], list[Path]]:
+    """The scan's stacks and masks: the truth file's ``masks`` where it names them."""
+    if truth is not None and "masks" in truth:
+        names = list(truth["masks"])
+        return [scan / n for n in names], [scan / truth["masks"][n] for n in names]
     stacks = [scan / f"sub-01_run-{i}_T2w.nii.gz" for i in RUNS]
     masks = [scan / f"sub-01_run-{i}_T2w_desc-brain_mask.nii.gz" for i in RUNS]
     return stacks, masks
+
+
+def make_header_truth(scan: Path, out: Path) -> None:
+    """Write FaBiAN's reference frames: the identity turn, the brain mask's centre to the origin."""
+    frames = {}
+    for name, mask_name in FABIAN_STACKS.items():
+        mask = nib.load(scan / mask_name)
+        voxels = np.argwhere(np.asarray(mask.dataobj) > 0.5)
+        centre = nib.affines.apply_affine(mask.affine, voxels).mean(axis=0)
+        frame = np.eye(4)
+        frame[:3, 3] = -centre
+        frames[name] = frame.tolist()
+    record = {
+        "what": "each FaBiAN stack's scanner mm -> canonical mm frame (4x4): the identity turn "
+        "(the simulated brain's world frame is its anatomical RAS frame) and the shift that puts "
+        "its brain mask's centre at the origin",
+        "frames": frames,
+        "masks": FABIAN_STACKS,
+    }
+    out.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    print(f"wrote {out}")
 
 
 def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
@@ -90,15 +131,18 @@ def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
     print(f"wrote {out}")
 
 
-def measure(model_path: str, scan: Path, truth: dict) -> tuple[list[str], dict[str, float]]:
-    """The table rows of one model and its summary."""
+def measure(
+    model_path: str, scan_name: str, scan: Path, record: dict
+) -> tuple[list[str], dict[str, float]]:
+    """The table rows of one model on one scan and its summary."""
     from svr.geometry import rotation_angle, se3_compose, so3_exp
     from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
     from svr.reconstruction.stacks import load_stacks
     from svr.sampling.blocks import coarsen_stack
 
     net = load_stack_pose_model(model_path)
-    stack_paths, mask_paths = _paths(scan)
+    truth = record["frames"]
+    stack_paths, mask_paths = _paths(scan, record)
     stacks = load_stacks(stack_paths, mask_paths)
     twins = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
     twins[:, :3, :3] = so3_exp(torch.eye(3, dtype=torch.float64) * math.pi)
@@ -116,12 +160,13 @@ def measure(model_path: str, scan: Path, truth: dict) -> tuple[list[str], dict[s
         margins.append(margin)
         twin = " / ".join(f"{float(s):.1f}" for s in scores[1:])
         rows.append(
-            f"| {model_path} | {path.name.split('_')[1]} | {angle:.1f} | "
+            f"| {model_path} | {scan_name} | {_short(path.name)} | {angle:.1f} | "
             f"{'yes' if angle <= PLACED_DEG else 'no'} | {float(scores[0]):.1f} | {twin} | "
             f"{margin:+.1f} |"
         )
     placed = [a for a in angles if a <= PLACED_DEG]
     summary = {
+        "stacks": len(angles),
         "placed": len(placed),
         "median_placed_deg": statistics.median(placed) if placed else float("nan"),
         "mean_margin": statistics.fmean(margins),
@@ -130,11 +175,20 @@ def measure(model_path: str, scan: Path, truth: dict) -> tuple[list[str], dict[s
     return rows, summary
 
 
+def _short(name: str) -> str:
+    """A stack's short name: ``run-4`` on the real scan, ``simu005-run-2`` on FaBiAN."""
+    parts = [p for p in name.split("_") if p.startswith(("sub-simu", "run-"))]
+    return "-".join(p.removeprefix("sub-") for p in parts)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", nargs="+", default=["stack-pose"], help="stack-pose models")
+    parser.add_argument(
+        "--scans", nargs="+", choices=list(SCANS), default=list(SCANS), help="scans to measure"
+    )
     parser.add_argument("--scan", type=Path, default=SCAN, help="the real scan's folder")
-    parser.add_argument("--truth", type=Path, default=TRUTH, help="the stacks' reference frames")
+    parser.add_argument("--truth", type=Path, default=TRUTH, help="the real stacks' references")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--results", type=Path, help="also write the tables here (markdown)")
     parser.add_argument(
@@ -144,43 +198,57 @@ def main() -> int:
         metavar=("TRANSFORMS", "OUTPUT"),
         help="write --truth from a reconstruction's transforms table and output volume",
     )
+    parser.add_argument(
+        "--make-header-truth",
+        action="store_true",
+        help=f"write the FaBiAN stacks' references ({FABIAN_TRUTH.name}) from their files",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.make_truth is not None:
         make_truth(*args.make_truth, args.scan, args.truth)
         return 0
-    if not args.scan.is_dir():
-        print(f"{args.scan}: no such folder (the real scan)", file=sys.stderr)
-        return 1
-    truth = json.loads(args.truth.read_text(encoding="utf-8"))["frames"]
+    if args.make_header_truth:
+        make_header_truth(FABIAN, FABIAN_TRUTH)
+        return 0
+    scans = {name: SCANS[name] for name in args.scans}
+    if "real" in scans:
+        scans["real"] = (args.scan, args.truth)
+    for name, (folder, _) in scans.items():
+        if not folder.is_dir():
+            print(f"{folder}: no such folder (the {name} scan)", file=sys.stderr)
+            return 1
     header = [
-        "| model | stack | model's frame vs reference (deg) | placed | score at reference "
+        "| model | scan | stack | model's frame vs reference (deg) | placed | score at reference "
         "| scores at its twins (x / y / z) | margin |",
-        "|---|---|---:|---|---:|---|---:|",
+        "|---|---|---|---:|---|---:|---|---:|",
     ]
     rows, summaries = [], {}
     for model in args.model:
-        model_rows, summaries[model] = measure(model, args.scan, truth)
-        rows += model_rows
-        print("\n".join(model_rows), flush=True)
-    first = summaries[args.model[0]]
+        for name, (folder, truth_path) in scans.items():
+            record = json.loads(truth_path.read_text(encoding="utf-8"))
+            model_rows, summaries[model, name] = measure(model, name, folder, record)
+            rows += model_rows
+            print("\n".join(model_rows), flush=True)
     lines = [
-        "| model | stacks placed (of 6) | median angle of those (deg) | right frame preferred "
-        "(of 6) | mean margin | placed vs first model |",
-        "|---|---:|---:|---:|---:|---:|",
+        "| model | scan | stacks placed | median angle of those (deg) | right frame preferred "
+        "| mean margin | placed vs first model |",
+        "|---|---|---:|---:|---:|---:|---:|",
     ]
-    for model, s in summaries.items():
-        ratio = s["placed"] / first["placed"] if first["placed"] else float("inf")
+    for (model, name), s in summaries.items():
+        first = summaries[args.model[0], name]["placed"]
+        ratio = s["placed"] / first if first else float("inf")
+        n = s["stacks"]
         lines.append(
-            f"| {model} | {s['placed']} | {s['median_placed_deg']:.1f} | "
-            f"{s['right_preferred']} | {s['mean_margin']:+.2f} | x{ratio:.2f} |"
+            f"| {model} | {name} | {s['placed']} of {n} | {s['median_placed_deg']:.1f} | "
+            f"{s['right_preferred']} of {n} | {s['mean_margin']:+.2f} | x{ratio:.2f} |"
         )
     text = "\n".join([*lines, "", *header, *rows])
     print("\n".join(lines))
     if args.results is not None:
         write_results(
             args.results,
-            "The real scan's stacks, one by one",
+            "Real-like scans' stacks, one by one",
             text,
             f" ({datetime.date.today().isoformat()}, {args.threads} thread(s), the 2-core VM)",
         )
