@@ -233,7 +233,8 @@ def align_to_atlas(
         pose premultiplied by the fitted transform.
     """
     volume = result.volume
-    centre = mask_centre(result.slices, ~result.excluded.to(result.slices.device))
+    kept = ~result.excluded.to(result.slices.device)
+    centre = mask_centre(result.slices, kept if bool(kept.any()) else None)
     found = atlas_transform(volume, result.mask.data > 0.5, atlas, config, centre=centre)
     transform = found.transform
     angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))

@@ -12,10 +12,10 @@ from test_recon_init import oblique_stack
 from svr.geometry import se3_compose, so3_exp
 from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet, estimate_stack_pose
-from svr.reconstruction.atlas_frame import KEEP_MARGIN, atlas_transform
+from svr.reconstruction.atlas_frame import KEEP_MARGIN, align_to_atlas, atlas_transform
 from svr.reconstruction.cnn_init import agreeing_stacks, stack_pose_initialisation
-from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.slices import extract_slices
+from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
+from svr.reconstruction.slices import extract_slices, mask_centre
 from svr.sampling.blocks import stack_pose_from_slices
 from svr.sampling.volume import canonicalize
 
@@ -171,6 +171,34 @@ def test_atlas_transform_puts_the_given_centre_at_the_origin() -> None:
     )
     # Without one, the mask's centroid goes to the origin (the volume's world frame's origin).
     assert float(own.transform[:3, 3].norm()) < 1.0
+
+
+def test_align_to_atlas_turns_everything_and_centres_the_kept_slices_masks(turned_scene) -> None:
+    atlas, stacks, _ = turned_scene
+    small = torch.eye(4, dtype=F64)
+    small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
+    volume = Image(atlas.image.data, small @ atlas.image.affine)
+    mask = Image(atlas.mask.float(), volume.affine.clone())
+    slices = extract_slices(stacks).with_poses(extract_slices(stacks).poses, "canonical")
+    excluded = torch.zeros(len(slices), dtype=torch.bool)
+    excluded[:5] = True
+    far = slices.poses.clone()
+    far[:5, :3, 3] += 500.0  # excluded slices far away: they must not move the centre
+    slices = slices.with_poses(far)
+    n = len(slices)
+    result = ReconstructionResult(
+        volume, mask, volume, slices, torch.ones(n), torch.ones(n), excluded, ("cnn",) * 3
+    )
+    aligned = align_to_atlas(result, atlas)
+    transform = aligned.volume.affine @ torch.linalg.inv(volume.affine)
+    # The volume comes back to the atlas's frame (it was turned by `small`) ...
+    assert _angle_deg(se3_compose(transform, small), torch.eye(4, dtype=F64)) < 1.0
+    # ... and everything moved by the same transform.
+    torch.testing.assert_close(aligned.mask.affine, transform @ mask.affine)
+    torch.testing.assert_close(aligned.slices.poses, transform @ slices.poses)
+    # The kept slices' masks' centre is the new origin.
+    centre = mask_centre(aligned.slices, ~excluded)
+    torch.testing.assert_close(centre, torch.zeros(3, dtype=F64), atol=1e-6, rtol=0)
 
 
 def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None:
