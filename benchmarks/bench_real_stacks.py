@@ -32,7 +32,7 @@ a frame judged by eye (the stacks every model places are 12-24 degrees from them
 or the references carry a tilt of that order on this scan), ample for telling a stack from its
 twin; the angles of placed stacks are not a precision measure.
 
-Run from the repository root (about 10 s per model on one core)::
+Run from the repository root (a few seconds per model and scan on one core)::
 
     python benchmarks/bench_real_stacks.py --model stack-pose runs/stack-pose [--threads 1] \
         [--scans real fabian] [--results benchmarks/results/real-scan-stacks.md]

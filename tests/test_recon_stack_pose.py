@@ -179,12 +179,12 @@ def test_align_to_atlas_turns_everything_and_centres_the_kept_slices_masks(turne
     small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
     volume = Image(atlas.image.data, small @ atlas.image.affine)
     mask = Image(atlas.mask.float(), volume.affine.clone())
-    slices = extract_slices(stacks).with_poses(extract_slices(stacks).poses, "canonical")
+    slices = extract_slices(stacks)
     excluded = torch.zeros(len(slices), dtype=torch.bool)
     excluded[:5] = True
     far = slices.poses.clone()
     far[:5, :3, 3] += 500.0  # excluded slices far away: they must not move the centre
-    slices = slices.with_poses(far)
+    slices = slices.with_poses(far, "canonical")
     n = len(slices)
     result = ReconstructionResult(
         volume, mask, volume, slices, torch.ones(n), torch.ones(n), excluded, ("cnn",) * 3
