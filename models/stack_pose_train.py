@@ -15,7 +15,10 @@ blocks from each, in frames drawn around the truth:
 Blocks use every slice of the stack (probability ``1 - subset_fraction``) or a subset: one
 interleaved packet, or k neighbouring slices (k from 1 to ``max_subset``). The run has two
 phases: the last ``fine_tune_steps`` steps restart the learning rate lower and add the fine-tune
-brains (procedural phantoms: anatomy unlike the atlas's) to the training ones; with
+brains (procedural phantoms: anatomy unlike the atlas's) to the training ones. Each stack's brain
+is drawn alike from the phase's brains, or by a weight per brain (``volume_weights``,
+``fine_tune_weights``: for example the anatomy variants of an atlas brain sharing that brain's
+weight, so that adding them leaves the phantoms their share of the stacks). With
 ``fine_tune_seed`` the second phase starts as a separate fine-tuning run from the first phase's
 weights would (a fresh Adam, the random stream reseeded), so two commands become one. Checkpoints
 (:mod:`svr.models.checkpoint`) are written every ``checkpoint_every`` steps and the newest is
@@ -27,7 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -246,6 +249,7 @@ def simulate_batch(
     model_config: StackPoseConfig,
     config: StackPoseTrainingConfig,
     generator: torch.Generator,
+    weights: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """One training step's blocks: ``stacks_per_step`` simulated stacks, their samples stacked.
 
@@ -255,6 +259,8 @@ def simulate_batch(
         model_config: The network's block grid.
         config: The draw's ranges.
         generator: Source of every draw (advanced).
+        weights: (len(volumes),) float64 relative chance of each brain being drawn for a stack;
+            ``None`` draws every brain alike.
 
     Returns:
         ``(blocks, starts, targets, labels)`` over B = stacks_per_step * samples_per_stack
@@ -263,7 +269,11 @@ def simulate_batch(
     """
     batch = []
     for _ in range(config.stacks_per_step):
-        volume = volumes[int(torch.randint(len(volumes), (1,), generator=generator))]
+        if weights is None:
+            index = int(torch.randint(len(volumes), (1,), generator=generator))
+        else:
+            index = int(torch.multinomial(weights, 1, generator=generator))
+        volume = volumes[index]
         stack = simulate_training_stack(volume, config.stacks, generator, trajectories)
         blocks, starts, target, labels = draw_samples(stack, model_config, config, generator)
         batch.append((blocks, starts, target.expand_as(starts), labels))
@@ -276,16 +286,34 @@ def step_seed(seed: int, step: int) -> int:
     return (seed * 1_000_003 + step) % (2**63)
 
 
+_Brains = tuple[list[CanonicalVolume], Tensor | None]
+"""A phase's training brains and their draw weights (``None``: alike)."""
+
+
+def _draw_weights(weights: Sequence[float] | None, count: int, name: str) -> Tensor:
+    """``weights`` as a (count,) float64 tensor (ones for ``None``), checked."""
+    if weights is None:
+        return torch.ones(count, dtype=torch.float64)
+    values = torch.as_tensor(list(weights), dtype=torch.float64)
+    if values.shape != (count,) or not bool(torch.all(values > 0)):  # NaN fails too
+        raise ValueError(
+            f"train_stack_pose(): {name!r} must be {count} numbers > 0 (one per brain), got "
+            f"{list(weights)!r}"
+        )
+    return values
+
+
 class _StepBatches(Dataset):
     """Step ``i``'s batch, simulated from a generator seeded by :func:`step_seed`.
 
-    ``phases`` are the training brains before and from step ``turn`` on; with the config's
-    ``fine_tune_seed`` the steps from ``turn`` on are seeded as a separate run's steps 0, 1, ...
+    ``phases`` are the training brains (with their draw weights, :func:`simulate_batch`) before
+    and from step ``turn`` on; with the config's ``fine_tune_seed`` the steps from ``turn`` on
+    are seeded as a separate run's steps 0, 1, ...
     """
 
     def __init__(
         self,
-        phases: tuple[list[CanonicalVolume], list[CanonicalVolume]],
+        phases: tuple[_Brains, _Brains],
         turn: int,
         trajectories: list[Trajectory] | None,
         model_config: StackPoseConfig,
@@ -305,12 +333,9 @@ class _StepBatches(Dataset):
         if self.config.fine_tune_seed is not None and step >= self.turn:
             seed, index = self.config.fine_tune_seed, step - self.turn
         generator = torch.Generator().manual_seed(step_seed(seed, index))
+        brains, weights = self.phases[step >= self.turn]
         return simulate_batch(
-            self.phases[step >= self.turn],
-            self.trajectories,
-            self.model_config,
-            self.config,
-            generator,
+            brains, self.trajectories, self.model_config, self.config, generator, weights
         )
 
 
@@ -408,6 +433,8 @@ def train_stack_pose(
     init: dict[str, Tensor] | None = None,
     workers: int = 0,
     fine_tune_volumes: list[CanonicalVolume] | None = None,
+    volume_weights: Sequence[float] | None = None,
+    fine_tune_weights: Sequence[float] | None = None,
 ) -> StackPoseNet:
     """Train (or resume training) the stack-pose network.
 
@@ -431,13 +458,19 @@ def train_stack_pose(
             (a GPU, or a machine with spare cores).
         fine_tune_volumes: Brains that join ``volumes`` for the last ``config.fine_tune_steps``
             steps (the procedural phantoms), or for every step if that is 0; ``None`` for none.
+        volume_weights: Relative chance of each of ``volumes`` being drawn for a stack (> 0 each);
+            ``None``: 1 each.
+        fine_tune_weights: The same for ``fine_tune_volumes``, on the scale of
+            ``volume_weights``; ``None``: 1 each. With neither, every brain is drawn alike, as
+            before these existed (the same stream of draws).
 
     Returns:
         The network (eval mode).
 
     Raises:
-        ValueError: If ``volumes`` is empty, ``workers`` is negative, or a step has a single
-            block for a network with ``hidden_norm``.
+        ValueError: If ``volumes`` is empty, ``workers`` is negative, a weights list does not
+            match its brains or has a weight that is not > 0, or a step has a single block for
+            a network with ``hidden_norm``.
     """
     if not volumes:
         raise ValueError("train_stack_pose(): 'volumes' is empty")
@@ -449,6 +482,9 @@ def train_stack_pose(
             "samples_per_stack) for the hidden layer's batch normalisation, got "
             f"{config.stacks_per_step} x {config.samples_per_stack}"
         )
+    extra = fine_tune_volumes or []
+    first_weights = _draw_weights(volume_weights, len(volumes), "volume_weights")
+    extra_weights = _draw_weights(fine_tune_weights, len(extra), "fine_tune_weights")
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
     net = StackPoseNet(model_config)
@@ -466,8 +502,13 @@ def train_stack_pose(
         restart_scale=1.0 if as_new_run else config.fine_tune_learning_rate / config.learning_rate,
     )
     start = resume_training(folder, net, optimiser, schedule, generator, device)
-    every = [*volumes, *(fine_tune_volumes or [])]
-    phases = (volumes if config.fine_tune_steps else every, every)
+    weighted = volume_weights is not None or fine_tune_weights is not None
+    every: _Brains = (
+        [*volumes, *extra],
+        torch.cat([first_weights, extra_weights]) if weighted else None,
+    )
+    first: _Brains = (volumes, first_weights if weighted else None)
+    phases = (first if config.fine_tune_steps else every, every)
     cells = getattr(net, "cells", None)
     net.train()
     sums: dict[str, float] = {}
@@ -480,9 +521,8 @@ def train_stack_pose(
                 if as_new_run and step == turn:
                     assert config.fine_tune_seed is not None
                     generator.manual_seed(config.fine_tune_seed)
-                yield simulate_batch(
-                    phases[step >= turn], trajectories, model_config, config, generator
-                )
+                brains, weights = phases[step >= turn]
+                yield simulate_batch(brains, trajectories, model_config, config, generator, weights)
 
         batches: Iterable[tuple[Tensor, ...]] = stream()
     else:

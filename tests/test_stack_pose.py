@@ -919,13 +919,87 @@ def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> Non
     train_stack_pose([volume], None, model_config, one, fine_tune_volumes=[phantom])
     assert seen == [2] * 5 and restarts[-1][1]["restart_at"] is None
     # Worker processes see the same phases.
-    dataset = module._StepBatches(([volume], [volume, phantom]), 3, None, model_config, training)
+    phases = (([volume], None), ([volume, phantom], None))
+    dataset = module._StepBatches(phases, 3, None, model_config, training)
     seen.clear()
     dataset[2], dataset[3]
     assert seen == [1, 2]
 
 
-def test_the_training_command_adds_anatomy_variants(tmp_path, capsys) -> None:
+def test_brains_are_drawn_by_their_weights(monkeypatch) -> None:
+    import svr.models.stack_pose_train as module
+
+    model_config, training = _tiny_training()
+    volumes = [_volume(), _volume()]
+    drawn: list[int] = []
+
+    def fake_stack(volume, *args):
+        drawn.append(next(i for i, v in enumerate(volumes) if v is volume))
+        return None
+
+    def fake_samples(stack, *args):
+        return torch.zeros(1), torch.eye(4)[None], torch.eye(4), torch.ones(1)
+
+    monkeypatch.setattr(module, "simulate_training_stack", fake_stack)
+    monkeypatch.setattr(module, "draw_samples", fake_samples)
+    many = dataclasses.replace(training, stacks_per_step=4000)
+    simulate_batch(volumes, None, model_config, many, torch.Generator().manual_seed(0))
+    assert sum(drawn) / len(drawn) == pytest.approx(0.5, abs=0.03)  # alike
+    # Without weights, the draws are the uniform integers they always were.
+    expected = torch.randint(2, (4000,), generator=torch.Generator().manual_seed(0))
+    assert drawn == expected.tolist()
+    for weights, share in (([1.0, 3.0], 0.75), ([4.0, 1.0], 0.2), ([1.0, 0.0], 0.0)):
+        drawn.clear()
+        simulate_batch(
+            volumes,
+            None,
+            model_config,
+            many,
+            torch.Generator().manual_seed(1),
+            torch.tensor(weights, dtype=torch.float64),
+        )
+        assert sum(drawn) / len(drawn) == pytest.approx(share, abs=0.03), weights
+
+
+def test_the_training_weights_follow_the_phases(monkeypatch) -> None:
+    import svr.models.stack_pose_train as module
+
+    model_config, training = _tiny_training()
+    training = dataclasses.replace(training, steps=4, fine_tune_steps=2, checkpoint_every=4)
+    a, b, c = _volume(), _volume(), _volume()
+    seen: list[tuple[int, list[float] | None]] = []
+    simulate = module.simulate_batch
+
+    def recording(volumes, trajectories, model, config, generator, weights=None):
+        seen.append((len(volumes), None if weights is None else weights.tolist()))
+        return simulate(volumes, trajectories, model, config, generator, weights)
+
+    monkeypatch.setattr(module, "simulate_batch", recording)
+    train_stack_pose([a, b], None, model_config, training, fine_tune_volumes=[c])
+    assert seen == [(2, None)] * 2 + [(3, None)] * 2  # alike: no weights
+    seen.clear()
+    train_stack_pose(
+        [a, b], None, model_config, training, fine_tune_volumes=[c], fine_tune_weights=[2.5]
+    )
+    assert seen == [(2, [1.0, 1.0])] * 2 + [(3, [1.0, 1.0, 2.5])] * 2
+    seen.clear()
+    one = dataclasses.replace(training, fine_tune_steps=0)
+    train_stack_pose(
+        [a, b], None, model_config, one, fine_tune_volumes=[c], volume_weights=[1.0, 0.5]
+    )
+    assert seen == [(3, [1.0, 0.5, 1.0])] * 4
+    for name, weights, volumes in (
+        ("volume_weights", [1.0], [a, b]),
+        ("volume_weights", [1.0, 0.0], [a, b]),
+        ("volume_weights", [1.0, float("nan")], [a, b]),
+        ("fine_tune_weights", [1.0, 1.0], [c]),
+    ):
+        kwargs = {name: weights}
+        with pytest.raises(ValueError, match=f"'{name}' must be {len(volumes)} numbers > 0"):
+            train_stack_pose([a, b], None, model_config, training, fine_tune_volumes=[c], **kwargs)
+
+
+def test_the_training_command_adds_anatomy_variants(tmp_path, capsys, monkeypatch) -> None:
     from svr.cli import main
     from svr.image import Image, load_nifti, save_nifti
     from svr.models.checkpoint import latest_checkpoint, load_checkpoint
@@ -998,6 +1072,42 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys) -> None:
     trained = load_stack_pose_model(tmp_path / "second")
     for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
         assert torch.equal(a, b)
+    # --variants-weight: the variant drawn at that weight, relative to the atlas brain.
+    weighted = [
+        *second[:4], str(tmp_path / "weighted"), *second[5:], "--variants-weight", "0.25",
+    ]  # fmt: skip
+    assert main(weighted) == 0
+    data = load_checkpoint(latest_checkpoint(tmp_path / "weighted")).config["data"]
+    assert (data["variants_weight"], data["phantoms_weight"]) == (0.25, 1.0)
+    torch.set_num_threads(1)
+    try:
+        library = train_stack_pose(
+            [original],
+            None,
+            StackPoseConfig(width=4),
+            StackPoseTrainingConfig(steps=3, fine_tune_steps=1),
+            fine_tune_volumes=[variant],
+            volume_weights=[1.0],
+            fine_tune_weights=[0.25],
+        )
+    finally:
+        torch.set_num_threads(threads)
+    trained = load_stack_pose_model(tmp_path / "weighted")
+    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    # Each brain's weight beside it, in either phase, with the phantoms'.
+    import svr.models.stack_pose_train as module
+
+    calls = []
+    monkeypatch.setattr(module, "train_stack_pose", lambda *args, **kwargs: calls.append(kwargs))
+    options = ["--variants-weight", "0.5", "--phantoms-weight", "3", "--phantoms", "2"]
+    assert main([*command[:4], str(tmp_path / "w1"), *command[5:], *options]) == 0
+    assert main([*second[:4], str(tmp_path / "w2"), *second[5:], *options]) == 0
+    assert [(c["volume_weights"], c["fine_tune_weights"]) for c in calls] == [
+        ([1.0, 0.5], [3.0, 3.0]),
+        ([1.0], [0.5, 3.0, 3.0]),
+    ]
+    assert [len(c["fine_tune_volumes"]) for c in calls] == [2, 3]
 
 
 def test_a_second_phase_run_as_a_new_run_is_the_two_command_recipe(tmp_path) -> None:

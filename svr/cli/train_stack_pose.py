@@ -120,6 +120,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--fine-tune-steps 0)",
     )
     p.add_argument(
+        "--variants-weight",
+        type=positive_float,
+        default=1.0,
+        help="how often each anatomy variant is drawn for a training stack, relative to an atlas "
+        "brain (default: %(default)s, every brain alike; 0.25 with 4 variants: the variants of a "
+        "brain together as often as the brain)",
+    )
+    p.add_argument(
+        "--phantoms-weight",
+        type=positive_float,
+        default=1.0,
+        help="how often each phantom is drawn for a training stack, relative to an atlas brain "
+        "(default: %(default)s, every brain alike)",
+    )
+    p.add_argument(
         "--volume-downsample",
         type=positive_int,
         default=2,
@@ -317,9 +332,16 @@ def run(args: argparse.Namespace) -> int:
     # The second phase's brains (every step's with --fine-tune-steps 0): the phantoms, and the
     # variants where --variants-phase second.
     second_phase = list(variants) if args.variants_phase == "second" else []
+    volume_weights = [1.0] * len(volumes)
+    if args.variants_phase == "all":
+        volume_weights[len(volumes) - len(variants) :] = [args.variants_weight] * len(variants)
+    second_weights = [args.variants_weight] * len(second_phase) + [args.phantoms_weight] * len(
+        phantoms
+    )
     for age, seed in phantoms:
         image, mask = make_phantom(gestational_age_config(age, seed=seed))
         second_phase.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
+    alike = args.variants_weight == 1.0 and args.phantoms_weight == 1.0
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
     asked = {
         "head": args.head,
@@ -371,6 +393,8 @@ def run(args: argparse.Namespace) -> int:
                     "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
                     "anatomy_variants": args.anatomy_variants,
                     "variants_phase": args.variants_phase,
+                    "variants_weight": args.variants_weight,
+                    "phantoms_weight": args.phantoms_weight,
                     "motion": args.motion_path,
                     "volume_downsample": args.volume_downsample,
                 },
@@ -382,6 +406,9 @@ def run(args: argparse.Namespace) -> int:
             init=init,
             workers=args.workers,
             fine_tune_volumes=second_phase,
+            # Alike (None) unless asked: the same draws as before these options existed.
+            volume_weights=None if alike else volume_weights,
+            fine_tune_weights=None if alike else second_weights,
         )
     finally:
         torch.set_num_threads(threads)
