@@ -1034,20 +1034,25 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys, monkeypatc
         anatomy_variant(volume, brain, labels, seed=0), Image(brain.float(), volume.affine)
     )
     original = load_canonical_volume(folder / "srr.nii.gz", folder / "mask.nii.gz")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        library = train_stack_pose(
-            [original, variant],
-            None,
-            StackPoseConfig(width=4),
-            StackPoseTrainingConfig(steps=2, fine_tune_steps=0),
-        )
-    finally:
-        torch.set_num_threads(threads)
-    trained = load_stack_pose_model(tmp_path / "run")
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
+
+    def assert_library_run(run: str, volumes, steps: int, fine_tune_steps: int, **kwargs) -> None:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            library = train_stack_pose(
+                volumes,
+                None,
+                StackPoseConfig(width=4),
+                StackPoseTrainingConfig(steps=steps, fine_tune_steps=fine_tune_steps),
+                **kwargs,
+            )
+        finally:
+            torch.set_num_threads(threads)
+        trained = load_stack_pose_model(tmp_path / run).state_dict().values()
+        for a, b in zip(trained, library.state_dict().values(), strict=True):
+            assert torch.equal(a, b)
+
+    assert_library_run("run", [original, variant], 2, 0)
     # --variants-phase second: the variant joins for the second phase only, as the phantoms do.
     second = [
         *command[:4], str(tmp_path / "second"), "--steps", "3", "--fine-tune-steps", "1",
@@ -1058,20 +1063,7 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys, monkeypatc
         load_checkpoint(latest_checkpoint(tmp_path / "second")).config["data"]["variants_phase"]
         == "second"
     )
-    torch.set_num_threads(1)
-    try:
-        library = train_stack_pose(
-            [original],
-            None,
-            StackPoseConfig(width=4),
-            StackPoseTrainingConfig(steps=3, fine_tune_steps=1),
-            fine_tune_volumes=[variant],
-        )
-    finally:
-        torch.set_num_threads(threads)
-    trained = load_stack_pose_model(tmp_path / "second")
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
+    assert_library_run("second", [original], 3, 1, fine_tune_volumes=[variant])
     # --variants-weight: the variant drawn at that weight, relative to the atlas brain.
     weighted = [
         *second[:4], str(tmp_path / "weighted"), *second[5:], "--variants-weight", "0.25",
@@ -1079,22 +1071,15 @@ def test_the_training_command_adds_anatomy_variants(tmp_path, capsys, monkeypatc
     assert main(weighted) == 0
     data = load_checkpoint(latest_checkpoint(tmp_path / "weighted")).config["data"]
     assert (data["variants_weight"], data["phantoms_weight"]) == (0.25, 1.0)
-    torch.set_num_threads(1)
-    try:
-        library = train_stack_pose(
-            [original],
-            None,
-            StackPoseConfig(width=4),
-            StackPoseTrainingConfig(steps=3, fine_tune_steps=1),
-            fine_tune_volumes=[variant],
-            volume_weights=[1.0],
-            fine_tune_weights=[0.25],
-        )
-    finally:
-        torch.set_num_threads(threads)
-    trained = load_stack_pose_model(tmp_path / "weighted")
-    for a, b in zip(trained.state_dict().values(), library.state_dict().values(), strict=True):
-        assert torch.equal(a, b)
+    assert_library_run(
+        "weighted",
+        [original],
+        3,
+        1,
+        fine_tune_volumes=[variant],
+        volume_weights=[1.0],
+        fine_tune_weights=[0.25],
+    )
     # Each brain's weight beside it, in either phase, with the phantoms'.
     import svr.models.stack_pose_train as module
 
