@@ -389,7 +389,8 @@ def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_pa
     assert same(run(2), one)
     assert not same(run(0), one)
     # Each step's batch is the in-process simulation from the step's seed.
-    dataset = _StepBatches(([volume], [volume]), training.steps, None, model_config, training)
+    phases = (([volume], None), ([volume], None))
+    dataset = _StepBatches(phases, training.steps, None, model_config, training)
     for step in (0, 2):
         generator = torch.Generator().manual_seed(step_seed(training.seed, step))
         expected = simulate_batch([volume], None, model_config, training, generator)
@@ -1122,7 +1123,9 @@ def test_a_second_phase_run_as_a_new_run_is_the_two_command_recipe(tmp_path) -> 
     # Worker processes: the second phase's steps are seeded as the second run's 0, 1, ...
     from svr.models.stack_pose_train import _StepBatches
 
-    dataset = _StepBatches(([volume], [volume, phantom]), 3, None, model_config, one_run)
+    dataset = _StepBatches(
+        (([volume], None), ([volume, phantom], None)), 3, None, model_config, one_run
+    )
     for step, seed, index, brains in ((1, 0, 1, [volume]), (4, 7, 1, [volume, phantom])):
         generator = torch.Generator().manual_seed(step_seed(seed, index))
         expected = simulate_batch(brains, None, model_config, one_run, generator)
