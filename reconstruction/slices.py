@@ -24,6 +24,7 @@ __all__ = [
     "array_poses",
     "extract_slices",
     "mask_centre",
+    "mask_points",
     "plane_poses",
 ]
 
@@ -193,13 +194,45 @@ def array_poses(slices: SliceSet, planes: Tensor) -> Tensor:
     return _shifted_in_plane(planes, slices.plane_offsets_mm)
 
 
+def mask_points(slices: SliceSet, keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Every mask pixel of the kept slices placed at its slice's pose.
+
+    Pixel ``(a, b)`` of a slice sits at ``u = (a - (H - 1) / 2) * spacing_u``, ``v = (b - (W - 1)
+    / 2) * spacing_v`` in the slice plane, as the projector places it.
+
+    Args:
+        slices: The slices with their poses.
+        keep: (N,) bool slices to use (default all).
+
+    Returns:
+        ``(points, slice_of)``: (P, 3) float64 positions in mm in ``slices.frame``, and (P,) the
+        slice each belongs to.
+
+    Raises:
+        ValueError: If ``keep`` is not (N,).
+    """
+    masks = slices.masks
+    if keep is not None:
+        if tuple(keep.shape) != (len(slices),):
+            raise ValueError(
+                f"mask_points(): 'keep' must have shape ({len(slices)},), got {tuple(keep.shape)}"
+            )
+        masks = masks & keep.to(slices.device)[:, None, None]
+    index = torch.nonzero(masks)  # (P, 3): slice, a, b
+    n, (h, w) = index[:, 0], slices.size
+    spacing = slices.spacing_mm.to(torch.float64)[n]
+    u = (index[:, 1] - (h - 1) / 2).to(torch.float64) * spacing[:, 0]
+    v = (index[:, 2] - (w - 1) / 2).to(torch.float64) * spacing[:, 1]
+    T = slices.poses.to(torch.float64)[n]
+    return T[:, :3, 3] + u[:, None] * T[:, :3, 0] + v[:, None] * T[:, :3, 1], n
+
+
 def mask_centre(slices: SliceSet, keep: Tensor | None = None) -> Tensor:
     """The centre of the brain the slices' masks cover, in the slices' frame.
 
-    Every mask pixel of every kept slice is placed at its pose (pixel ``(a, b)`` at ``u = (a -
-    (H - 1) / 2) * spacing_u``, ``v = (b - (W - 1) / 2) * spacing_v`` in the slice plane, as the
-    projector places it) and weighted by the volume it stands for (pixel area times thickness,
-    so that stacks of finer pixels do not count more); the weighted mean is returned.
+    Every mask pixel of every kept slice is placed at its pose (:func:`mask_points`) and
+    weighted by the volume it stands for (pixel area times thickness, so that stacks of finer
+    pixels do not count more); the weighted mean is returned.
 
     Args:
         slices: The slices with their poses.
@@ -211,22 +244,13 @@ def mask_centre(slices: SliceSet, keep: Tensor | None = None) -> Tensor:
     Raises:
         ValueError: If the kept slices have no mask pixel, or ``keep`` is not (N,).
     """
-    if keep is None:
-        keep = torch.ones(len(slices), dtype=torch.bool, device=slices.device)
-    if tuple(keep.shape) != (len(slices),):
-        raise ValueError(
-            f"mask_centre(): 'keep' must have shape ({len(slices)},), got {tuple(keep.shape)}"
-        )
-    index = torch.nonzero(slices.masks & keep.to(slices.device)[:, None, None])  # (P, 3)
-    if len(index) == 0:
+    points, n = mask_points(slices, keep)
+    if len(points) == 0:
         raise ValueError("mask_centre(): the kept slices have no mask pixel")
-    n, (h, w) = index[:, 0], slices.size
-    spacing = slices.spacing_mm.to(torch.float64)[n]
-    u = (index[:, 1] - (h - 1) / 2).to(torch.float64) * spacing[:, 0]
-    v = (index[:, 2] - (w - 1) / 2).to(torch.float64) * spacing[:, 1]
-    T = slices.poses.to(torch.float64)[n]
-    points = T[:, :3, 3] + u[:, None] * T[:, :3, 0] + v[:, None] * T[:, :3, 1]
-    weights = spacing.prod(dim=1) * slices.thickness_mm.to(torch.float64)[n]
+    weights = (
+        slices.spacing_mm.to(torch.float64)[n].prod(dim=1)
+        * slices.thickness_mm.to(torch.float64)[n]
+    )
     return (points * weights[:, None]).sum(dim=0) / weights.sum()
 
 

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
-from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.slices import SliceSet, mask_points
 
 __all__ = [
     "Background",
@@ -53,13 +53,7 @@ def output_grid(slices: SliceSet, resolution_mm: float, margin_mm: float = 4.0) 
     """
     if not resolution_mm > 0 or not math.isfinite(resolution_mm):
         raise ValueError(f"output_grid(): 'resolution_mm' must be > 0, got {resolution_mm}")
-    index = torch.nonzero(slices.masks)
-    h, w = slices.size
-    spacing = slices.spacing_mm[index[:, 0]]
-    u = (index[:, 1] - (h - 1) / 2) * spacing[:, 0]
-    v = (index[:, 2] - (w - 1) / 2) * spacing[:, 1]
-    T = slices.poses.to(torch.float64)[index[:, 0]]
-    points = T[:, :3, 3] + u[:, None] * T[:, :3, 0] + v[:, None] * T[:, :3, 1]
+    points, _ = mask_points(slices)
     pad = margin_mm + float(slices.thickness_mm.max()) / 2
     low = points.min(dim=0).values - pad
     high = points.max(dim=0).values + pad
