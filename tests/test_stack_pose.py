@@ -403,6 +403,43 @@ def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_pa
         run(-1)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_weighted_training_runs_on_cuda_and_its_checkpoint_loads_on_the_cpu(tmp_path) -> None:
+    """The GPU recipe's path: simulation workers, per-brain weights in both phases, the network
+    on CUDA; the checkpoint it writes loads on the CPU and estimates as the CUDA network does."""
+    model_config, training = _tiny_training()
+    training = dataclasses.replace(training, steps=6, checkpoint_every=3, fine_tune_steps=3)
+    first, extra = _volume(), _volume((28.0, 38.0, 26.0))
+    net = train_stack_pose(
+        [first],
+        None,
+        model_config,
+        training,
+        folder=tmp_path / "run",
+        device="cuda",
+        workers=1,
+        fine_tune_volumes=[extra],
+        volume_weights=[1.0],
+        fine_tune_weights=[2.0],
+    )
+    assert all(p.is_cuda and bool(torch.isfinite(p).all()) for p in net.parameters())
+    loaded = load_stack_pose_model(tmp_path / "run")
+    assert not next(loaded.parameters()).is_cuda
+    for a, b in zip(net.state_dict().values(), loaded.state_dict().values(), strict=True):
+        assert torch.equal(a.cpu(), b)
+    blocks = simulate_batch(
+        [first], None, model_config, training, torch.Generator().manual_seed(5)
+    )[0]
+    with torch.no_grad():
+        on_gpu = net(blocks.cuda())
+        on_cpu = loaded(blocks)
+    for name in ("residual", "score"):
+        torch.testing.assert_close(
+            getattr(on_gpu, name).cpu(), getattr(on_cpu, name), rtol=1e-3, atol=1e-4
+        )
+
+
 def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
