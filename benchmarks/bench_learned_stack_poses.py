@@ -303,6 +303,23 @@ def main() -> int:
         packet_of = packet_index(item["acquisition"])
         packets = estimate_packet_poses(model, image, mask, estimate.frame, packet_of)
         record("learned+packets", robust_mean_pose(packets.frames[packet_of]))
+        # Each packet against its own true pose (its slices' robust mean), by its own estimate
+        # and by the stack's: where the fetus moved within the stack, a packet's pose is defined
+        # where the stack's is not.
+        implied = implied_stack_poses(item["slice_poses"], image)
+        row["packets"] = []
+        for p in range(int(packet_of.max()) + 1):
+            own = implied[packet_of == p]
+            packet_truth = robust_mean_pose(own)
+            row["packets"].append(
+                {
+                    "rot_deg": rotation_deg(se3_compose(packets.frames[p], frame_of), packet_truth),
+                    "stack_rot_deg": rotation_deg(
+                        se3_compose(estimate.frame, frame_of), packet_truth
+                    ),
+                    "spread_deg": float(np.median([rotation_deg(q, packet_truth) for q in own])),
+                }
+            )
         refined_agreement = atlas_agreement(coarse, fractions, estimate.hypotheses, atlas)
         record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
         both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
@@ -425,6 +442,30 @@ def main() -> int:
             f"- {group}: {len(near) + len(gross)} of {len(members)}; {len(near)} by 10-30 deg "
             f"({moved[0]} spread), {len(gross)} more ({moved[1]} spread; twins {twins or '-'})"
         )
+    lines.append("")
+    lines.append(
+        "Interleaved packets against their own true poses, each by its own estimate (the "
+        "`learned+packets` step) and by its stack's `learned` frame: share within 10 deg, in the "
+        f"stacks whose spread is at most / above {SPREAD_LIMIT_DEG:g} deg (packets):"
+    )
+    lines.append("")
+    for group in groups:
+        parts = []
+        for label, keep in (("<=", False), (">", True)):
+            packets = [
+                q
+                for r in rows
+                if r["group"] == group and (r["spread_deg"] > SPREAD_LIMIT_DEG) == keep
+                for q in r["packets"]
+            ]
+            if packets:
+                own = np.mean([q["rot_deg"] <= 10 for q in packets])
+                by_stack = np.mean([q["stack_rot_deg"] <= 10 for q in packets])
+                parts.append(
+                    f"spread {label} {SPREAD_LIMIT_DEG:g}: own {100 * own:.0f} %, stack's "
+                    f"{100 * by_stack:.0f} % ({len(packets)})"
+                )
+        lines.append(f"- {group}: " + "; ".join(parts))
     seconds = np.array([r["seconds"] for r in rows])
     classical = np.array([r["classical_seconds"] for r in rows])
     lines.append("")
