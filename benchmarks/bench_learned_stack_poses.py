@@ -42,7 +42,9 @@ truth turned by ``--k-start-deg`` about a random axis and shifted 5 mm: accuracy
 The misses of ``learned`` (over 10 degrees) are broken down per group: by 10-30 degrees or
 more, whose spread is above 10 degrees, and how far the nearest of the learned frame's three
 front-back twins (turned 180 degrees about a canonical axis) is from the truth, which says
-whether testing the twins could rescue them.
+whether testing the twins could rescue them. Each interleaved packet is also scored against its
+own true pose (the robust mean of its slices'), by its own estimate and by its stack's frame,
+for the stacks whose spread is at most and above 10 degrees.
 
 Run from the repository root::
 
