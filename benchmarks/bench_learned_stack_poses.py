@@ -65,7 +65,7 @@ import numpy as np
 import torch
 from bench_common import ATLAS, MOTION, SHARED, neighbour_atlas, true_slice_poses
 
-from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
+from svr.geometry import half_turns, rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import load_nifti, voxel_to_world
 from svr.models.stack_pose import (
@@ -98,26 +98,28 @@ def rotation_deg(a: torch.Tensor, b: torch.Tensor) -> float:
     return math.degrees(rotation_angle(a, b))
 
 
-TWINS = tuple(
-    torch.diag(torch.tensor([*(-1.0 if i != axis else 1.0 for i in range(3)), 1.0])).double()
-    for axis in range(3)
-)
-"""The three front-back twins of a canonical frame: 180 degrees about the canonical x, y, z axes."""
-
-
 def nearest_twin_deg(pose: torch.Tensor, truth: torch.Tensor) -> float:
-    """Angle between the truth and the nearest twin of a (4, 4) canonical pose, degrees."""
-    return min(rotation_deg(se3_compose(twin, pose), truth) for twin in TWINS)
+    """Angle (degrees) between the truth and the nearest front-back twin of a canonical pose.
+
+    The twins are the (4, 4) pose turned by 180 degrees about each canonical axis
+    (:func:`svr.geometry.half_turns`).
+    """
+    twins = se3_compose(half_turns(), pose.expand(3, 4, 4))
+    return min(rotation_deg(twin, truth) for twin in twins)
 
 
 SPREAD_LIMIT_DEG = 10.0
 """Stacks whose slices spread more than this from their stack pose have no pose within 10 deg."""
 
 
+def median_angle_deg(poses: torch.Tensor, pose: torch.Tensor) -> float:
+    """Median angle (degrees) between (N, 4, 4) poses and one (4, 4) pose."""
+    return float(np.median([rotation_deg(p, pose) for p in poses]))
+
+
 def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
-    implied = implied_stack_poses(slice_poses, stack)
-    return float(np.median([rotation_deg(p, pose) for p in implied]))
+    return median_angle_deg(implied_stack_poses(slice_poses, stack), pose)
 
 
 def packet_index(acquisition: torch.Tensor) -> torch.Tensor:
@@ -299,7 +301,8 @@ def main() -> int:
         estimate = estimate_stack_pose(model, image, mask, args.iterations)
         row["seconds"] = time.perf_counter() - began
         record("learned", estimate.frame)
-        row["learned"]["twin_deg"] = nearest_twin_deg(se3_compose(estimate.frame, frame_of), truth)
+        learned_pose = se3_compose(estimate.frame, frame_of)
+        row["learned"]["twin_deg"] = nearest_twin_deg(learned_pose, truth)
         # Without the restarts the estimate is the best-scored refined hypothesis.
         record("learned, no restarts", estimate.hypotheses[int(torch.argmax(estimate.scores))])
         packet_of = packet_index(item["acquisition"])
@@ -316,10 +319,8 @@ def main() -> int:
             row["packets"].append(
                 {
                     "rot_deg": rotation_deg(se3_compose(packets.frames[p], frame_of), packet_truth),
-                    "stack_rot_deg": rotation_deg(
-                        se3_compose(estimate.frame, frame_of), packet_truth
-                    ),
-                    "spread_deg": float(np.median([rotation_deg(q, packet_truth) for q in own])),
+                    "stack_rot_deg": rotation_deg(learned_pose, packet_truth),
+                    "spread_deg": median_angle_deg(own, packet_truth),
                 }
             )
         refined_agreement = atlas_agreement(coarse, fractions, estimate.hypotheses, atlas)

@@ -135,7 +135,7 @@ def measure(
     model_path: str, scan_name: str, scan: Path, record: dict
 ) -> tuple[list[str], dict[str, float]]:
     """The table rows of one model on one scan and its summary."""
-    from svr.geometry import rotation_angle, se3_compose, so3_exp
+    from svr.geometry import half_turns, rotation_angle, se3_compose
     from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
     from svr.reconstruction.stacks import load_stacks
     from svr.sampling.blocks import coarsen_stack
@@ -144,8 +144,7 @@ def measure(
     truth = record["frames"]
     stack_paths, mask_paths = _paths(scan, record)
     stacks = load_stacks(stack_paths, mask_paths)
-    twins = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
-    twins[:, :3, :3] = so3_exp(torch.eye(3, dtype=torch.float64) * math.pi)
+    twins = half_turns()
     rows, angles, margins = [], [], []
     for path, stack in zip(stack_paths, stacks, strict=True):
         true = torch.tensor(truth[path.name], dtype=torch.float64)

@@ -37,7 +37,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from svr.geometry import rotation_angle, se3_compose, so3_exp
+from svr.geometry import half_turns, rotation_angle, se3_compose
 from svr.image import Image, voxel_to_world
 from svr.models.stack_pose import (
     AtlasFitConfig,
@@ -66,12 +66,9 @@ FLIPS = ("none", "x", "y", "z")
 
 
 def _flip(axis: str) -> Tensor:
-    out = torch.eye(4, dtype=torch.float64)
-    if axis != "none":
-        vector = torch.zeros(3, dtype=torch.float64)
-        vector["xyz".index(axis)] = math.pi
-        out[:3, :3] = so3_exp(vector)
-    return out
+    if axis == "none":
+        return torch.eye(4, dtype=torch.float64)
+    return half_turns()["xyz".index(axis)]
 
 
 COARSE_FIT = AtlasFitConfig(blur_mm=(4.0, 2.0), iterations=15, max_points=4000)

@@ -1211,3 +1211,26 @@ def test_rotation_angle_against_scipy() -> None:
     assert abs(float(g.rotation_angle(torch.eye(3, dtype=torch.float64), half)) - math.pi) < 1e-9
     with pytest.raises(ValueError, match="'a'"):
         g.rotation_angle(torch.eye(2), torch.eye(3))
+
+
+def test_half_turns_are_180_degrees_about_x_y_z() -> None:
+    """Oracle: scipy's rotation by pi about each axis; a half turn is its own inverse and, applied
+    on the left, turns a pose about the axis of the frame it maps into."""
+    turns = g.half_turns()
+    assert turns.shape == (3, 4, 4) and turns.dtype == torch.float64
+    for turn, axis in zip(turns, "xyz", strict=True):
+        expected = Rotation.from_euler(axis, 180, degrees=True).as_matrix()
+        np.testing.assert_allclose(turn[:3, :3].numpy(), expected, atol=1e-12)
+        assert torch.equal(turn[:3, 3], torch.zeros(3, dtype=torch.float64))
+        assert torch.equal(turn[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64))
+        torch.testing.assert_close(g.se3_compose(turn, turn), torch.eye(4, dtype=torch.float64))
+    pose = torch.from_numpy(Rotation.random(random_state=4).as_matrix())
+    moved = g.se3_compose(turns[2], torch.block_diag(pose, torch.ones(1, dtype=torch.float64)))
+    np.testing.assert_allclose(
+        moved[:3, :3].numpy(),
+        (
+            Rotation.from_euler("z", 180, degrees=True) * Rotation.from_matrix(pose.numpy())
+        ).as_matrix(),
+        atol=1e-12,
+    )
+    assert g.half_turns(torch.float32).dtype == torch.float32

@@ -14,6 +14,7 @@ from svr.geometry.conversions import (
 )
 from svr.geometry.rigid_fit import RigidFitError, weighted_rigid_fit
 from svr.geometry.se3 import (
+    half_turns,
     se3_compose,
     se3_error,
     se3_group_exp,
@@ -47,6 +48,7 @@ __all__ = [
     "RigidFitError",
     "anchor_points_to_pose",
     "euler_to_matrix",
+    "half_turns",
     "hat",
     "matrix_to_euler",
     "matrix_to_quat",

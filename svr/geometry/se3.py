@@ -92,6 +92,23 @@ def se3_inverse(a: Tensor) -> Tensor:
     return _assemble(Rt, t_inv[..., 0])
 
 
+def half_turns(dtype: torch.dtype = torch.float64) -> Tensor:
+    """The rigid half turns about the x, y and z axes: a frame's front-back twins.
+
+    ``se3_compose(half_turns()[a], T)`` is ``T`` turned by 180 degrees about axis ``a`` of the
+    frame ``T`` maps into (for a canonical pose, the canonical axis through the origin).
+
+    Args:
+        dtype: Floating dtype of the result.
+
+    Returns:
+        (3, 4, 4) rigid transforms, zero translation, in the order x, y, z.
+    """
+    out = torch.eye(4, dtype=dtype).repeat(3, 1, 1)
+    out[:, :3, :3] = so3_exp(torch.eye(3, dtype=dtype) * torch.pi)
+    return out
+
+
 def se3_error(pred: Tensor, target: Tensor) -> Tensor:
     """Pose error at the identity, ``e = Log_id(pred^-1 o target)``.
 
