@@ -79,6 +79,7 @@ from svr.models.stack_pose import (
 from svr.sampling.blocks import (
     coarsen_stack,
     implied_stack_poses,
+    packet_index,
     stack_frame,
     stack_pose_from_slices,
 )
@@ -120,16 +121,6 @@ def median_angle_deg(poses: torch.Tensor, pose: torch.Tensor) -> float:
 def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
     return median_angle_deg(implied_stack_poses(slice_poses, stack), pose)
-
-
-def packet_index(acquisition: torch.Tensor) -> torch.Tensor:
-    """(K,) packet of each slice: slices acquired in one sweep (positions rising with time)."""
-    order = torch.argsort(acquisition)
-    packet = torch.zeros(len(order), dtype=torch.int64)
-    breaks = torch.nonzero(order[1:] < order[:-1]).flatten() + 1
-    for start in breaks.tolist():
-        packet[order[start:]] += 1
-    return packet
 
 
 def held_out_stacks(args, trajectories) -> list[dict]:
@@ -315,7 +306,7 @@ def main() -> int:
         row["packets"] = []
         for p in range(int(packet_of.max()) + 1):
             own = implied[packet_of == p]
-            packet_truth = robust_mean_pose(own)
+            packet_truth = stack_pose_from_slices(item["slice_poses"], image, packet_of == p)
             row["packets"].append(
                 {
                     "rot_deg": rotation_deg(se3_compose(packets.frames[p], frame_of), packet_truth),

@@ -56,6 +56,7 @@ from svr.sampling.blocks import (
     TrainingStackConfig,
     block_inputs,
     coarsen_stack,
+    packet_index,
     simulate_training_stack,
     stack_frame,
 )
@@ -183,15 +184,9 @@ def _subset(
         return present
     present[:] = False
     if float(torch.rand(1, generator=generator)) < 0.5:
-        order = stack.acquisition_index
-        # An interleaved packet: slices acquired in one sweep (consecutive acquisition indices
-        # whose slice positions increase).
-        by_time = torch.argsort(order)
-        breaks = torch.nonzero(by_time[1:] < by_time[:-1]).flatten() + 1
-        bounds = [0, *breaks.tolist(), k]
-        j = int(torch.randint(len(bounds) - 1, (1,), generator=generator))
-        present[by_time[bounds[j] : bounds[j + 1]]] = True
-        return present
+        packet = packet_index(stack.acquisition_index)
+        j = int(torch.randint(int(packet.max()) + 1, (1,), generator=generator))
+        return packet == j
     size = int(torch.randint(1, min(config.max_subset, k) + 1, (1,), generator=generator))
     first = int(torch.randint(0, k - size + 1, (1,), generator=generator))
     present[first : first + size] = True
@@ -215,6 +210,9 @@ def draw_samples(
     Returns:
         ``(blocks, starts, target, labels)``: (n, 3, S, S, S) float32 blocks, (n, 4, 4) float64
         start stack poses, the (4, 4) true stack pose and (n,) float labels (1 = within reach).
+        A subset's block is taught the whole stack's pose: teaching it its own slices' pose
+        (:func:`svr.sampling.blocks.stack_pose_from_slices` of the present slices) measured no
+        better (``benchmarks/results/packet-truth.md``).
     """
     n = config.samples_per_stack
     frame_true = se3_compose(stack.pose, torch.linalg.inv(stack_frame(stack.image)))

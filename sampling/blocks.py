@@ -37,6 +37,7 @@ __all__ = [
     "block_inputs",
     "coarsen_stack",
     "implied_stack_poses",
+    "packet_index",
     "simulate_training_stack",
     "stack_frame",
     "stack_pose_from_slices",
@@ -110,7 +111,9 @@ def implied_stack_poses(slice_poses: Tensor, stack: Image) -> Tensor:
     return se3_compose(slice_poses.to(torch.float64), se3_inverse(in_frame))
 
 
-def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
+def stack_pose_from_slices(
+    slice_poses: Tensor, stack: Image, present: Tensor | None = None
+) -> Tensor:
     """The stack pose implied by the canonical poses of its slices (their robust mean).
 
     The geodesic median (:func:`svr.geometry.robust_mean_pose`) of
@@ -123,14 +126,46 @@ def stack_pose_from_slices(slice_poses: Tensor, stack: Image) -> Tensor:
         slice_poses: (K, 4, 4) canonical poses of the stack's K slices (slice plane mm ->
             canonical mm).
         stack: The stack (its grid gives the slices' nominal poses and the stack frame).
+        present: (K,) bool: the slices whose poses are averaged (a packet's, say), at least
+            one; default all.
 
     Returns:
         (4, 4) float64 stack pose (stack frame mm -> canonical mm).
 
     Raises:
-        ValueError: If ``slice_poses`` does not have one pose per slice of the stack.
+        ValueError: If ``slice_poses`` does not have one pose per slice of the stack, or
+            ``present`` is not (K,) bool with at least one slice.
     """
-    return robust_mean_pose(implied_stack_poses(slice_poses, stack), tolerance=1e-8)
+    implied = implied_stack_poses(slice_poses, stack)
+    if present is not None:
+        if present.dtype != torch.bool or present.shape != implied.shape[:1]:
+            raise ValueError(
+                f"stack_pose_from_slices(): 'present' must be ({len(implied)},) bool, got "
+                f"{tuple(present.shape)} {present.dtype}"
+            )
+        if not bool(present.any()):
+            raise ValueError("stack_pose_from_slices(): 'present' selects no slice")
+        implied = implied[present.to(implied.device)]
+    return robust_mean_pose(implied, tolerance=1e-8)
+
+
+def packet_index(acquisition_index: Tensor) -> Tensor:
+    """The interleaved packet of each slice: slices acquired in one sweep.
+
+    A packet is a run of consecutive acquisitions whose slice positions rise; a new one begins
+    where the next slice acquired lies below the last.
+
+    Args:
+        acquisition_index: (K,) when each slice (in position order) was acquired (0 first).
+
+    Returns:
+        (K,) int64 packet of each slice, 0 for the first sweep.
+    """
+    order = torch.argsort(acquisition_index)
+    packet = torch.zeros(len(order), dtype=torch.int64)
+    for start in (torch.nonzero(order[1:] < order[:-1]).flatten() + 1).tolist():
+        packet[order[start:]] += 1
+    return packet
 
 
 def coarsen_stack(image: Image, mask: Tensor, in_plane_mm: float) -> tuple[Image, Tensor]:

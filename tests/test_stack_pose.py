@@ -42,6 +42,7 @@ from svr.sampling.blocks import (
     block_inputs,
     coarsen_stack,
     implied_stack_poses,
+    packet_index,
     simulate_training_stack,
     stack_frame,
     stack_pose_from_slices,
@@ -820,6 +821,47 @@ def test_stack_pose_from_slices_undoes_each_slice_offset_under_motion() -> None:
     slices = se3_compose(se3_compose(pose[None], turns), local)
     found = stack_pose_from_slices(slices, stack)
     assert torch.allclose(found, pose, atol=1e-6)
+
+
+def _two_pose_stack():
+    """A 9-slice stack whose slices 0-3 sit at one pose and 4-8 at another (20 deg apart)."""
+    image, _ = ellipsoid_brain(16, 2.0, (8.0, 8.0, 8.0), seed=1)
+    stack = Image(image.data[:, :, :9].contiguous(), image.affine.clone())
+    local = se3_compose(se3_inverse(stack_frame(stack))[None], stack_slice_poses(stack))
+    first, second = torch.eye(4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
+    first[:3, :3], first[:3, 3] = _rotation(3), torch.tensor([4.0, -2.0, 7.0], dtype=torch.float64)
+    turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(20.0), 0.0]).as_matrix())
+    second[:3, :3], second[:3, 3] = turn @ first[:3, :3], first[:3, 3] + 3.0
+    poses = torch.stack([first] * 4 + [second] * 5)
+    return stack, se3_compose(poses, local), first, second
+
+
+def test_stack_pose_from_slices_of_the_present_slices_only() -> None:
+    stack, slices, first, second = _two_pose_stack()
+    present = torch.zeros(9, dtype=torch.bool)
+    present[:4] = True
+    assert torch.allclose(stack_pose_from_slices(slices, stack, present), first, atol=1e-6)
+    assert torch.allclose(stack_pose_from_slices(slices, stack, ~present), second, atol=1e-6)
+    # All of them: the geodesic median, nearer the five than the four.
+    both = stack_pose_from_slices(slices, stack)
+    assert torch.equal(both, stack_pose_from_slices(slices, stack, torch.ones(9, dtype=torch.bool)))
+    angle = Rotation.from_matrix((both[:3, :3].T @ second[:3, :3]).numpy()).magnitude()
+    assert math.degrees(angle) < 10.0
+    with pytest.raises(ValueError, match="'present' must be \\(9,\\) bool"):
+        stack_pose_from_slices(slices, stack, present[:5])
+    with pytest.raises(ValueError, match="'present' must be"):
+        stack_pose_from_slices(slices, stack, present.long())
+    with pytest.raises(ValueError, match="selects no slice"):
+        stack_pose_from_slices(slices, stack, torch.zeros(9, dtype=torch.bool))
+
+
+def test_packet_index_follows_the_sweeps() -> None:
+    # Interleave 2: slices 0, 2, 4, 6, 8 acquired first, then 1, 3, 5, 7.
+    found = packet_index(torch.tensor([0, 5, 1, 6, 2, 7, 3, 8, 4]))
+    assert found.tolist() == [0, 1, 0, 1, 0, 1, 0, 1, 0]
+    # Interleave 3, odd then even counts, and one sweep.
+    assert packet_index(torch.tensor([0, 3, 5, 1, 4, 6, 2])).tolist() == [0, 1, 2, 0, 1, 2, 0]
+    assert packet_index(torch.arange(5)).tolist() == [0] * 5
 
 
 def test_the_shipped_model_loads_and_estimates() -> None:
