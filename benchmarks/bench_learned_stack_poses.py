@@ -45,6 +45,8 @@ front-back twins (turned 180 degrees about a canonical axis) is from the truth, 
 whether testing the twins could rescue them. Each interleaved packet is also scored against its
 own true pose (the robust mean of its slices'), by its own estimate and by its stack's frame,
 for the stacks whose spread is at most and above 10 degrees.
+Last, the best of the estimates per stack chosen by the truth (:data:`CHOOSABLE`): the most
+that any rule choosing among them could place within 10 degrees.
 
 Run from the repository root::
 
@@ -59,6 +61,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +124,27 @@ def median_angle_deg(poses: torch.Tensor, pose: torch.Tensor) -> float:
 def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
     return median_angle_deg(implied_stack_poses(slice_poses, stack), pose)
+
+
+CHOOSABLE = (
+    "axes+atlas",
+    "axes+atlas+fit",
+    "learned",
+    "learned, no restarts",
+    "learned+atlas",
+    "learned+atlas+fit",
+    "learned+packets",
+)
+"""The estimates a rule could choose among per stack (``axes+oracle`` is chosen by the truth)."""
+
+
+def best_of_within(rows: list[dict], methods: Sequence[str], limit_deg: float = 10.0) -> int:
+    """How many stacks have at least one of ``methods`` within ``limit_deg`` of the truth.
+
+    The share of stacks that any rule choosing among those estimates per stack could place
+    within the limit: a bound, the choice made by the truth.
+    """
+    return sum(any(r[m]["rot_deg"] <= limit_deg for m in methods) for r in rows)
 
 
 def held_out_stacks(args, trajectories) -> list[dict]:
@@ -435,6 +459,20 @@ def main() -> int:
         lines.append(
             f"- {group}: {len(near) + len(gross)} of {len(members)}; {len(near)} by 10-30 deg "
             f"({moved[0]} spread), {len(gross)} more ({moved[1]} spread; twins {twins or '-'})"
+        )
+    lines.append("")
+    lines.append(
+        "The best of the estimates per stack, chosen by the truth (the most that a rule choosing "
+        f"among {', '.join(f'`{m}`' for m in CHOOSABLE)} could place within 10 deg):"
+    )
+    lines.append("")
+    for group in groups:
+        members = [r for r in rows if r["group"] == group]
+        best = best_of_within(members, CHOOSABLE)
+        alone = best_of_within(members, ["learned"])
+        lines.append(
+            f"- {group}: {100 * best / len(members):.1f} % ({best} of {len(members)}; "
+            f"`learned` alone {alone})"
         )
     lines.append("")
     lines.append(

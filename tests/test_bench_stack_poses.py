@@ -17,7 +17,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_learned_stack_poses import nearest_twin_deg
+from bench_learned_stack_poses import best_of_within, nearest_twin_deg
 
 
 def _pose(rotation: Rotation, shift=(0.0, 0.0, 0.0)) -> torch.Tensor:
@@ -48,3 +48,15 @@ def test_a_near_pose_is_far_from_every_twin() -> None:
     )
     assert nearest_twin_deg(_pose(near), _pose(truth)) == pytest.approx(expected, abs=1e-6)
     assert expected > 160.0
+
+
+def test_best_of_within_counts_stacks_with_any_estimate_near_the_truth() -> None:
+    rows = [
+        {"a": {"rot_deg": 3.0}, "b": {"rot_deg": 40.0}},
+        {"a": {"rot_deg": 12.0}, "b": {"rot_deg": 9.0}},
+        {"a": {"rot_deg": 12.0}, "b": {"rot_deg": 10.5}},
+    ]
+    assert best_of_within(rows, ["a"]) == 1
+    assert best_of_within(rows, ["b"]) == 1
+    assert best_of_within(rows, ["a", "b"]) == 2
+    assert best_of_within(rows, ["a", "b"], limit_deg=11.0) == 3
