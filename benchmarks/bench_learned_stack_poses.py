@@ -404,16 +404,7 @@ def main() -> int:
                     }
                 )
 
-    methods = [
-        "axes+oracle",
-        "axes+atlas",
-        "axes+atlas+fit",
-        "learned",
-        "learned, no restarts",
-        "learned+atlas",
-        "learned+atlas+fit",
-        "learned+packets",
-    ]
+    methods = ["axes+oracle", *CHOOSABLE]
     groups = sorted({r["group"] for r in rows})
     lines = [
         "| stacks | method | n | median (deg) | p90 (deg) | within 10 deg | within 30 deg "
