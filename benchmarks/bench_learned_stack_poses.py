@@ -28,7 +28,11 @@ Methods, each giving one scanner -> canonical frame per stack:
   (``estimate_stack_pose(model, ..., atlas=...)``);
 * ``learned+packets``: the learned frame, then each interleaved packet (from the acquisition
   order) placed on its own (:func:`svr.models.stack_pose.estimate_packet_poses`), the stack's
-  pose the robust mean of its slices' packet frames.
+  pose the robust mean of its slices' packet frames;
+* ``learned+atlas slices``: the learned frame, then each slice registered on its own to the atlas,
+  the stack's pose the robust mean of its slices', kept where the slices match the atlas
+  (:func:`svr.reconstruction.atlas_slices.fit_slices_to_atlas`; what ``svr predict
+  --atlas-volume`` does with a model).
 
 Errors: the rotation angle between the estimated and the true stack pose (the robust mean of the
 slices' true canonical poses, :func:`svr.sampling.blocks.stack_pose_from_slices`) and the distance
@@ -79,6 +83,7 @@ from svr.models.stack_pose import (
     mask_axis_hypotheses,
     refine_frames,
 )
+from svr.reconstruction.atlas_slices import fit_slices_to_atlas
 from svr.sampling.blocks import (
     coarsen_stack,
     implied_stack_poses,
@@ -134,6 +139,7 @@ CHOOSABLE = (
     "learned+atlas",
     "learned+atlas+fit",
     "learned+packets",
+    "learned+atlas slices",
 )
 """The estimates a rule could choose among per stack (``axes+oracle`` is chosen by the truth)."""
 
@@ -342,6 +348,11 @@ def main() -> int:
         record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
         both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
         record("learned+atlas+fit", both.frame)
+        began = time.perf_counter()
+        fitted = fit_slices_to_atlas(image, mask, estimate.frame, atlas)
+        row["atlas_slices_seconds"] = time.perf_counter() - began
+        record("learned+atlas slices", fitted.frame)
+        row["learned+atlas slices"].update(ncc=fitted.ncc, kept=fitted.kept)
         rows.append(row)
         print(
             f"{item['name']:28s} oracle {row['axes+oracle']['rot_deg']:6.1f}  atlas "
@@ -353,6 +364,8 @@ def main() -> int:
             f"{row['learned+atlas']['rot_deg']:6.1f}  "
             f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
             f"learned+packets {row['learned+packets']['rot_deg']:6.1f}  "
+            f"learned+atlas slices {row['learned+atlas slices']['rot_deg']:6.1f} "
+            f"(NCC {fitted.ncc:.2f}{', kept' if fitted.kept else ''})  "
             f"({row['seconds']:.2f} s, classical {row['classical_seconds']:.2f} s)",
             flush=True,
         )
@@ -491,12 +504,25 @@ def main() -> int:
         lines.append(f"- {group}: " + "; ".join(parts))
     seconds = np.array([r["seconds"] for r in rows])
     classical = np.array([r["classical_seconds"] for r in rows])
+    slice_fit = np.array([r["atlas_slices_seconds"] for r in rows])
     lines.append("")
     lines.append(
         f"Time per stack ({args.threads} threads): learned estimate median "
         f"{np.median(seconds):.2f} s (max {seconds.max():.2f} s); axes + atlas choice + fit "
         f"median {np.median(classical):.2f} s "
-        f"(max {classical.max():.2f} s)."
+        f"(max {classical.max():.2f} s); the slices' atlas fit after the learned estimate "
+        f"median {np.median(slice_fit):.2f} s (max {slice_fit.max():.2f} s)."
+    )
+    lines.append("")
+    lines.append(
+        "`learned+atlas slices` kept the slices' atlas fit (their mean NCC with the atlas "
+        "at least the gate) for: "
+        + "; ".join(
+            f"{group} {sum(r['learned+atlas slices']['kept'] for r in rows if r['group'] == group)}"
+            f" of {sum(r['group'] == group for r in rows)}"
+            for group in groups
+        )
+        + "."
     )
     if k_rows:
         lines += [
