@@ -15,7 +15,8 @@ On simulated stacks of the held-out ages (three draws of 54, shipped model, neig
 atlas) the fit was kept for 100 of 162 stacks, and within 10 degrees of the truth went from
 89.5 % to 92.0 % (median 3.79 to 3.02 degrees); where the atlas matched badly (GA 28 against the
 GA 29 atlas, the procedural phantom, the real and FaBiAN scans: NCC 0.04-0.55) the gate kept the
-model's poses, which were the better there (``benchmarks/results/atlas-slices.md``).
+model's poses, which were the better on the simulated ones
+(``benchmarks/results/atlas-slices.md``).
 
 Frames follow :mod:`svr.sampling.blocks`: a *frame* ``E`` maps scanner mm to canonical mm, a
 *stack pose* ``P = E o F`` maps the stack frame ``F`` to canonical mm, and a k-plane's canonical
