@@ -142,19 +142,11 @@ def test_svr_predict_writes_the_fitted_slices_and_stack_pose(moving_stack, tmp_p
     pose = torch.tensor(record["matrix"], dtype=F64)
     present = torch.zeros(stack.image.shape[2], dtype=torch.bool)
     present[table.slice_indices] = True
-    full = se3_compose(
-        pose[None],
-        se3_compose(
-            torch.linalg.inv(stack_frame(stack.image))[None], stack_slice_poses(stack.image)
-        ),
-    )
+    # Every k-plane where the stack's pose alone would put it, then the table's fitted slices.
+    frame = se3_compose(pose, torch.linalg.inv(stack_frame(stack.image)))
+    rigid = se3_compose(frame[None], stack_slice_poses(stack.image))
+    full = rigid.clone()
     full[table.slice_indices] = planes
     assert torch.allclose(stack_pose_from_slices(full, stack.image, present), pose, atol=1e-6)
     # The slices were registered one by one: they do not all take the stack's pose.
-    rigid = se3_compose(
-        pose[None],
-        se3_compose(
-            torch.linalg.inv(stack_frame(stack.image))[None], stack_slice_poses(stack.image)
-        ),
-    )[table.slice_indices]
-    assert not torch.allclose(planes, rigid, atol=1e-3)
+    assert not torch.allclose(planes, rigid[table.slice_indices], atol=1e-3)
