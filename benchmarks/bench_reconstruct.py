@@ -106,13 +106,14 @@ def peer_figures(path: Path) -> dict[tuple[str, str], dict[str, float]]:
 
 
 def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list[str]:
-    """``--model`` and, with ``--atlas-offset``, the neighbouring atlas for a cnn run."""
+    """``--model`` and, with ``--atlas-offset``, the neighbouring atlases for a cnn run."""
     if registration != "cnn":
         return []
     options = ["--model", args.model]
-    if args.atlas_offset is not None:
-        volume, mask = neighbour_atlas(case_age(case), args.atlas_offset)
-        options += ["--atlas-volume", str(volume), "--atlas-mask", str(mask)]
+    if args.atlas_offset:
+        pairs = [neighbour_atlas(case_age(case), offset) for offset in args.atlas_offset]
+        options += ["--atlas-volume", *(str(volume) for volume, _ in pairs)]
+        options += ["--atlas-mask", *(str(mask) for _, mask in pairs)]
     return options
 
 
@@ -202,9 +203,12 @@ def main() -> int:
     parser.add_argument(
         "--atlas-offset",
         type=float,
+        nargs="+",
         default=None,
         help="cnn runs also get --atlas-volume/--atlas-mask: the atlas age nearest the case's "
-        "own age plus this many weeks (never the case's own age); default: no atlas",
+        "own age plus this many weeks (never the case's own age), one atlas per offset (-1 1: "
+        "the ages either side, the output in the frame of the one it fits best); default: no "
+        "atlas",
     )
     parser.add_argument(
         "--converged",

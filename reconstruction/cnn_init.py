@@ -53,7 +53,7 @@ from svr.models.stack_pose import (
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
-from svr.sampling.volume import CanonicalVolume
+from svr.sampling.volume import CanonicalVolume, as_atlases
 
 __all__ = [
     "AGREE_DEG",
@@ -652,7 +652,7 @@ def stack_pose_initialisation(
     stacks: Sequence[Stack],
     model: StackPoseNet | None,
     config: ReconstructionConfig,
-    atlas: CanonicalVolume | None = None,
+    atlas: CanonicalVolume | Sequence[CanonicalVolume] | None = None,
 ) -> LearnedStart:
     """Every stack placed in canonical space from its own data, or stack registration, per stack.
 
@@ -684,8 +684,8 @@ def stack_pose_initialisation(
         stacks: The stacks they were cut from (same order as ``slices.stack_names``).
         model: The stack-pose network, or ``None`` (then ``atlas`` is required).
         config: Settings.
-        atlas: A brain of about the fetus's age in canonical space, or ``None``; used per stack
-            only without a model.
+        atlas: A brain of about the fetus's age in canonical space, several (each stack takes
+            the one it fits best), or ``None``; used per stack only without a model.
 
     Returns:
         The slices at their initial canonical poses, the choice and notes per stack.
@@ -697,8 +697,12 @@ def stack_pose_initialisation(
     # frame (align_to_atlas): fitting every stack to the atlas as well put fewer held-out stacks
     # within 10 degrees (81 % against 89 %) and gained nothing after reconstruction
     # (benchmarks/results/learned-stack-poses-recon-no-stack-fit.md).
-    per_stack_atlas = atlas if model is None else None
-    levels = None if per_stack_atlas is None else atlas_levels(per_stack_atlas)
+    per_stack = (
+        as_atlases(atlas, "stack_pose_initialisation")
+        if model is None and atlas is not None
+        else (None,)
+    )
+    levels = [None if item is None else atlas_levels(item) for item in per_stack]
     packets = config.packets if model is not None else 1
     packet_frames = torch.empty(len(stacks), packets, 4, 4, dtype=torch.float64)
     for sid, stack in enumerate(stacks):
@@ -706,8 +710,15 @@ def stack_pose_initialisation(
         # Without the restarts about the chosen frame: they put more held-out stacks within 10
         # degrees (89.5 % against 84.6 %), but the reconstructions they started were lower on
         # four of the six bench cases (ga23 -0.57 dB, ga29 -0.23 dB; stack-pose-restarts.md).
-        estimate = estimate_stack_pose(
-            model, stack.image, mask, atlas=per_stack_atlas, levels=levels, restart_deg=0.0
+        # Without a model and with several atlases, the one the stack fits best (its NCC).
+        estimate = max(
+            (
+                estimate_stack_pose(
+                    model, stack.image, mask, atlas=item, levels=level, restart_deg=0.0
+                )
+                for item, level in zip(per_stack, levels, strict=True)
+            ),
+            key=lambda candidate: candidate.score,
         )
         frames.append(estimate.frame)
         scores.append(float(estimate.score))

@@ -230,6 +230,9 @@ class ReconstructionResult:
         converged: ``"adaptive"``: whether the slices stopped moving before the cap on rounds
             (``None`` for the fixed schedule, or when no registration round ran before the final
             one: ``outer_iterations`` 1 or 2).
+        atlas_ncc: With an atlas (``registration="cnn"``): the NCC of the output with each atlas
+            given, in order, after its fit; the output is in the frame of the highest (empty
+            without an atlas).
     """
 
     volume: Image
@@ -244,3 +247,4 @@ class ReconstructionResult:
     initialisation_notes: tuple[str, ...] = ()
     rounds: tuple[RoundRecord, ...] = ()
     converged: bool | None = None
+    atlas_ncc: tuple[float, ...] = ()

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from typing import NamedTuple, TypeVar
 
@@ -152,7 +152,7 @@ def reconstruct(
     initialisation: tuple[str, ...] | None = None,
     device: str | torch.device = "cpu",
     progress: bool = True,
-    atlas: CanonicalVolume | None = None,
+    atlas: CanonicalVolume | Sequence[CanonicalVolume] | None = None,
 ) -> ReconstructionResult:
     """Reconstruct a volume from prepared stacks.
 
@@ -171,8 +171,9 @@ def reconstruct(
         initialisation: Per stack, how ``initial_poses`` were obtained (for the report).
         device: Where to compute.
         progress: Show a progress bar.
-        atlas: For ``registration="cnn"``: a brain of about the fetus's age in canonical space.
-            The final volume is brought into its frame
+        atlas: For ``registration="cnn"``: a brain of about the fetus's age in canonical space,
+            or several (for example the ages either side of it). The final volume is brought
+            into the frame of the one it fits best
             (:func:`svr.reconstruction.atlas_frame.align_to_atlas`); without a stack-pose model,
             each stack's pose hypotheses are also chosen by agreement with it and fitted to it.
 

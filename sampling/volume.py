@@ -59,6 +59,41 @@ class CanonicalVolume:
         )
 
 
+def as_atlases(
+    atlas: CanonicalVolume | Sequence[CanonicalVolume], caller: str, name: str = "atlas"
+) -> tuple[CanonicalVolume, ...]:
+    """One atlas or several (for example the two ages either side of a fetus's), as a tuple.
+
+    Args:
+        atlas: A canonical volume or a non-empty sequence of them.
+        caller: The function to name in the error.
+        name: The argument to name in the error.
+
+    Returns:
+        The atlases, at least one.
+
+    Raises:
+        TypeError: If ``atlas`` is neither, or holds something other than canonical volumes.
+        ValueError: If the sequence is empty.
+    """
+    if isinstance(atlas, CanonicalVolume):
+        return (atlas,)
+    if not isinstance(atlas, Sequence) or isinstance(atlas, str | bytes):
+        raise TypeError(
+            f"{caller}(): '{name}' must be a CanonicalVolume or a sequence of them, got "
+            f"{type(atlas).__name__}"
+        )
+    atlases = tuple(atlas)
+    if not atlases:
+        raise ValueError(f"{caller}(): '{name}' must hold at least one atlas, got none")
+    for i, item in enumerate(atlases):
+        if not isinstance(item, CanonicalVolume):
+            raise TypeError(
+                f"{caller}(): '{name}[{i}]' must be a CanonicalVolume, got {type(item).__name__}"
+            )
+    return atlases
+
+
 def canonicalize(
     volume: Image, mask: Image, percentile: float = DEFAULT_PERCENTILE, name: str = "volume"
 ) -> CanonicalVolume:

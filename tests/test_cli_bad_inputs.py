@@ -824,6 +824,18 @@ def _cases() -> list[Case]:
             ["--atlas-volume and --atlas-mask go together"],
         )
     )
+    add(
+        Case(
+            "reconstruct-atlas-volumes-one-mask",
+            "reconstruct",
+            [
+                *("--registration", "cnn"),
+                *("--atlas-volume", "{brain}", "{brain}"),
+                *("--atlas-mask", "{mask}"),
+            ],
+            ["one mask per --atlas-volume", "2 volumes and 1 masks"],
+        )
+    )
 
     # Numbers: argparse refuses values of the wrong sign (status 2); the library the rest.
     argparse_values = {

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import nibabel as nib
@@ -371,3 +372,24 @@ def test_packets_reach_the_reconstruction_configuration() -> None:
     assert build_configs(parser.parse_args(base), 1).reconstruction.packets == 2
     args = parser.parse_args([*base, "--packets", "3"])
     assert build_configs(args, 1).reconstruction.packets == 3
+
+
+def test_reconstruct_takes_the_frame_of_the_atlas_the_output_fits_best(case, tmp_path, caplog):
+    # Two atlases: a brain of the same mask with a texture unlike the fetus's, and the fetus's
+    # own brain (as a neighbouring age that matches would be): the output takes the second's.
+    truth, brain = load_nifti(case / "gt_volume.nii.gz"), load_nifti(case / "gt_mask.nii.gz")
+    noise = torch.from_numpy(np.random.default_rng(0).random(truth.shape)).float()
+    unlike = save_nifti(Image(noise * brain.data, truth.affine), tmp_path / "unlike.nii.gz")
+    caplog.set_level(logging.INFO, logger="svr.reconstruction.atlas_frame")
+    log = tmp_path / "srr.log"
+    argv = ["reconstruct", *inputs(case), *FAST, "--registration", "cnn", "--model", "none"]
+    argv += ["--atlas-volume", str(unlike), str(case / "gt_volume.nii.gz")]
+    argv += ["--atlas-mask", str(case / "gt_mask.nii.gz"), str(case / "gt_mask.nii.gz")]
+    argv += ["--output-volume", str(tmp_path / "srr.nii.gz"), "--output-log", str(log)]
+    code, result = run_capturing_result(argv)
+    assert code == 0 and result is not None
+    assert "atlas frame: atlas 2 of 2 fits best" in caplog.text
+    assert len(result.atlas_ncc) == 2 and result.atlas_ncc[1] > result.atlas_ncc[0]
+    summary = log.read_text()
+    assert f"atlas frame: {case / 'gt_volume.nii.gz'} (fits best)" in summary
+    assert f"{unlike}: NCC {result.atlas_ncc[0]:.3f}" in summary

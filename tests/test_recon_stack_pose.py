@@ -12,12 +12,17 @@ from test_recon_init import oblique_stack
 from svr.geometry import se3_compose, so3_exp
 from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet, estimate_stack_pose
-from svr.reconstruction.atlas_frame import KEEP_MARGIN, align_to_atlas, atlas_transform
+from svr.reconstruction.atlas_frame import (
+    KEEP_MARGIN,
+    align_to_atlas,
+    atlas_transform,
+    best_atlas_transform,
+)
 from svr.reconstruction.cnn_init import agreeing_stacks, stack_pose_initialisation
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
 from svr.reconstruction.slices import extract_slices, mask_centre
 from svr.sampling.blocks import stack_pose_from_slices
-from svr.sampling.volume import canonicalize
+from svr.sampling.volume import as_atlases, canonicalize
 
 F64 = torch.float64
 
@@ -171,6 +176,43 @@ def test_atlas_transform_puts_the_given_centre_at_the_origin() -> None:
     )
     # Without one, the mask's centroid goes to the origin (the volume's world frame's origin).
     assert float(own.transform[:3, 3].norm()) < 1.0
+
+
+def test_best_atlas_transform_takes_the_frame_of_the_atlas_the_volume_fits_best() -> None:
+    _volume, _mask, atlas = _brain()
+    # Another brain of the same shape, its texture unlike the volume's: a neighbouring age that
+    # does not match.
+    n, sp = 40, 2.5
+    other_volume, other_mask = ellipsoid_brain(
+        n, sp, (24.0, 30.0, 20.0), seed=11, texture=3.0, origin_mm=(-(n - 1) / 2 * sp,) * 3
+    )
+    other = canonicalize(other_volume, other_mask)
+    small = torch.eye(4, dtype=F64)
+    small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
+    moved = Image(atlas.image.data, small @ atlas.image.affine)
+    for atlases, right in (([other, atlas], 1), ([atlas, other], 0)):
+        index, found, ncc = best_atlas_transform(moved, atlas.mask, atlases)
+        assert index == right and ncc[right] == max(ncc) == found.final[found.start]
+        assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) < 1.0
+        assert found.final[found.start] > atlas_transform(moved, atlas.mask, other).final["none"]
+    # One atlas: the same as atlas_transform.
+    index, found, ncc = best_atlas_transform(moved, atlas.mask, atlas)
+    assert index == 0 and len(ncc) == 1
+    torch.testing.assert_close(found.transform, atlas_transform(moved, atlas.mask, atlas).transform)
+    with pytest.raises(ValueError, match="'atlases' must hold at least one atlas"):
+        best_atlas_transform(moved, atlas.mask, [])
+
+
+def test_as_atlases_names_the_argument_and_what_it_expected() -> None:
+    _volume, _mask, atlas = _brain()
+    assert as_atlases(atlas, "f") == (atlas,)
+    assert as_atlases([atlas, atlas], "f") == (atlas, atlas)
+    with pytest.raises(TypeError, match=r"f\(\): 'atlas' must be a CanonicalVolume or a sequence"):
+        as_atlases("GA28/srr.nii.gz", "f")
+    with pytest.raises(TypeError, match=r"f\(\): 'atlas\[1\]' must be a CanonicalVolume, got int"):
+        as_atlases([atlas, 3], "f")
+    with pytest.raises(ValueError, match=r"f\(\): 'atlas' must hold at least one atlas"):
+        as_atlases((), "f")
 
 
 def test_align_to_atlas_turns_everything_and_centres_the_kept_slices_masks(turned_scene) -> None:

@@ -43,6 +43,7 @@ from svr.cli.reconstruct import (
     add_mask_options,
     add_settings_options,
     build_configs,
+    check_atlas_options,
     excluded_by_stack,
     load_and_reconstruct,
 )
@@ -299,10 +300,7 @@ def _report(summary: ParticipantSummary) -> ParticipantSummary:
 
 def _check_model_options(args: argparse.Namespace) -> None:
     """The model and atlas checks of ``svr reconstruct``, once, before any participant."""
-    if (args.atlas_volume is None) != (args.atlas_mask is None):
-        raise CliError("--atlas-volume and --atlas-mask go together")
-    if args.registration == "cnn" and args.model == "none" and args.atlas_volume is None:
-        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
+    check_atlas_options(args, args.registration)
     if args.registration == "cnn" and args.model != "none":
         from svr.models.predict import load_any_pose_model
 
@@ -420,13 +418,11 @@ def _reconstruct(
             },
             "software": environment(),
             "model": model,
-            "atlas": None
-            if args.atlas_volume is None
-            else {
-                "volume": args.atlas_volume,
-                "mask": args.atlas_mask,
-                "volume_sha256": file_sha256(args.atlas_volume),
-            },
+            "atlas": [
+                {"volume": volume, "mask": mask, "volume_sha256": file_sha256(volume)}
+                for volume, mask in check_atlas_options(args, args.registration)
+            ]
+            or None,
             "options": {
                 "masking": None if masks else asdict(settings.masking),
                 "stack_preparation": asdict(settings.stacks),
@@ -451,6 +447,7 @@ def _reconstruct(
             "slices_excluded": int(result.excluded.sum()),
             "excluded_slices": excluded,
             "frame": slices.frame,
+            "atlas_ncc": list(result.atlas_ncc),
             "rounds": len(result.rounds),
             "converged": result.converged,
             "timings_s": result.timings_s,

@@ -226,16 +226,23 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
     settings.add_argument(
         "--atlas-volume",
         metavar="NIFTI",
+        nargs="+",
         help="--registration cnn: a brain atlas volume of about the fetus's gestational age (for "
         "example GA28/srr.nii.gz of the Fidon 2021 spina bifida atlas, zenodo.org/record/5524312, "
         "or the CRL fetal atlas), with --atlas-mask. The output is brought into its frame: rigid "
         "registration from 12 starts (the volume's frame, its 180-degree flips and its brain "
         "mask's principal axes); another frame replaces the one the stacks' learned poses give "
-        "only if it fits the atlas clearly better (NCC higher by 0.05). Without a model "
-        "(--model none) each stack's pose is also chosen by agreement with the atlas and fitted "
-        "to it",
+        "only if it fits the atlas clearly better (NCC higher by 0.05). Several volumes (for "
+        "example the ages either side of an uncertain or missing one): the frame of the one the "
+        "output fits best. Without a model (--model none) each stack's pose is also chosen by "
+        "agreement with the atlas and fitted to it",
     )
-    settings.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
+    settings.add_argument(
+        "--atlas-mask",
+        metavar="NIFTI",
+        nargs="+",
+        help="the brain mask of each --atlas-volume, in the same order",
+    )
     settings.add_argument(
         "--template",
         type=int,
@@ -358,6 +365,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_atlas_options(args: argparse.Namespace, registration: str) -> list[tuple[str, str]]:
+    """The ``(volume, mask)`` pairs of ``--atlas-volume`` and ``--atlas-mask``, checked.
+
+    Args:
+        args: The parsed settings (``--atlas-volume``, ``--atlas-mask``, ``--model``).
+        registration: The ``--registration`` in use.
+
+    Returns:
+        One pair per atlas, in the order given; empty without ``--atlas-volume``.
+
+    Raises:
+        CliError: If only one of the two options is given, their counts differ, or
+            ``--registration cnn --model none`` comes without an atlas.
+    """
+    volumes, masks = args.atlas_volume, args.atlas_mask
+    if (volumes is None) != (masks is None):
+        raise CliError("--atlas-volume and --atlas-mask go together")
+    if volumes is not None and len(volumes) != len(masks):
+        raise CliError(
+            f"--atlas-mask needs one mask per --atlas-volume: got {len(volumes)} volumes and "
+            f"{len(masks)} masks"
+        )
+    if registration == "cnn" and args.model == "none" and volumes is None:
+        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
+    return [] if volumes is None else list(zip(volumes, masks, strict=True))
+
+
 def load_and_reconstruct(
     args: argparse.Namespace,
     stack_paths: Sequence[str],
@@ -397,16 +431,13 @@ def load_and_reconstruct(
 
     if config.registration != "cnn" and args.model != "stack-pose":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
-    if (args.atlas_volume is None) != (args.atlas_mask is None):
-        raise CliError("--atlas-volume and --atlas-mask go together")
-    if config.registration == "cnn" and args.model == "none" and args.atlas_volume is None:
-        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
+    atlas_paths = check_atlas_options(args, config.registration)
     model = None
     if config.registration == "cnn" and args.model != "none":
         model = load_any_pose_model(args.model, device)
     atlas = None
-    if config.registration == "cnn" and args.atlas_volume is not None:
-        atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
+    if config.registration == "cnn" and atlas_paths:
+        atlas = [load_canonical_volume(volume, mask) for volume, mask in atlas_paths]
     widths = None if thicknesses is None else list(thicknesses)
     if mask_paths is not None:
         stacks = load_stacks(list(stack_paths), list(mask_paths), widths, settings.stacks)
@@ -625,6 +656,13 @@ def _summary(
         for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
     ]
     lines.append(f"frame: {result.slices.frame}")
+    if result.atlas_ncc:
+        chosen = max(range(len(result.atlas_ncc)), key=lambda i: result.atlas_ncc[i])
+        lines.append(f"atlas frame: {args.atlas_volume[chosen]} (fits best)")
+        lines += [
+            f"  {path}: NCC {ncc:.3f}"
+            for path, ncc in zip(args.atlas_volume, result.atlas_ncc, strict=True)
+        ]
     lines.append(f"rounds: {_rounds_line(config, result)}")
     lines += [f"  {record.line()}" for record in result.rounds]
     excluded = excluded_by_stack(result)
