@@ -220,12 +220,12 @@ class AtlasChoice(NamedTuple):
     """What :func:`best_atlas_transform` found.
 
     Attributes:
-        index: The winning atlas's index in the atlases given.
+        chosen: The winning atlas's index in the atlases given.
         frame: Its :class:`AtlasFrame`.
         ncc: Each atlas's NCC after its final fit (of the frame its own fit chose), in order.
     """
 
-    index: int
+    chosen: int
     frame: AtlasFrame
     ncc: tuple[float, ...]
 
