@@ -12,6 +12,7 @@ bright end is ~1 whatever the scanner's scale; values are not clipped.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -179,6 +180,23 @@ class VolumeSourceError(ValueError):
         self.missing_ages = tuple(missing_ages)
 
 
+def _atlas_entries(root: Path) -> list[tuple[float, Path, Path]]:
+    """``(weeks, srr.nii.gz, mask.nii.gz)`` of each ``GA<weeks>*`` subfolder with a volume."""
+    if not root.is_dir():
+        raise VolumeSourceError(f"{root} is not a folder")
+    found: list[tuple[float, Path, Path]] = []
+    for sub in sorted(root.glob("GA*")):
+        try:
+            weeks = float(sub.name[2:4])
+        except ValueError:
+            raise VolumeSourceError(
+                f"{sub} is not named GA<weeks> (e.g. GA28); move it out of {root}"
+            ) from None
+        if (sub / "srr.nii.gz").exists():
+            found.append((weeks, sub / "srr.nii.gz", sub / "mask.nii.gz"))
+    return found
+
+
 def atlas_volume_paths(
     folder: str | os.PathLike[str],
     hold_out: Sequence[float] = (),
@@ -203,18 +221,7 @@ def atlas_volume_paths(
             ``GA<weeks>``, no volume is left, or an age in ``only`` has no volume.
     """
     root = Path(folder)
-    if not root.is_dir():
-        raise VolumeSourceError(f"{root} is not a folder")
-    found: list[tuple[float, Path, Path]] = []
-    for sub in sorted(root.glob("GA*")):
-        try:
-            weeks = float(sub.name[2:4])
-        except ValueError:
-            raise VolumeSourceError(
-                f"{sub} is not named GA<weeks> (e.g. GA28); move it out of {root}"
-            ) from None
-        if (sub / "srr.nii.gz").exists():
-            found.append((weeks, sub / "srr.nii.gz", sub / "mask.nii.gz"))
+    found = _atlas_entries(root)
     if only is not None:
         missing = sorted(set(only) - {weeks for weeks, _, _ in found})
         if missing:
@@ -228,6 +235,42 @@ def atlas_volume_paths(
     if not pairs:
         raise VolumeSourceError(f"no GA*/srr.nii.gz volumes left in {root}")
     return pairs
+
+
+def atlas_paths_near(
+    folder: str | os.PathLike[str], weeks: float, window: float = 1.0
+) -> list[tuple[Path, Path]]:
+    """The ``(srr.nii.gz, mask.nii.gz)`` pairs of an atlas folder near a gestational age.
+
+    Every volume whose age (the two digits after ``GA``) is within ``window`` weeks of
+    ``weeks``; where none is, those of the nearest age. A fetus of 27.5 weeks gets GA27 and GA28
+    (within 1 week); one of 28 weeks gets GA27, GA28 and GA29.
+
+    Args:
+        folder: The atlas folder (the layout of :func:`atlas_volume_paths`).
+        weeks: The fetus's gestational age (weeks, > 0).
+        window: How far (weeks, >= 0) an atlas's age may be from ``weeks``.
+
+    Returns:
+        The pairs, sorted by subfolder name.
+
+    Raises:
+        VolumeSourceError: As :func:`atlas_volume_paths`.
+        ValueError: If ``weeks`` is not positive or ``window`` is negative.
+    """
+    if not (math.isfinite(weeks) and weeks > 0):
+        raise ValueError(f"atlas_paths_near(): 'weeks' must be a positive number, got {weeks}")
+    if not (math.isfinite(window) and window >= 0):
+        raise ValueError(f"atlas_paths_near(): 'window' must be >= 0 weeks, got {window}")
+    root = Path(folder)
+    found = _atlas_entries(root)
+    if not found:
+        raise VolumeSourceError(f"no GA*/srr.nii.gz volumes left in {root}")
+    near = [entry for entry in found if abs(entry[0] - weeks) <= window]
+    if not near:
+        nearest = min(abs(entry[0] - weeks) for entry in found)
+        near = [entry for entry in found if abs(entry[0] - weeks) == nearest]
+    return [(volume, mask) for _, volume, mask in near]
 
 
 def load_volumes(

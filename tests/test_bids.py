@@ -17,7 +17,9 @@ from svr.apps.bids import (
     GROUP_HTML,
     GROUP_TSV,
     BidsError,
+    Participant,
     find_participants,
+    participant_age,
     participant_outputs,
 )
 from svr.image import load_nifti, save_nifti
@@ -250,6 +252,75 @@ def test_bad_inputs_give_one_line_and_write_nothing(dataset, tmp_path, capsys):
     # Group level before any participant.
     err = _bad(["bids", str(bids_dir), str(tmp_path), "group"], capsys)
     assert "no finished participant" in err
+
+
+def test_participant_age_reads_the_session_then_the_participants_table(tmp_path):
+    (tmp_path / "participants.tsv").write_text(
+        "participant_id\tga\tsex\nsub-01\t27.5\tF\nsub-02\tn/a\tM\nsub-03\t31\tF\n"
+    )
+    (tmp_path / "sub-03").mkdir()
+    (tmp_path / "sub-03" / "sub-03_sessions.tsv").write_text("session_id\tga\nses-1\t29.0\n")
+    (tmp_path / "sub-01").mkdir()
+    (tmp_path / "sub-01" / "sub-01_sessions.tsv").write_text("session_id\tscanner\nses-1\t3T\n")
+    assert participant_age(tmp_path, Participant("01", None), "ga") == 27.5
+    assert participant_age(tmp_path, Participant("03", "1"), "ga") == 29.0  # the session's
+    assert participant_age(tmp_path, Participant("03", None), "ga") == 31.0
+    # A sessions table without the column: the participants table's.
+    assert participant_age(tmp_path, Participant("01", "1"), "ga") == 27.5
+    with pytest.raises(BidsError, match=r"participants.tsv: sub-02's ga is 'n/a', not a"):
+        participant_age(tmp_path, Participant("02", None), "ga")
+    with pytest.raises(BidsError, match=r"participants.tsv: no row for sub-04"):
+        participant_age(tmp_path, Participant("04", None), "ga")
+    with pytest.raises(BidsError, match=r"participants.tsv: no column 'age' \(--age-column age\)"):
+        participant_age(tmp_path, Participant("01", None), "age")
+    with pytest.raises(BidsError, match=r"sub-03_sessions.tsv: no row for ses-2"):
+        participant_age(tmp_path, Participant("03", "2"), "ga")
+    (tmp_path / "participants.tsv").unlink()
+    with pytest.raises(BidsError, match=r"participants.tsv: no such file"):
+        participant_age(tmp_path, Participant("01", None), "ga")
+
+
+def test_each_participant_is_fitted_to_the_atlases_of_its_own_age(dataset, tmp_path, capsys):
+    bids_dir, masks_dir = dataset
+    study = tmp_path / "study"
+    shutil.copytree(bids_dir, study)
+    (study / "participants.tsv").write_text("participant_id\tga\nsub-01\t25\nsub-02\t33\n")
+    # An atlas folder: GA20 the subjects' own brain, GA30 a brain of noise in the same mask.
+    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    atlas = tmp_path / "atlas"
+    for name, image in (
+        ("GA20_phantom", volume),
+        ("GA30_noise", type(volume)(torch.rand(volume.shape) * mask.data, volume.affine)),
+    ):
+        (atlas / name).mkdir(parents=True)
+        save_nifti(image, atlas / name / "srr.nii.gz")
+        save_nifti(mask, atlas / name / "mask.nii.gz")
+    out = tmp_path / "out"
+    cnn = ["--registration", "cnn", "--atlas-dir", str(atlas), "--age-column", "ga"]
+    code, _ = _main([
+        "bids", str(study), str(out), "participant", "--participant-label", "01",
+        "--masks-dir", str(masks_dir), *FAST, *cnn, "--atlas-age-window", "5"])  # fmt: skip
+    assert code == 0
+    (participant,) = find_participants(study, ["01"], masks_dir=masks_dir)
+    sidecar = json.loads((out / "sub-01" / participant_outputs(participant).sidecar).read_text())
+    info = sidecar["svr"]
+    assert info["gestational_age_weeks"] == 25.0
+    assert [Path(a["volume"]).parent.name for a in info["atlas"]] == ["GA20_phantom", "GA30_noise"]
+    assert len(info["atlas_ncc"]) == 2 and info["atlas_ncc"][0] > info["atlas_ncc"][1]
+    # Bad uses: one line, before any work.
+    err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST,
+                "--age-column", "ga"], capsys)  # fmt: skip
+    assert "--age-column needs --atlas-dir" in err
+    err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST, *cnn[:4],
+                "--age-column", "age"], capsys)  # fmt: skip
+    assert "participants.tsv: no column 'age'" in err
+    err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST, *cnn,
+                "--gestational-age", "25"], capsys)  # fmt: skip
+    assert "give --gestational-age or --age-column, not both" in err
+    err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST, *cnn[:4]],
+               capsys)  # fmt: skip
+    assert "--atlas-dir needs the fetus's --gestational-age" in err
+    assert not (tmp_path / "o2").exists()
 
 
 def test_extra_masks_are_refused(dataset, tmp_path):

@@ -826,6 +826,36 @@ def _cases() -> list[Case]:
     )
     add(
         Case(
+            "reconstruct-atlas-dir-without-age",
+            "reconstruct",
+            ["--registration", "cnn", "--atlas-dir", "{atlas_good}"],
+            ["--atlas-dir needs the fetus's --gestational-age"],
+        )
+    )
+    add(
+        Case(
+            "reconstruct-atlas-dir-and-volume",
+            "reconstruct",
+            [
+                *("--registration", "cnn", "--atlas-dir", "{atlas_good}"),
+                *("--atlas-volume", "{brain}", "--atlas-mask", "{mask}"),
+            ],
+            ["give --atlas-volume or --atlas-dir, not both"],
+        )
+    )
+    add(
+        Case(
+            "reconstruct-atlas-dir-empty",
+            "reconstruct",
+            [
+                *("--registration", "cnn", "--atlas-dir", "{atlas_empty}"),
+                *("--gestational-age", "28"),
+            ],
+            ["--atlas-dir", "no GA*/srr.nii.gz volumes"],
+        )
+    )
+    add(
+        Case(
             "reconstruct-atlas-volumes-one-mask",
             "reconstruct",
             [

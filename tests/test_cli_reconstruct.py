@@ -374,22 +374,33 @@ def test_packets_reach_the_reconstruction_configuration() -> None:
     assert build_configs(args, 1).reconstruction.packets == 3
 
 
-def test_reconstruct_takes_the_frame_of_the_atlas_the_output_fits_best(case, tmp_path, caplog):
+@pytest.mark.parametrize("given", ["volumes", "folder"])
+def test_reconstruct_takes_the_frame_of_the_atlas_the_output_fits_best(
+    case, tmp_path, caplog, given
+):
     # Two atlases: a brain of the same mask with a texture unlike the fetus's, and the fetus's
     # own brain (as a neighbouring age that matches would be): the output takes the second's.
     truth, brain = load_nifti(case / "gt_volume.nii.gz"), load_nifti(case / "gt_mask.nii.gz")
     noise = torch.from_numpy(np.random.default_rng(0).random(truth.shape)).float()
-    unlike = save_nifti(Image(noise * brain.data, truth.affine), tmp_path / "unlike.nii.gz")
+    folder = tmp_path / "atlas"
+    volumes = [folder / "GA20_unlike" / "srr.nii.gz", folder / "GA21_own" / "srr.nii.gz"]
+    for path, data in zip(volumes, (noise * brain.data, truth.data), strict=True):
+        path.parent.mkdir(parents=True)
+        save_nifti(Image(data, truth.affine), path)
+        save_nifti(brain, path.with_name("mask.nii.gz"))
     caplog.set_level(logging.INFO, logger="svr.reconstruction.atlas_frame")
     log = tmp_path / "srr.log"
     argv = ["reconstruct", *inputs(case), *FAST, "--registration", "cnn", "--model", "none"]
-    argv += ["--atlas-volume", str(unlike), str(case / "gt_volume.nii.gz")]
-    argv += ["--atlas-mask", str(case / "gt_mask.nii.gz"), str(case / "gt_mask.nii.gz")]
+    if given == "volumes":
+        argv += ["--atlas-volume", *map(str, volumes)]
+        argv += ["--atlas-mask", *(str(v.with_name("mask.nii.gz")) for v in volumes)]
+    else:  # every age within a week of 20.5: GA20 and GA21
+        argv += ["--atlas-dir", str(folder), "--gestational-age", "20.5"]
     argv += ["--output-volume", str(tmp_path / "srr.nii.gz"), "--output-log", str(log)]
     code, result = run_capturing_result(argv)
     assert code == 0 and result is not None
     assert "atlas frame: atlas 2 of 2 fits best" in caplog.text
     assert len(result.atlas_ncc) == 2 and result.atlas_ncc[1] > result.atlas_ncc[0]
     summary = log.read_text()
-    assert f"atlas frame: {case / 'gt_volume.nii.gz'} (fits best)" in summary
-    assert f"{unlike}: NCC {result.atlas_ncc[0]:.3f}" in summary
+    assert f"atlas frame: {volumes[1]} (fits best)" in summary
+    assert f"{volumes[0]}: NCC {result.atlas_ncc[0]:.3f}" in summary

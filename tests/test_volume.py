@@ -11,6 +11,7 @@ import torch
 from svr.image import Image, ImageError, save_nifti
 from svr.sampling.volume import (
     VolumeSourceError,
+    atlas_paths_near,
     atlas_volume_paths,
     canonicalize,
     load_canonical_volume,
@@ -124,6 +125,24 @@ def test_atlas_volume_paths_hold_out_and_only(tmp_path, rng):
     assert pairs == [(root / "GA28_b" / "srr.nii.gz", root / "GA28_b" / "mask.nii.gz")]
     volumes, sources = load_volumes(pairs)
     assert sources == [str(root / "GA28_b" / "srr.nii.gz")] and len(volumes) == 1
+
+
+def test_atlas_paths_near_takes_the_ages_within_the_window_or_the_nearest(tmp_path, rng):
+    root = _atlas(tmp_path, rng, names=("GA24_a", "GA25_x", "GA25_y", "GA28_b", "GA30_c"))
+    names = lambda pairs: [v.parent.name for v, _ in pairs]  # noqa: E731
+    assert names(atlas_paths_near(root, 24.4)) == ["GA24_a", "GA25_x", "GA25_y"]
+    assert names(atlas_paths_near(root, 24)) == ["GA24_a", "GA25_x", "GA25_y"]  # 1 week: in
+    assert names(atlas_paths_near(root, 29)) == ["GA28_b", "GA30_c"]  # 1 week either side
+    assert names(atlas_paths_near(root, 29, window=0.5)) == ["GA28_b", "GA30_c"]  # the nearest
+    assert names(atlas_paths_near(root, 28, window=0)) == ["GA28_b"]
+    assert names(atlas_paths_near(root, 40)) == ["GA30_c"]
+    assert names(atlas_paths_near(root, 26.5, window=2)) == ["GA25_x", "GA25_y", "GA28_b"]
+    with pytest.raises(ValueError, match=r"'weeks' must be a positive number, got 0"):
+        atlas_paths_near(root, 0)
+    with pytest.raises(ValueError, match=r"'window' must be >= 0 weeks, got -1"):
+        atlas_paths_near(root, 28, window=-1)
+    with pytest.raises(VolumeSourceError, match="is not a folder"):
+        atlas_paths_near(tmp_path / "missing", 28)
 
 
 def test_atlas_volume_paths_errors(tmp_path, rng):

@@ -22,8 +22,10 @@ The dataset is read with pybids (:class:`bids.BIDSLayout`), never by parsing pat
 
 from __future__ import annotations
 
+import csv
 import html
 import json
+import math
 import os
 import platform
 from collections.abc import Iterable, Sequence
@@ -44,6 +46,7 @@ __all__ = [
     "check_output_dir",
     "find_participants",
     "group_report",
+    "participant_age",
     "participant_outputs",
     "read_sidecars",
     "write_dataset_description",
@@ -170,6 +173,68 @@ def check_output_dir(bids_dir: str | os.PathLike[str], output_dir: str | os.Path
             f"OUTPUT_DIR {output_dir}: inside the input dataset {bids_dir}; give a folder outside "
             "it (e.g. next to it)"
         )
+
+
+def participant_age(
+    bids_dir: str | os.PathLike[str], participant: Participant, column: str
+) -> float:
+    """A participant's gestational age (weeks) from the dataset's tables.
+
+    The session's row of ``sub-XX/sub-XX_sessions.tsv`` (``session_id`` ``ses-YY``) where the
+    participant has a session and that table has the column; else the subject's row of
+    ``participants.tsv`` (``participant_id`` ``sub-XX``).
+
+    Args:
+        bids_dir: The BIDS dataset.
+        participant: The participant.
+        column: The column holding gestational ages in weeks.
+
+    Returns:
+        The age (weeks, > 0).
+
+    Raises:
+        BidsError: Naming the file, for a missing table, column or row, or a value that is not a
+            positive number.
+    """
+    root = Path(bids_dir)
+    tables = []
+    if participant.session:
+        tables.append(
+            (
+                root / f"sub-{participant.subject}" / f"sub-{participant.subject}_sessions.tsv",
+                "session_id",
+                f"ses-{participant.session}",
+            )
+        )
+    tables.append((root / "participants.tsv", "participant_id", f"sub-{participant.subject}"))
+    for number, (path, key, wanted) in enumerate(tables):
+        last = number == len(tables) - 1
+        if not path.is_file():
+            if last:
+                raise BidsError(f"{path}: no such file (--age-column {column} is read from it)")
+            continue
+        with path.open(newline="", encoding="utf-8") as file:
+            rows = list(csv.DictReader(file, delimiter="\t"))
+        header = rows[0].keys() if rows else ()
+        if column not in header or key not in header:
+            if last:
+                missing = column if column not in header else key
+                raise BidsError(f"{path}: no column {missing!r} (--age-column {column})")
+            continue
+        row = next((r for r in rows if r[key] == wanted), None)
+        if row is None:
+            raise BidsError(f"{path}: no row for {wanted}")
+        text = (row[column] or "").strip()
+        try:
+            weeks = float(text)
+        except ValueError:
+            weeks = math.nan
+        if not (math.isfinite(weeks) and weeks > 0):
+            raise BidsError(
+                f"{path}: {wanted}'s {column} is {text!r}, not a gestational age in weeks"
+            )
+        return weeks
+    raise AssertionError("unreachable")  # pragma: no cover
 
 
 def find_participants(

@@ -27,6 +27,7 @@ from svr.apps.bids import (
     environment,
     find_participants,
     group_report,
+    participant_age,
     participant_outputs,
     write_dataset_description,
 )
@@ -134,6 +135,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "per stack (default: automatic masks, see --auto-masks)",
     )
     bids.add_argument(
+        "--age-column",
+        metavar="NAME",
+        help="with --atlas-dir: the column of participants.tsv (or of a subject's "
+        "sub-XX_sessions.tsv, per session) holding each participant's gestational age in weeks, "
+        "so that each is fitted to the atlases of its own age",
+    )
+    bids.add_argument(
         "--thickness",
         type=positive_float,
         metavar="MM",
@@ -226,6 +234,9 @@ def run(args: argparse.Namespace) -> int:
         except CliError as err:
             raise CliError(f"{participant.label}: {err}") from err
     _check_model_options(args)
+    if args.age_column is not None:
+        for participant in participants:  # every age read before any work
+            participant_age(args.bids_dir, participant, args.age_column)
     device = resolve_device(args.device)
     thicknesses = {p.label: _thicknesses(p, args.thickness) for p in participants}
     output = Path(args.output_dir)
@@ -300,7 +311,15 @@ def _report(summary: ParticipantSummary) -> ParticipantSummary:
 
 def _check_model_options(args: argparse.Namespace) -> None:
     """The model and atlas checks of ``svr reconstruct``, once, before any participant."""
-    check_atlas_options(args, args.registration)
+    if args.age_column is not None:
+        if args.atlas_dir is None:
+            raise CliError("--age-column needs --atlas-dir")
+        if args.gestational_age is not None:
+            raise CliError("give --gestational-age or --age-column, not both")
+        weeks = 1.0  # any age: the folder and the other options are checked here
+    else:
+        weeks = None
+    check_atlas_options(args, args.registration, weeks)
     if args.registration == "cnn" and args.model != "none":
         from svr.models.predict import load_any_pose_model
 
@@ -390,6 +409,10 @@ def _reconstruct(
     masks = None
     if participant.stacks[0].mask is not None:
         masks = [str(s.mask) for s in participant.stacks]
+    weeks = None
+    if args.age_column is not None:
+        weeks = participant_age(args.bids_dir, participant, args.age_column)
+    atlases = check_atlas_options(args, config.registration, weeks)
     _, result = load_and_reconstruct(
         args,
         [str(s.path) for s in participant.stacks],
@@ -397,6 +420,7 @@ def _reconstruct(
         list(job.thicknesses),
         settings,
         job.device,
+        weeks,
     )
     slices = result.slices
     excluded = {Path(name).name: ks for name, ks in excluded_by_stack(result).items()}
@@ -418,9 +442,10 @@ def _reconstruct(
             },
             "software": environment(),
             "model": model,
+            "gestational_age_weeks": weeks,
             "atlas": [
                 {"volume": volume, "mask": mask, "volume_sha256": file_sha256(volume)}
-                for volume, mask in check_atlas_options(args, args.registration)
+                for volume, mask in atlases
             ]
             or None,
             "options": {

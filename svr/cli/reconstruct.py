@@ -244,6 +244,27 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         help="the brain mask of each --atlas-volume, in the same order",
     )
     settings.add_argument(
+        "--atlas-dir",
+        metavar="DIR",
+        help="instead of --atlas-volume: an atlas folder of GA<weeks>*/srr.nii.gz and mask.nii.gz "
+        "(the Fidon 2021 layout); with --gestational-age, every age within --atlas-age-window "
+        "weeks of it is used (the nearest where none is) and the output takes the frame of the "
+        "one it fits best",
+    )
+    settings.add_argument(
+        "--gestational-age",
+        type=positive_float,
+        metavar="WEEKS",
+        help="the fetus's gestational age, for --atlas-dir",
+    )
+    settings.add_argument(
+        "--atlas-age-window",
+        type=non_negative_float,
+        default=1.0,
+        metavar="WEEKS",
+        help="with --atlas-dir: how far (weeks) an atlas's age may be from the fetus's",
+    )
+    settings.add_argument(
         "--template",
         type=int,
         metavar="INDEX",
@@ -365,21 +386,34 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def check_atlas_options(args: argparse.Namespace, registration: str) -> list[tuple[str, str]]:
-    """The ``(volume, mask)`` pairs of ``--atlas-volume`` and ``--atlas-mask``, checked.
+def check_atlas_options(
+    args: argparse.Namespace, registration: str, weeks: float | None = None
+) -> list[tuple[str, str]]:
+    """The ``(volume, mask)`` pairs of the atlas options, checked.
+
+    Either ``--atlas-volume`` with ``--atlas-mask`` (one mask per volume), or ``--atlas-dir``
+    with a gestational age (``--gestational-age``, or ``weeks`` from elsewhere, e.g. a BIDS
+    dataset's participants table): the folder's atlases within ``--atlas-age-window`` weeks of it
+    (:func:`svr.sampling.volume.atlas_paths_near`).
 
     Args:
-        args: The parsed settings (``--atlas-volume``, ``--atlas-mask``, ``--model``).
+        args: The parsed settings (``--atlas-volume``, ``--atlas-mask``, ``--atlas-dir``,
+            ``--gestational-age``, ``--atlas-age-window``, ``--model``).
         registration: The ``--registration`` in use.
+        weeks: The fetus's gestational age where it does not come from ``--gestational-age``.
 
     Returns:
-        One pair per atlas, in the order given; empty without ``--atlas-volume``.
+        One pair per atlas; empty without an atlas option.
 
     Raises:
-        CliError: If only one of the two options is given, their counts differ, or
-            ``--registration cnn --model none`` comes without an atlas.
+        CliError: If only one of ``--atlas-volume`` and ``--atlas-mask`` is given, their counts
+            differ, ``--atlas-dir`` comes with ``--atlas-volume`` or without an age, the folder
+            holds no atlas, or ``--registration cnn --model none`` comes without an atlas.
     """
+    from svr.sampling.volume import VolumeSourceError, atlas_paths_near
+
     volumes, masks = args.atlas_volume, args.atlas_mask
+    folder = getattr(args, "atlas_dir", None)
     if (volumes is None) != (masks is None):
         raise CliError("--atlas-volume and --atlas-mask go together")
     if volumes is not None and len(volumes) != len(masks):
@@ -387,9 +421,24 @@ def check_atlas_options(args: argparse.Namespace, registration: str) -> list[tup
             f"--atlas-mask needs one mask per --atlas-volume: got {len(volumes)} volumes and "
             f"{len(masks)} masks"
         )
-    if registration == "cnn" and args.model == "none" and volumes is None:
-        raise CliError("--registration cnn --model none needs --atlas-volume and --atlas-mask")
-    return [] if volumes is None else list(zip(volumes, masks, strict=True))
+    if volumes is not None and folder is not None:
+        raise CliError("give --atlas-volume or --atlas-dir, not both")
+    if registration == "cnn" and args.model == "none" and volumes is None and folder is None:
+        raise CliError(
+            "--registration cnn --model none needs --atlas-volume and --atlas-mask (or --atlas-dir)"
+        )
+    if volumes is not None:
+        return list(zip(volumes, masks, strict=True))
+    if folder is None:
+        return []
+    weeks = getattr(args, "gestational_age", None) if weeks is None else weeks
+    if weeks is None:
+        raise CliError("--atlas-dir needs the fetus's --gestational-age (weeks)")
+    try:
+        pairs = atlas_paths_near(folder, weeks, args.atlas_age_window)
+    except VolumeSourceError as error:
+        raise CliError(f"--atlas-dir {error}") from None
+    return [(str(volume), str(mask)) for volume, mask in pairs]
 
 
 def load_and_reconstruct(
@@ -399,6 +448,7 @@ def load_and_reconstruct(
     thicknesses: Sequence[float] | None,
     settings: Settings,
     device: str,
+    weeks: float | None = None,
 ) -> tuple[list[Stack], ReconstructionResult]:
     """Load the model, atlas and stacks that the options name, and reconstruct.
 
@@ -406,13 +456,15 @@ def load_and_reconstruct(
     each participant of ``svr bids``, so that they give identical volumes for the same stacks.
 
     Args:
-        args: The parsed settings (``--model``, ``--atlas-volume``, ``--atlas-mask``,
-            ``--mask-model``, ``--quiet``).
+        args: The parsed settings (``--model``, the atlas options, ``--mask-model``,
+            ``--quiet``).
         stack_paths: The stacks (NIfTI).
         mask_paths: One brain mask per stack, or ``None`` for automatic masks.
         thicknesses: Slice thickness (mm): one for all stacks, one per stack, or ``None``.
         settings: The masking, stack preparation and reconstruction (:func:`build_configs`).
         device: Torch device.
+        weeks: The fetus's gestational age for ``--atlas-dir`` where it does not come from
+            ``--gestational-age`` (:func:`check_atlas_options`).
 
     Returns:
         The prepared stacks and the reconstruction.
@@ -431,7 +483,7 @@ def load_and_reconstruct(
 
     if config.registration != "cnn" and args.model != "stack-pose":
         log.warning("--model is used only with --registration cnn; ignoring %s", args.model)
-    atlas_paths = check_atlas_options(args, config.registration)
+    atlas_paths = check_atlas_options(args, config.registration, weeks)
     model = None
     if config.registration == "cnn" and args.model != "none":
         model = load_any_pose_model(args.model, device)
@@ -657,11 +709,11 @@ def _summary(
     ]
     lines.append(f"frame: {result.slices.frame}")
     if result.atlas_ncc:
+        volumes = [volume for volume, _ in check_atlas_options(args, config.registration)]
         chosen = max(range(len(result.atlas_ncc)), key=lambda i: result.atlas_ncc[i])
-        lines.append(f"atlas frame: {args.atlas_volume[chosen]} (fits best)")
+        lines.append(f"atlas frame: {volumes[chosen]} (fits best)")
         lines += [
-            f"  {path}: NCC {ncc:.3f}"
-            for path, ncc in zip(args.atlas_volume, result.atlas_ncc, strict=True)
+            f"  {path}: NCC {ncc:.3f}" for path, ncc in zip(volumes, result.atlas_ncc, strict=True)
         ]
     lines.append(f"rounds: {_rounds_line(config, result)}")
     lines += [f"  {record.line()}" for record in result.rounds]
