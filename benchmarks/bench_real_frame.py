@@ -35,6 +35,7 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import nibabel as nib
@@ -64,17 +65,23 @@ def frame_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def _reconstruct(
     stacks: list[str],
     masks: list[str],
-    atlas: Path,
+    atlas: Path | Sequence[Path],
     model: str,
     output: Path,
     threads: int,
     options: tuple[str, ...] = (),
 ) -> tuple[str, float]:
-    """``svr reconstruct --registration cnn`` in a fresh process; its log and wall seconds."""
+    """``svr reconstruct --registration cnn`` in a fresh process; its log and wall seconds.
+
+    ``atlas``: one atlas folder (``srr.nii.gz``, ``mask.nii.gz``) or several (the output takes
+    the first's frame unless another fits clearly better).
+    """
+    folders = [atlas] if isinstance(atlas, Path) else list(atlas)
     command = [
         sys.executable, "-m", "svr", "reconstruct", "--input-stacks", *stacks,
         "--stack-masks", *masks, "--registration", "cnn", "--model", model,
-        "--atlas-volume", str(atlas / "srr.nii.gz"), "--atlas-mask", str(atlas / "mask.nii.gz"),
+        "--atlas-volume", *(str(f / "srr.nii.gz") for f in folders),
+        "--atlas-mask", *(str(f / "mask.nii.gz") for f in folders),
         "--output-volume", str(output), "--overwrite", "-v", *options,
     ]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
@@ -128,7 +135,14 @@ def fabian_rows(model: str, threads: list[int], out: Path) -> list[str]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scan", type=Path, default=SCAN, help="the real scan's folder")
-    parser.add_argument("--atlas", type=Path, default=ATLAS / "GA28_operated")
+    parser.add_argument(
+        "--atlas",
+        type=Path,
+        nargs="+",
+        default=[ATLAS / "GA28_operated"],
+        help="atlas folder(s) of the real scan's run; several, the preferred first: the output "
+        "takes its frame unless another fits clearly better",
+    )
     parser.add_argument("--model", default="stack-pose")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--reference", type=Path, default=REFERENCE)

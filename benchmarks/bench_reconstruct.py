@@ -207,8 +207,8 @@ def main() -> int:
         default=None,
         help="cnn runs also get --atlas-volume/--atlas-mask: the atlas age nearest the case's "
         "own age plus this many weeks (never the case's own age), one atlas per offset (-1 1: "
-        "the ages either side, the output in the frame of the one it fits best); default: no "
-        "atlas",
+        "the ages either side, the first's frame unless the other fits clearly better); "
+        "default: no atlas",
     )
     parser.add_argument(
         "--converged",

@@ -50,6 +50,7 @@ from svr.models.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
 )
+from svr.reconstruction.atlas_frame import preferred_atlas
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.registration import stack_ncc, stack_registration
 from svr.reconstruction.slices import SliceSet, Stack
@@ -684,8 +685,10 @@ def stack_pose_initialisation(
         stacks: The stacks they were cut from (same order as ``slices.stack_names``).
         model: The stack-pose network, or ``None`` (then ``atlas`` is required).
         config: Settings.
-        atlas: A brain of about the fetus's age in canonical space, several (each stack takes
-            the one it fits best), or ``None``; used per stack only without a model.
+        atlas: A brain of about the fetus's age in canonical space, several (the preferred
+            first: each stack follows it unless another fits the stack clearly better,
+            :func:`svr.reconstruction.atlas_frame.preferred_atlas`), or ``None``; used per stack
+            only without a model.
 
     Returns:
         The slices at their initial canonical poses, the choice and notes per stack.
@@ -710,16 +713,15 @@ def stack_pose_initialisation(
         # Without the restarts about the chosen frame: they put more held-out stacks within 10
         # degrees (89.5 % against 84.6 %), but the reconstructions they started were lower on
         # four of the six bench cases (ga23 -0.57 dB, ga29 -0.23 dB; stack-pose-restarts.md).
-        # Without a model and with several atlases, the one the stack fits best (its NCC).
-        estimate = max(
-            (
-                estimate_stack_pose(
-                    model, stack.image, mask, atlas=item, levels=level, restart_deg=0.0
-                )
-                for item, level in zip(per_stack, levels, strict=True)
-            ),
-            key=lambda candidate: candidate.score,
-        )
+        # Without a model and with several atlases: the first's unless another's fits the
+        # stack clearly better (NCC, as for the output frame).
+        per_atlas = [
+            estimate_stack_pose(model, stack.image, mask, atlas=item, levels=level, restart_deg=0.0)
+            for item, level in zip(per_stack, levels, strict=True)
+        ]
+        estimate = per_atlas[
+            preferred_atlas([e.score for e in per_atlas]) if len(per_atlas) > 1 else 0
+        ]
         frames.append(estimate.frame)
         scores.append(float(estimate.score))
         head = f"{estimate.method}, score {estimate.score:.2f}"

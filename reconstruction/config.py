@@ -231,8 +231,8 @@ class ReconstructionResult:
             (``None`` for the fixed schedule, or when no registration round ran before the final
             one: ``outer_iterations`` 1 or 2).
         atlas_ncc: With an atlas (``registration="cnn"``): the NCC of the output with each atlas
-            given, in order, after its fit; the output is in the frame of the highest (empty
-            without an atlas).
+            given, in order, after its fit (empty without an atlas).
+        atlas_chosen: The index of the atlas whose frame the output is in (``None`` without).
     """
 
     volume: Image
@@ -248,3 +248,4 @@ class ReconstructionResult:
     rounds: tuple[RoundRecord, ...] = ()
     converged: bool | None = None
     atlas_ncc: tuple[float, ...] = ()
+    atlas_chosen: int | None = None

@@ -172,8 +172,9 @@ def reconstruct(
         device: Where to compute.
         progress: Show a progress bar.
         atlas: For ``registration="cnn"``: a brain of about the fetus's age in canonical space,
-            or several (for example the ages either side of it). The final volume is brought
-            into the frame of the one it fits best
+            or several, the preferred first (for example the fetus's age, then the weeks either
+            side). The final volume is brought into the first's frame unless another fits it
+            clearly better
             (:func:`svr.reconstruction.atlas_frame.align_to_atlas`); without a stack-pose model,
             each stack's pose hypotheses are also chosen by agreement with it and fitted to it.
 

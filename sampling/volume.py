@@ -243,8 +243,8 @@ def atlas_paths_near(
     """The ``(srr.nii.gz, mask.nii.gz)`` pairs of an atlas folder near a gestational age.
 
     Every volume whose age (the two digits after ``GA``) is within ``window`` weeks of
-    ``weeks``; where none is, those of the nearest age. A fetus of 27.5 weeks gets GA27 and GA28
-    (within 1 week); one of 28 weeks gets GA27, GA28 and GA29.
+    ``weeks``, nearest first; where none is, those of the nearest age. A fetus of 28 weeks gets
+    GA28, GA27 and GA29; one of 27.5 weeks GA27 and GA28.
 
     Args:
         folder: The atlas folder (the layout of :func:`atlas_volume_paths`).
@@ -252,7 +252,7 @@ def atlas_paths_near(
         window: How far (weeks, >= 0) an atlas's age may be from ``weeks``.
 
     Returns:
-        The pairs, sorted by subfolder name.
+        The pairs, nearest age first (equally near: by subfolder name).
 
     Raises:
         VolumeSourceError: As :func:`atlas_volume_paths`.
@@ -270,6 +270,7 @@ def atlas_paths_near(
     if not near:
         nearest = min(abs(entry[0] - weeks) for entry in found)
         near = [entry for entry in found if abs(entry[0] - weeks) == nearest]
+    near.sort(key=lambda entry: abs(entry[0] - weeks))  # stable: by name where equally near
     return [(volume, mask) for _, volume, mask in near]
 
 

@@ -307,6 +307,7 @@ def test_each_participant_is_fitted_to_the_atlases_of_its_own_age(dataset, tmp_p
     assert info["gestational_age_weeks"] == 25.0
     assert [Path(a["volume"]).parent.name for a in info["atlas"]] == ["GA20_phantom", "GA30_noise"]
     assert len(info["atlas_ncc"]) == 2 and info["atlas_ncc"][0] > info["atlas_ncc"][1]
+    assert info["atlas_chosen"] == 0
     # Bad uses: one line, before any work.
     err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST,
                 "--age-column", "ga"], capsys)  # fmt: skip

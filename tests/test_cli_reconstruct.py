@@ -375,11 +375,12 @@ def test_packets_reach_the_reconstruction_configuration() -> None:
 
 
 @pytest.mark.parametrize("given", ["volumes", "folder"])
-def test_reconstruct_takes_the_frame_of_the_atlas_the_output_fits_best(
+def test_reconstruct_takes_the_frame_of_an_atlas_that_fits_clearly_better(
     case, tmp_path, caplog, given
 ):
-    # Two atlases: a brain of the same mask with a texture unlike the fetus's, and the fetus's
-    # own brain (as a neighbouring age that matches would be): the output takes the second's.
+    # Two atlases: first a brain of the same mask with a texture unlike the fetus's, then the
+    # fetus's own brain (as a neighbouring age that matches would be): it fits clearly better
+    # (by more than 0.05 NCC), so the output takes its frame.
     truth, brain = load_nifti(case / "gt_volume.nii.gz"), load_nifti(case / "gt_mask.nii.gz")
     noise = torch.from_numpy(np.random.default_rng(0).random(truth.shape)).float()
     folder = tmp_path / "atlas"
@@ -394,13 +395,14 @@ def test_reconstruct_takes_the_frame_of_the_atlas_the_output_fits_best(
     if given == "volumes":
         argv += ["--atlas-volume", *map(str, volumes)]
         argv += ["--atlas-mask", *(str(v.with_name("mask.nii.gz")) for v in volumes)]
-    else:  # every age within a week of 20.5: GA20 and GA21
-        argv += ["--atlas-dir", str(folder), "--gestational-age", "20.5"]
+    else:  # every age within a week of 20.4: GA20 (the nearest, preferred) and GA21
+        argv += ["--atlas-dir", str(folder), "--gestational-age", "20.4"]
     argv += ["--output-volume", str(tmp_path / "srr.nii.gz"), "--output-log", str(log)]
     code, result = run_capturing_result(argv)
     assert code == 0 and result is not None
-    assert "atlas frame: atlas 2 of 2 fits best" in caplog.text
-    assert len(result.atlas_ncc) == 2 and result.atlas_ncc[1] > result.atlas_ncc[0]
+    assert "atlas frame: atlas 2 of 2 (final NCC" in caplog.text
+    assert len(result.atlas_ncc) == 2 and result.atlas_ncc[1] > result.atlas_ncc[0] + 0.05
+    assert result.atlas_chosen == 1
     summary = log.read_text()
-    assert f"atlas frame: {volumes[1]} (fits best)" in summary
+    assert f"atlas frame: {volumes[1]}\n" in summary
     assert f"{volumes[0]}: NCC {result.atlas_ncc[0]:.3f}" in summary

@@ -17,6 +17,7 @@ from svr.reconstruction.atlas_frame import (
     align_to_atlas,
     atlas_transform,
     best_atlas_transform,
+    preferred_atlas,
 )
 from svr.reconstruction.cnn_init import agreeing_stacks, stack_pose_initialisation
 from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
@@ -195,12 +196,30 @@ def test_best_atlas_transform_takes_the_frame_of_the_atlas_the_volume_fits_best(
         assert index == right and ncc[right] == max(ncc) == found.final[found.start]
         assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) < 1.0
         assert found.final[found.start] > atlas_transform(moved, atlas.mask, other).final["none"]
+    # The first atlas is kept unless another fits better by more than the margin.
+    index, found, ncc = best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=2.0)
+    assert index == 0 and ncc[1] > ncc[0]
+    assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) > 0.0
+    with pytest.raises(ValueError, match="'keep_margin' must be >= 0"):
+        best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=-0.1)
     # One atlas: the same as atlas_transform.
     index, found, ncc = best_atlas_transform(moved, atlas.mask, atlas)
     assert index == 0 and len(ncc) == 1
     torch.testing.assert_close(found.transform, atlas_transform(moved, atlas.mask, atlas).transform)
     with pytest.raises(ValueError, match="'atlases' must hold at least one atlas"):
         best_atlas_transform(moved, atlas.mask, [])
+
+
+def test_preferred_atlas_keeps_the_first_unless_another_is_clearly_better() -> None:
+    assert preferred_atlas([0.327, 0.336, 0.331]) == 0  # the real scan's: within noise
+    assert preferred_atlas([0.559, 0.632]) == 1  # ga23: GA 24 first, GA 22 clearly better
+    assert preferred_atlas([0.5, 0.56, 0.58]) == 2  # the best of the others
+    assert preferred_atlas([0.5, 0.55]) == 0 and preferred_atlas([0.5, 0.55], 0.0) == 1
+    assert preferred_atlas([0.4]) == 0
+    with pytest.raises(ValueError, match="'ncc' must hold at least one value"):
+        preferred_atlas([])
+    with pytest.raises(ValueError, match="'keep_margin' must be >= 0"):
+        preferred_atlas([0.5, 0.6], -0.01)
 
 
 def test_as_atlases_names_the_argument_and_what_it_expected() -> None:

@@ -137,6 +137,7 @@ def test_atlas_paths_near_takes_the_ages_within_the_window_or_the_nearest(tmp_pa
     assert names(atlas_paths_near(root, 28, window=0)) == ["GA28_b"]
     assert names(atlas_paths_near(root, 40)) == ["GA30_c"]
     assert names(atlas_paths_near(root, 26.5, window=2)) == ["GA25_x", "GA25_y", "GA28_b"]
+    assert names(atlas_paths_near(root, 29.6, window=2)) == ["GA30_c", "GA28_b"]  # nearest first
     with pytest.raises(ValueError, match=r"'weeks' must be a positive number, got 0"):
         atlas_paths_near(root, 0)
     with pytest.raises(ValueError, match=r"'window' must be >= 0 weeks, got -1"):

@@ -473,6 +473,7 @@ def _reconstruct(
             "excluded_slices": excluded,
             "frame": slices.frame,
             "atlas_ncc": list(result.atlas_ncc),
+            "atlas_chosen": result.atlas_chosen,
             "rounds": len(result.rounds),
             "converged": result.converged,
             "timings_s": result.timings_s,

@@ -233,9 +233,10 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         "registration from 12 starts (the volume's frame, its 180-degree flips and its brain "
         "mask's principal axes); another frame replaces the one the stacks' learned poses give "
         "only if it fits the atlas clearly better (NCC higher by 0.05). Several volumes (for "
-        "example the ages either side of an uncertain or missing one): the frame of the one the "
-        "output fits best. Without a model (--model none) each stack's pose is also chosen by "
-        "agreement with the atlas and fitted to it",
+        "example the ages either side of an uncertain or missing one, the preferred first): the "
+        "first's frame, unless another fits the output better by the same margin. Without a "
+        "model (--model none) each stack's pose is also chosen by agreement with the atlas and "
+        "fitted to it",
     )
     settings.add_argument(
         "--atlas-mask",
@@ -248,8 +249,8 @@ def add_settings_options(parser: argparse.ArgumentParser, iterations: int | None
         metavar="DIR",
         help="instead of --atlas-volume: an atlas folder of GA<weeks>*/srr.nii.gz and mask.nii.gz "
         "(the Fidon 2021 layout); with --gestational-age, every age within --atlas-age-window "
-        "weeks of it is used (the nearest where none is) and the output takes the frame of the "
-        "one it fits best",
+        "weeks of it is used (the nearest where none is), nearest first, as several "
+        "--atlas-volume",
     )
     settings.add_argument(
         "--gestational-age",
@@ -708,10 +709,9 @@ def _summary(
         for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
     ]
     lines.append(f"frame: {result.slices.frame}")
-    if result.atlas_ncc:
+    if result.atlas_chosen is not None:
         volumes = [volume for volume, _ in check_atlas_options(args, config.registration)]
-        chosen = max(range(len(result.atlas_ncc)), key=lambda i: result.atlas_ncc[i])
-        lines.append(f"atlas frame: {volumes[chosen]} (fits best)")
+        lines.append(f"atlas frame: {volumes[result.atlas_chosen]}")
         lines += [
             f"  {path}: NCC {ncc:.3f}" for path, ncc in zip(volumes, result.atlas_ncc, strict=True)
         ]
