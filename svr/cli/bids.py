@@ -442,7 +442,7 @@ def _reconstruct(
             },
             "software": environment(),
             "model": model,
-            "gestational_age_weeks": weeks,
+            "gestational_age_weeks": weeks if weeks is not None else args.gestational_age,
             "atlas": [
                 {"volume": volume, "mask": mask, "volume_sha256": file_sha256(volume)}
                 for volume, mask in atlases
