@@ -114,9 +114,10 @@ def test_bad_arguments_are_named(moving_stack) -> None:
         AtlasSliceConfig(levels=0)
 
 
-def test_svr_predict_writes_the_fitted_slices_and_stack_pose(moving_stack, tmp_path) -> None:
-    """``svr predict --model stack-pose --atlas-volume``: the pose table holds each slice's own
-    fitted pose, the JSON the stack pose, their robust mean."""
+@pytest.mark.parametrize("given", ["volume", "folder"])
+def test_svr_predict_writes_the_fitted_slices_and_stack_pose(moving_stack, tmp_path, given) -> None:
+    """``svr predict --model stack-pose --atlas-volume`` (or ``--atlas-dir`` and an age): the
+    pose table holds each slice's own fitted pose, the JSON the stack pose, their robust mean."""
     import svr.cli
     from svr.geometry import vector_to_se3
     from svr.image import Image, save_nifti
@@ -133,6 +134,16 @@ def test_svr_predict_writes_the_fitted_slices_and_stack_pose(moving_stack, tmp_p
     args += ["--stack-masks", str(paths["mask"]), "--output-poses", str(out), "--quiet"]
     args += ["--output-stack-poses", str(stack_out)]
     atlas_args = ["--atlas-volume", str(paths["atlas"]), "--atlas-mask", str(paths["brain"])]
+    if given == "folder":  # the nearest age's atlas: GA28, not GA30's (not a brain: unreadable)
+        for name, source in (("GA28_x", paths), ("GA30_y", None)):
+            (tmp_path / "atlas" / name).mkdir(parents=True)
+            for file, key in (("srr.nii.gz", "atlas"), ("mask.nii.gz", "brain")):
+                target = tmp_path / "atlas" / name / file
+                if source is None:
+                    target.write_text("not a NIfTI")
+                else:
+                    target.write_bytes(source[key].read_bytes())
+        atlas_args = ["--atlas-dir", str(tmp_path / "atlas"), "--gestational-age", "28.6"]
     assert svr.cli.main([*args, *atlas_args]) == 0
     (record,) = json.loads(stack_out.read_text())["stacks"]
     # This atlas is the brain itself, so the fit is kept.

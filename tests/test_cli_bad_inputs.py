@@ -826,6 +826,14 @@ def _cases() -> list[Case]:
     )
     add(
         Case(
+            "predict-atlas-dir-without-age",
+            "predict",
+            ["--atlas-dir", "{atlas_good}"],
+            ["--atlas-dir needs the fetus's --gestational-age"],
+        )
+    )
+    add(
+        Case(
             "reconstruct-atlas-dir-without-age",
             "reconstruct",
             ["--registration", "cnn", "--atlas-dir", "{atlas_good}"],

@@ -13,9 +13,11 @@ from svr.cli.common import (
     CliError,
     HelpFormatter,
     add_common_options,
+    positive_float,
     positive_int,
     resolve_device,
 )
+from svr.cli.reconstruct import check_atlas_options
 from svr.files import check_output_path
 from svr.models.predict import load_any_pose_model
 
@@ -96,6 +98,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "Measured results). The slice thickness is taken to be the slice spacing",
     )
     p.add_argument("--atlas-mask", metavar="NIFTI", help="the atlas's brain mask")
+    p.add_argument(
+        "--atlas-dir",
+        metavar="DIR",
+        help="instead of --atlas-volume: an atlas folder of GA<weeks>*/srr.nii.gz and "
+        "mask.nii.gz (the Fidon 2021 layout); the atlas of the age nearest --gestational-age is "
+        "used (one atlas: a second one either side placed no more stacks within 10 degrees)",
+    )
+    p.add_argument(
+        "--gestational-age",
+        type=positive_float,
+        metavar="WEEKS",
+        help="the fetus's gestational age, for --atlas-dir",
+    )
     p.add_argument("--batch-size", type=positive_int, default=64, help="slices per forward pass")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     add_common_options(p)
@@ -122,13 +137,13 @@ def run(args: argparse.Namespace) -> int:
         if not args.output_stack_poses.endswith(".json"):
             raise CliError(f"--output-stack-poses {args.output_stack_poses}: must end in .json")
         check_output_path(args.output_stack_poses, args.overwrite)
-    if (args.atlas_volume is None) != (args.atlas_mask is None):
-        raise CliError("--atlas-volume and --atlas-mask go together")
+    # One atlas: --atlas-volume, or the age nearest --gestational-age in --atlas-dir (first).
+    atlas_paths = check_atlas_options(args, "none")[:1]
     device = resolve_device(args.device)
     model = load_any_pose_model(args.model, device)
     if isinstance(model, StackPoseNet):
-        return _predict_stacks(args, model)
-    if args.output_stack_poses is not None or args.atlas_volume is not None:
+        return _predict_stacks(args, model, atlas_paths[0] if atlas_paths else None)
+    if args.output_stack_poses is not None or atlas_paths:
         raise CliError(
             "--output-stack-poses and --atlas-volume need a stack-pose model "
             f"(--model {args.model} is a slice-pose model)"
@@ -168,8 +183,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _predict_stacks(args: argparse.Namespace, model) -> int:
-    """``svr predict`` with a stack-pose model: one pose per stack, its slices follow it."""
+def _predict_stacks(
+    args: argparse.Namespace, model, atlas_path: tuple[str, str] | None = None
+) -> int:
+    """``svr predict`` with a stack-pose model: one pose per stack, its slices follow it.
+
+    ``atlas_path``: the ``(volume, mask)`` of the atlas each stack's slices are fitted to, or
+    ``None``.
+    """
     import json
 
     from svr.files import atomic_write_text
@@ -184,9 +205,7 @@ def _predict_stacks(args: argparse.Namespace, model) -> int:
         raise CliError("--input-slices: a stack-pose model poses whole stacks; give --input-stacks")
     if not args.stack_masks:
         raise CliError("a stack-pose model needs --stack-masks (one brain mask per stack)")
-    atlas = None
-    if args.atlas_volume is not None:
-        atlas = load_canonical_volume(args.atlas_volume, args.atlas_mask)
+    atlas = None if atlas_path is None else load_canonical_volume(*atlas_path)
     files, indices, poses, records = [], [], [], []
     for path, mask_path in tqdm(
         list(zip(args.input_stacks, args.stack_masks, strict=True)),

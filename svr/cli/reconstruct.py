@@ -399,7 +399,8 @@ def check_atlas_options(
 
     Args:
         args: The parsed settings (``--atlas-volume``, ``--atlas-mask``, ``--atlas-dir``,
-            ``--gestational-age``, ``--atlas-age-window``, ``--model``).
+            ``--gestational-age``, ``--atlas-age-window`` (default 1 week where the command has
+            none), ``--model``).
         registration: The ``--registration`` in use.
         weeks: The fetus's gestational age where it does not come from ``--gestational-age``.
 
@@ -414,6 +415,9 @@ def check_atlas_options(
     from svr.sampling.volume import VolumeSourceError, atlas_paths_near
 
     volumes, masks = args.atlas_volume, args.atlas_mask
+    # One path where the command takes one atlas (svr predict), a list where it takes several.
+    volumes = [volumes] if isinstance(volumes, str) else volumes
+    masks = [masks] if isinstance(masks, str) else masks
     folder = getattr(args, "atlas_dir", None)
     if (volumes is None) != (masks is None):
         raise CliError("--atlas-volume and --atlas-mask go together")
@@ -436,7 +440,7 @@ def check_atlas_options(
     if weeks is None:
         raise CliError("--atlas-dir needs the fetus's --gestational-age (weeks)")
     try:
-        pairs = atlas_paths_near(folder, weeks, args.atlas_age_window)
+        pairs = atlas_paths_near(folder, weeks, getattr(args, "atlas_age_window", 1.0))
     except VolumeSourceError as error:
         raise CliError(f"--atlas-dir {error}") from None
     return [(str(volume), str(mask)) for volume, mask in pairs]
