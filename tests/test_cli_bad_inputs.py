@@ -834,6 +834,14 @@ def _cases() -> list[Case]:
     )
     add(
         Case(
+            "reconstruct-age-without-atlas-dir",
+            "reconstruct",
+            ["--registration", "cnn", "--gestational-age", "28"],
+            ["--gestational-age chooses atlases from --atlas-dir"],
+        )
+    )
+    add(
+        Case(
             "reconstruct-atlas-dir-without-age",
             "reconstruct",
             ["--registration", "cnn", "--atlas-dir", "{atlas_good}"],

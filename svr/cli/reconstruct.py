@@ -409,8 +409,9 @@ def check_atlas_options(
 
     Raises:
         CliError: If only one of ``--atlas-volume`` and ``--atlas-mask`` is given, their counts
-            differ, ``--atlas-dir`` comes with ``--atlas-volume`` or without an age, the folder
-            holds no atlas, or ``--registration cnn --model none`` comes without an atlas.
+            differ, ``--atlas-dir`` comes with ``--atlas-volume`` or without an age,
+            ``--gestational-age`` without ``--atlas-dir``, the folder holds no atlas, or
+            ``--registration cnn --model none`` comes without an atlas.
     """
     from svr.sampling.volume import VolumeSourceError, atlas_paths_near
 
@@ -428,6 +429,8 @@ def check_atlas_options(
         )
     if volumes is not None and folder is not None:
         raise CliError("give --atlas-volume or --atlas-dir, not both")
+    if getattr(args, "gestational_age", None) is not None and folder is None:
+        raise CliError("--gestational-age chooses atlases from --atlas-dir; give --atlas-dir too")
     if registration == "cnn" and args.model == "none" and volumes is None and folder is None:
         raise CliError(
             "--registration cnn --model none needs --atlas-volume and --atlas-mask (or --atlas-dir)"
