@@ -70,6 +70,8 @@ examples:
       --registration cnn --atlas-volume atlas/GA28/srr.nii.gz --atlas-mask atlas/GA28/mask.nii.gz \\
       --output-volume srr_atlas.nii.gz \\
       --output-transforms slices.csv --output-slices slices/ --output-log srr.log --device cuda
+  svr reconstruct --input-stacks ax.nii.gz cor.nii.gz sag.nii.gz --thicknesses 3 \\
+      --registration cnn --atlas-dir atlas/ --gestational-age 27.5 --output-volume srr_atlas.nii.gz
 """
 
 TABLE_SUFFIXES = (".csv", ".json")
