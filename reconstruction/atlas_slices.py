@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse
-from svr.image import Image, stack_slice_poses
+from svr.image import Image, intensity_scale, stack_slice_poses
 from svr.reconstruction.operators import SliceProjector, VolumeGrid
 from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
 from svr.reconstruction.slices import Stack, extract_slices
@@ -124,8 +124,8 @@ def fit_slices_to_atlas(
         The fit.
 
     Raises:
-        ValueError: If ``mask`` does not match the stack's shape or has no brain voxel, or
-            ``frame`` is not (4, 4), naming the argument.
+        ValueError: If ``mask`` does not match the stack's shape or has no brain voxel,
+            ``frame`` is not (4, 4), or the stack is zero in the brain, naming the argument.
     """
     config = config or AtlasSliceConfig()
     if tuple(mask.shape) != tuple(stack.shape):
@@ -143,7 +143,7 @@ def fit_slices_to_atlas(
     frame = frame.to(torch.float64).cpu()
     affine = stack.affine.to(torch.float64).cpu()
     data = stack.data.cpu().float() * inside
-    scale = float(torch.quantile(data[inside], 0.99)) or 1.0
+    scale = intensity_scale(data[inside], "fit_slices_to_atlas(): 'stack'")
     k_count = stack.shape[2]
     # One uncropped stack: extract_slices pads nothing, so each slice's pose is its k-plane's
     # scanner pose (origin at the plane's centre voxel), as stack_slice_poses gives it.

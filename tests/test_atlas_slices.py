@@ -12,7 +12,7 @@ from test_recon_init import oblique_stack
 
 from svr.errors import ConfigFieldError
 from svr.geometry import rotation_angle, se3_compose, so3_exp
-from svr.image import stack_slice_poses
+from svr.image import Image, stack_slice_poses
 from svr.reconstruction.atlas_slices import AtlasSliceConfig, fit_slices_to_atlas
 from svr.sampling.blocks import stack_frame, stack_pose_from_slices
 from svr.sampling.volume import canonicalize
@@ -108,6 +108,9 @@ def test_bad_arguments_are_named(moving_stack) -> None:
         fit_slices_to_atlas(stack.image, torch.zeros_like(mask), eye, atlas)
     with pytest.raises(ValueError, match="'frame' must be"):
         fit_slices_to_atlas(stack.image, mask, eye[:3], atlas)
+    blank = Image(torch.zeros(stack.image.shape), stack.image.affine)
+    with pytest.raises(ValueError, match=r"'stack': the 99th percentile .* expected a positive"):
+        fit_slices_to_atlas(blank, mask, eye, atlas)
     with pytest.raises(ConfigFieldError, match="min_ncc"):
         AtlasSliceConfig(min_ncc=1.5)
     with pytest.raises(ConfigFieldError, match="levels"):
@@ -120,7 +123,7 @@ def test_svr_predict_writes_the_fitted_slices_and_stack_pose(moving_stack, tmp_p
     pose table holds each slice's own fitted pose, the JSON the stack pose, their robust mean."""
     import svr.cli
     from svr.geometry import vector_to_se3
-    from svr.image import Image, save_nifti
+    from svr.image import save_nifti
     from svr.pose_io import read_pose_table
 
     stack, _truth, atlas = moving_stack

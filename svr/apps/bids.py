@@ -197,44 +197,39 @@ def participant_age(
             positive number.
     """
     root = Path(bids_dir)
-    tables = []
+    subject = f"sub-{participant.subject}"
+    path, key, wanted = root / "participants.tsv", "participant_id", subject
     if participant.session:
-        tables.append(
-            (
-                root / f"sub-{participant.subject}" / f"sub-{participant.subject}_sessions.tsv",
-                "session_id",
-                f"ses-{participant.session}",
-            )
-        )
-    tables.append((root / "participants.tsv", "participant_id", f"sub-{participant.subject}"))
-    for number, (path, key, wanted) in enumerate(tables):
-        last = number == len(tables) - 1
-        if not path.is_file():
-            if last:
-                raise BidsError(f"{path}: no such file (--age-column {column} is read from it)")
-            continue
-        with path.open(newline="", encoding="utf-8") as file:
-            rows = list(csv.DictReader(file, delimiter="\t"))
-        header = rows[0].keys() if rows else ()
-        if column not in header or key not in header:
-            if last:
-                missing = column if column not in header else key
-                raise BidsError(f"{path}: no column {missing!r} (--age-column {column})")
-            continue
-        row = next((r for r in rows if r[key] == wanted), None)
-        if row is None:
-            raise BidsError(f"{path}: no row for {wanted}")
-        text = (row[column] or "").strip()
-        try:
-            weeks = float(text)
-        except ValueError:
-            weeks = math.nan
-        if not (math.isfinite(weeks) and weeks > 0):
-            raise BidsError(
-                f"{path}: {wanted}'s {column} is {text!r}, not a gestational age in weeks"
-            )
-        return weeks
-    raise AssertionError("unreachable")  # pragma: no cover
+        sessions = root / subject / f"{subject}_sessions.tsv"
+        if column in _tsv(sessions)[0]:
+            path, key, wanted = sessions, "session_id", f"ses-{participant.session}"
+    if not path.is_file():
+        raise BidsError(f"{path}: no such file (--age-column {column} is read from it)")
+    header, rows = _tsv(path)
+    for name in (column, key):
+        if name not in header:
+            raise BidsError(f"{path}: no column {name!r} (--age-column {column})")
+    row = next((r for r in rows if r[key] == wanted), None)
+    if row is None:
+        raise BidsError(f"{path}: no row for {wanted}")
+    text = (row[column] or "").strip()
+    try:
+        weeks = float(text)
+    except ValueError:
+        weeks = math.nan
+    if not (math.isfinite(weeks) and weeks > 0):
+        raise BidsError(f"{path}: {wanted}'s {column} is {text!r}, not a gestational age in weeks")
+    return weeks
+
+
+def _tsv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    """A TSV file's column names and rows; none of either where the file does not exist."""
+    if not path.is_file():
+        return [], []
+    with path.open(newline="", encoding="utf-8") as file:
+        reader = csv.DictReader(file, delimiter="\t")
+        rows = list(reader)
+        return list(reader.fieldnames or []), rows
 
 
 def find_participants(
