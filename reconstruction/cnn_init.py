@@ -719,9 +719,7 @@ def stack_pose_initialisation(
             estimate_stack_pose(model, stack.image, mask, atlas=item, levels=level, restart_deg=0.0)
             for item, level in zip(per_stack, levels, strict=True)
         ]
-        estimate = per_atlas[
-            preferred_atlas([e.score for e in per_atlas]) if len(per_atlas) > 1 else 0
-        ]
+        estimate = per_atlas[preferred_atlas([e.score for e in per_atlas])]
         frames.append(estimate.frame)
         scores.append(float(estimate.score))
         head = f"{estimate.method}, score {estimate.score:.2f}"
