@@ -39,8 +39,8 @@ from bench_common import ATLAS, SHARED, case_age, neighbour_atlas, true_frame_co
 
 from svr.geometry import rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, load_nifti
-from svr.models.stack_pose import AtlasFitConfig, atlas_levels, fit_to_atlas
-from svr.reconstruction.atlas_frame import COARSE_FIT, KEEP_MARGIN, atlas_starts, atlas_transform
+from svr.reconstruction.atlas_fit import KEEP_MARGIN, AtlasFitConfig, atlas_levels, fit_to_atlas
+from svr.reconstruction.atlas_frame import COARSE_FIT, atlas_starts, atlas_transform
 from svr.sampling.volume import CanonicalVolume, atlas_volume_paths, load_canonical_volume
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -32,14 +32,9 @@ from bench_common import SHARED, load_case_stacks, true_slice_poses
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector
 from svr.geometry.averaging import robust_mean_pose
 from svr.metrics import rotation_error_rad, translation_error_mm
+from svr.reconstruction.acquisition import acquisition_model
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.pipeline import (
-    acquisition_model,
-    initial_volume,
-    reject_outliers,
-    super_resolve,
-    svr_pass,
-)
+from svr.reconstruction.rounds import initial_volume, reject_outliers, super_resolve, svr_pass
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from svr.reconstruction.superres import output_grid
 
@@ -86,7 +81,7 @@ def run(
     """Rounds of (one-by-one SVR, outlier weights, super-resolution) from the true poses."""
     config = ReconstructionConfig(schedule="fixed")
     poses = array_poses(slices, truth).to(slices.poses)
-    model = acquisition_model(slices, output_grid(slices, config.output_resolution_mm), band)
+    model = acquisition_model(slices, output_grid(slices, config.grid.resolution_mm), band)
     points, b_points = model.points(poses), model.background_points(poses)
     volume = initial_volume(model, points)
     outliers = reject_outliers(model, volume, points, config, background_points=b_points)

@@ -85,7 +85,9 @@ def main() -> int:
     stacks = load_case_stacks(case)
     config = ReconstructionConfig(schedule=args.schedule)
     slices = extract_slices(stacks)
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    registered, _ = stack_registration(
+        slices, config.initialisation_grid_mm, config.initialisation.template
+    )
     with tempfile.TemporaryDirectory() as tmp:
         scores = {}
         for name, poses, frame in (

@@ -9,9 +9,9 @@ this measures, in one run, the per-slice pose errors of
 * the final poses of ``reconstruct`` with ``--registration stack`` and ``cnn``;
 * ``--registration cnn`` with oracle models: every prediction is the true canonical pose moved
   by a rigid error of a set size (a random axis and direction), passed through the same learned
-  initialisation (:func:`svr.reconstruction.cnn_init.learned_initialisation`) and reconstruction.
-  They show how accurate a model must be for the learned initialisation to beat the classical
-  one.
+  initialisation (:func:`svr.reconstruction.initialisation.slice_model.consensus_start`) and
+  reconstruction. They show how accurate a model must be for the learned initialisation to beat the
+  classical one.
 
 and scores every reconstructed volume with ``../shared/tools/score_recon.py`` (canonical-frame
 volumes also after placing them in the scanner frame with the case's true atlas -> scanner
@@ -45,10 +45,15 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, save_nifti
 from svr.metrics import rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, learned_initialisation
-from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation.slice_model import (
+    consensus_start,
+    learned_consensus,
+    slice_predictions,
+)
 from svr.reconstruction.pipeline import reconstruct
 from svr.reconstruction.registration import stack_registration
+from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.sampling.volume import load_canonical_volume
 
@@ -170,20 +175,25 @@ def bench_case(
     config = ReconstructionConfig()
     rows = []
 
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    registered, _ = stack_registration(
+        slices, config.initialisation_grid_mm, config.initialisation.template
+    )
     rows.append(
         row(
             "classical init (stack registration), relative",
             *errors(plane_poses(slices, registered), scanner_truth, align=True),
         )
     )
-    learned = cnn_slice_poses(model, stacks, slices)
+    learned = slice_predictions(model, stacks, slices)
     for label, poses in (
         ("per-slice predictions", learned.predicted_poses),
         ("per-stack consensus", learned.consensus_poses),
         (
             "refined per slice",
-            learned.refined_poses(config.cnn_max_deviation_deg, config.cnn_max_deviation_mm),
+            learned.refined_poses(
+                config.initialisation.slice_max_deviation_deg,
+                config.initialisation.slice_max_deviation_mm,
+            ),
         ),
     ):
         planes = plane_poses(slices, poses)
@@ -216,7 +226,7 @@ def bench_case(
         # through the same learned initialisation (consensus, per-stack NCC choice) as the CNN.
         predicted = perturbed(canonical_truth, degrees, generator)
         oracle = learned_consensus(slices, array_poses(slices, predicted))
-        start, kept, _ = learned_initialisation(slices, oracle, config)
+        start, kept, _ = consensus_start(slices, oracle, config)
         result = reconstruct(
             stacks,
             config,

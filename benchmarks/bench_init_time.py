@@ -1,10 +1,10 @@
 """Time of the learned initialisation against stack registration alone, on the bench cases.
 
-``stack_pose_initialisation`` (each stack and each of its interleaved packets placed by the
+``learned_start`` (each stack and each of its interleaved packets placed by the
 stack-pose model, with or without the atlas fit; stack registration from the three starts; the
 per-stack NCC choice against the other stacks) against
 ``stack_registration`` alone, and the per-stack estimates by themselves; the figure the issue
-bounds is the time added per stack. Since 2026-11-27 ``stack_pose_initialisation`` with a model
+bounds is the time added per stack. Since 2026-11-27 ``learned_start`` with a model
 no longer fits each stack to the atlas (the atlas only sets the output frame), so its
 "model + atlas" row times the same work as "model"; the per-stack estimate's "model + atlas" row
 still times the fit (what ``svr predict --atlas-volume`` does). The "--packets 1" row leaves the
@@ -29,14 +29,11 @@ from pathlib import Path
 import torch
 from bench_common import SHARED, case_age, load_case_stacks, neighbour_atlas
 
-from svr.models.stack_pose import (
-    StackPoseNet,
-    atlas_levels,
-    estimate_stack_pose,
-    load_stack_pose_model,
-)
-from svr.reconstruction.cnn_init import stack_pose_initialisation
+from svr.models.stack_pose import StackPoseNet, load_stack_pose_model
+from svr.reconstruction.atlas_fit import atlas_levels
 from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation.learned import learned_start
+from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import extract_slices
 from svr.sampling.volume import CanonicalVolume, load_canonical_volume
@@ -80,16 +77,16 @@ def main() -> int:
         slices = extract_slices(stacks)
         atlas = load_canonical_volume(*neighbour_atlas(case_age(case)))
         config = ReconstructionConfig(registration="cnn")
-        registration = timed(args.repeats, stack_registration, slices, config.output_resolution_mm)
+        registration = timed(
+            args.repeats, stack_registration, slices, config.initialisation_grid_mm
+        )
         variants = (
             ("model", None, config),
             ("model + atlas", atlas, config),
             ("model, --packets 1", None, dataclasses.replace(config, packets=1)),
         )
         for label, with_atlas, settings in variants:
-            full = timed(
-                args.repeats, stack_pose_initialisation, slices, stacks, model, settings, with_atlas
-            )
+            full = timed(args.repeats, learned_start, slices, stacks, model, settings, with_atlas)
             alone = timed(args.repeats, estimates, model, stacks, with_atlas) / len(stacks)
             added = (full - registration) / len(stacks)
             rows.append(

@@ -31,7 +31,7 @@ Methods, each giving one scanner -> canonical frame per stack:
   pose the robust mean of its slices' packet frames;
 * ``learned+atlas slices``: the learned frame, then each slice registered on its own to the atlas,
   the stack's pose the robust mean of its slices', kept where the slices match the atlas
-  (:func:`svr.reconstruction.atlas_slices.fit_slices_to_atlas`; what ``svr predict
+  (:func:`svr.reconstruction.initialisation.atlas_slices.fit_slices_to_atlas`; what ``svr predict
   --atlas-volume`` does with a model).
 
 Errors: the rotation angle between the estimated and the true stack pose (the robust mean of the
@@ -75,15 +75,15 @@ from bench_common import ATLAS, MOTION, SHARED, neighbour_atlas, true_slice_pose
 from svr.geometry import half_turns, rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import load_nifti, voxel_to_world
-from svr.models.stack_pose import (
-    atlas_agreement,
+from svr.models.stack_pose import load_stack_pose_model
+from svr.reconstruction.atlas_fit import atlas_agreement
+from svr.reconstruction.initialisation.atlas_slices import fit_slices_to_atlas
+from svr.reconstruction.initialisation.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
-    load_stack_pose_model,
     mask_axis_hypotheses,
-    refine_frames,
+    refine_transforms,
 )
-from svr.reconstruction.atlas_slices import fit_slices_to_atlas
 from svr.sampling.blocks import (
     coarsen_stack,
     implied_stack_poses,
@@ -405,7 +405,7 @@ def main() -> int:
             subsets["packet"] = packet
             subsets["all"] = torch.ones(count, dtype=torch.bool)
             for label, present in subsets.items():
-                frames, _ = refine_frames(
+                frames, _ = refine_transforms(
                     model, image, fractions, start[None], args.iterations, present
                 )
                 pose = se3_compose(frames[0], stack_frame(item["image"]))

@@ -6,7 +6,7 @@ slice starts at its stack's pose. Then:
 
 * ``learned packets``: each interleaved packet of each stack (slices ``k = j, j + m, ...`` of the
   file, ``m = --packets``) is refined on its own by the stack-pose network from its stack's pose
-  (:func:`svr.models.stack_pose.refine_frames` on the packet's slices only), and its slices take
+  (:func:`svr.models.stack_pose.refine_transforms` on the packet's slices only), and its slices take
   the packet's pose;
 * ``classical``: nothing more before reconstruction: the slice-to-volume registration rounds of
   ``reconstruct`` (adaptive schedule) start from the stacks' poses.
@@ -51,8 +51,9 @@ from bench_common import (
 from svr.geometry import se3_compose, se3_inverse, vector_to_se3
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import save_nifti
-from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
+from svr.models.stack_pose import load_stack_pose_model
 from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose, refine_transforms
 from svr.reconstruction.pipeline import reconstruct
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices
 from svr.sampling.blocks import coarsen_stack
@@ -188,7 +189,7 @@ def main() -> int:
             slice_k = slices.slice_indices.cpu()
             for j in range(args.packets):
                 present = file_k % args.packets == j
-                frames, _ = refine_frames(
+                frames, _ = refine_transforms(
                     model, image, fractions, estimate.frame[None], args.iterations, present
                 )
                 chosen = members & (slice_k % args.packets == j)

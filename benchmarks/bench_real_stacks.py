@@ -136,7 +136,8 @@ def measure(
 ) -> tuple[list[str], dict[str, float]]:
     """The table rows of one model on one scan and its summary."""
     from svr.geometry import half_turns, rotation_angle, se3_compose
-    from svr.models.stack_pose import estimate_stack_pose, load_stack_pose_model, refine_frames
+    from svr.models.stack_pose import load_stack_pose_model
+    from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose, refine_transforms
     from svr.reconstruction.stacks import load_stacks
     from svr.sampling.blocks import coarsen_stack
 
@@ -153,7 +154,7 @@ def measure(
         angle = math.degrees(rotation_angle(estimate.frame, true))
         image, fractions = coarsen_stack(stack.image, mask, net.config.in_plane_mm)
         starts = torch.cat([true[None], se3_compose(twins, true.expand(3, 4, 4))])
-        _, scores = refine_frames(net, image, fractions, starts)
+        _, scores = refine_transforms(net, image, fractions, starts)
         margin = float(scores[0] - scores[1:].max())
         angles.append(angle)
         margins.append(margin)

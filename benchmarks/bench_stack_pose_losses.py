@@ -22,8 +22,8 @@ trained on) and the bench cases, two ways:
 
 Beside them, the single-slice route (``--slice-model``, default the shipped slice-pose model):
 every slice's canonical pose predicted on its own, then the stack's robust consensus with the
-mirror-twin disambiguation (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`), as
-``estimate`` only.
+mirror-twin disambiguation
+(:func:`svr.reconstruction.initialisation.slice_model.slice_predictions`), as ``estimate`` only.
 
 Paired comparison per stack against ``se3``: the Wilcoxon signed-rank test on the rotation errors
 (two-sided p) and the share of stacks where the baseline is worse.
@@ -52,14 +52,10 @@ from scipy.stats import wilcoxon
 from svr.geometry import se3_compose, se3_inverse, so3_exp
 from svr.image import Image
 from svr.models.predict import load_pose_model
-from svr.models.stack_pose import (
-    StackPoseConfig,
-    estimate_stack_pose,
-    load_stack_pose_model,
-    refine_frames,
-)
+from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
 from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
-from svr.reconstruction.cnn_init import cnn_slice_poses
+from svr.reconstruction.initialisation.slice_model import slice_predictions
+from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose, refine_transforms
 from svr.reconstruction.slices import extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 from svr.representation_registry import representations_by_cli_name
@@ -148,7 +144,7 @@ def main() -> int:
         for loss, model in models.items():
             estimate = estimate_stack_pose(model, item["image"], item["mask"])
             image, fractions = coarsen_stack(item["image"], item["mask"], model.config.in_plane_mm)
-            local, _ = refine_frames(model, image, fractions, start[None])
+            local, _ = refine_transforms(model, image, fractions, start[None])
             for kind, frame in (("estimate", estimate.frame), ("local", local[0])):
                 pose = se3_compose(frame, frame_of)
                 errors[loss][kind].append(rotation_deg(pose, item["pose"]))
@@ -158,7 +154,7 @@ def main() -> int:
             prepared = prepare_stacks(
                 [item["image"]], [Image(item["mask"].float(), item["image"].affine)]
             )
-            learned = cnn_slice_poses(slice_model, prepared, extract_slices(prepared))
+            learned = slice_predictions(slice_model, prepared, extract_slices(prepared))
             pose = se3_compose(learned.stack_transforms[0].double().cpu(), frame_of)
             errors["slice model"]["estimate"].append(rotation_deg(pose, item["pose"]))
             errors["slice model"]["estimate_mm"].append(

@@ -5,10 +5,11 @@ that the model did not see, with real fetal motion trajectories, orthogonal and 
 and several motion levels) this measures, in one run:
 
 * **per-stack orientation error**: the angle (and translation) between each stack's learned
-  scanner -> canonical transform (:func:`svr.reconstruction.cnn_init.cnn_slice_poses`) and the true
-  one (the robust mean over the stack's slices of ``true canonical pose o nominal scanner
-  pose^-1``), with the stack-order disambiguation of mirror twins (the model's planes) and
-  without it (no planes: the plain robust consensus), and how many slices each stack flipped;
+  scanner -> canonical transform
+  (:func:`svr.reconstruction.initialisation.slice_model.slice_predictions`) and the true one (the
+  robust mean over the stack's slices of ``true canonical pose o nominal scanner pose^-1``), with
+  the stack-order disambiguation of mirror twins (the model's planes) and without it (no planes: the
+  plain robust consensus), and how many slices each stack flipped;
 * **per-slice errors** of the raw predictions, raw and up to the mirror twin;
 * with ``--reconstruct``: ``svr reconstruct``'s ``--registration stack`` and ``cnn`` on every case,
   scored by ``../shared/tools/score_recon.py`` (which finds volumes in the atlas orientation), the
@@ -48,7 +49,7 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.image import save_nifti
 from svr.metrics import nearest_orbit_member, rotation_error_rad, translation_error_mm
 from svr.models.predict import load_pose_model
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus
+from svr.reconstruction.initialisation.slice_model import learned_consensus, slice_predictions
 from svr.reconstruction.slices import SliceSet, extract_slices, plane_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -100,7 +101,7 @@ def stack_rows(case: Path, model, planes_off: bool) -> tuple[list[dict], dict]:
     slices = extract_slices(stacks)
     canonical_truth, _ = case_truth(case, slices)
     nominal = plane_poses(slices, slices.scanner_poses)
-    learned = cnn_slice_poses(model, stacks, slices)
+    learned = slice_predictions(model, stacks, slices)
     variants = {"disambiguated": learned}
     if planes_off:
         variants["no twin logic"] = learned_consensus(slices, learned.raw_predicted_poses)

@@ -6,6 +6,14 @@ Runs (CPU, one thread each, fixed seeds), on the bench case sb24-large and the r
 * ``recon-auto``: the same with automatic (network) masks;
 * ``recon-cnn-fused``: ``--registration cnn`` (the shipped stack-pose model) with automatic
   masks fused across the stacks;
+* ``recon-none``: ``--registration none`` with the case's masks;
+* ``recon-fixed``: ``--registration stack --schedule fixed`` with the case's masks;
+* ``recon-cnn-atlas``: ``--registration cnn`` with the case's masks and the GA 23 and 25 atlases
+  (the output frame fitted to an atlas);
+* ``recon-cnn-slice``: ``--registration cnn --model default`` (the shipped slice-pose model);
+* ``recon-cnn-classical``: ``--registration cnn --model none`` with the GA 24 atlas (no network);
+* ``register``: ``svr register --registration cnn`` (poses only, one round);
+* ``bids``: ``svr bids`` on the real scan laid out as a BIDS dataset, automatic masks;
 * ``segment``: ``svr segment-stack`` on sb24-large (each stack alone);
 * ``segment-fused-real``: ``svr segment-stack --fuse-masks`` on the real scan's 6 stacks;
 * ``otsu``: the Otsu automatic masks of sb24-large, prepared (library).
@@ -33,18 +41,21 @@ import time
 from pathlib import Path
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+ATLAS = SHARED / "atlas" / "sb-fidon2021"
 CASE = SHARED / "bench" / "sb24-large"
 REAL = SHARED / "stacks" / "real-mialsrtk-sub01"
 FAST = ["--output-resolution", "1.5", "--iterations", "2", "--device", "cpu", "--quiet"]
 
 
-def _svr(args: list[str]) -> float:
+def _svr(args: list[str], cpus: str | None = None) -> float:
     for option in ("--output-volume", "--output-stack-masks"):
         if option in args:
             Path(args[args.index(option) + 1]).parent.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     began = time.time()
-    subprocess.run([sys.executable, "-m", "svr", *args], check=True, env=env)
+    # svr bids gives each participant the CPUs it may use: one CPU, one thread, as the others.
+    pin = ["taskset", "-c", cpus] if cpus is not None else []
+    subprocess.run([*pin, sys.executable, "-m", "svr", *args], check=True, env=env)
     return time.time() - began
 
 
@@ -61,8 +72,9 @@ def _hash_nifti(path: Path) -> dict[str, str]:
     }
 
 
-def _hash_text(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+def _hash_text(path: Path, drop: str | None = None) -> str:
+    text = path.read_text()
+    return hashlib.sha256((text if drop is None else text.replace(drop, "")).encode()).hexdigest()
 
 
 def run(out: Path, reuse: bool = False) -> None:
@@ -78,16 +90,37 @@ def run(out: Path, reuse: bool = False) -> None:
     masks = [str(CASE / "masks" / f"stack{n}_mask.nii.gz") for n in range(4)]
     hashes: dict[str, dict] = {}
     seconds: dict[str, float] = {}
+    given = ["--stack-masks", *masks]
+
+    def atlas(*ages: int) -> list[str]:
+        dirs = [next(ATLAS.glob(f"GA{age}_*")) for age in ages]
+        return [
+            "--atlas-volume", *(str(d / "srr.nii.gz") for d in dirs),
+            "--atlas-mask", *(str(d / "mask.nii.gz") for d in dirs),
+        ]  # fmt: skip
+
     recon = {
-        "recon-given": ["--stack-masks", *masks, "--registration", "stack"],
-        "recon-auto": ["--registration", "stack"],
-        "recon-cnn-fused": ["--registration", "cnn", "--fuse-masks"],
+        "recon-given": ("reconstruct", [*given, "--registration", "stack"]),
+        "recon-auto": ("reconstruct", ["--registration", "stack"]),
+        "recon-cnn-fused": ("reconstruct", ["--registration", "cnn", "--fuse-masks"]),
+        "recon-none": ("reconstruct", [*given, "--registration", "none"]),
+        "recon-fixed": ("reconstruct", [*given, "--registration", "stack", "--schedule", "fixed"]),
+        "recon-cnn-atlas": ("reconstruct", [*given, "--registration", "cnn", *atlas(23, 25)]),
+        "recon-cnn-slice": ("reconstruct", [*given, "--registration", "cnn", "--model", "default"]),
+        "recon-cnn-classical": (
+            "reconstruct",
+            [*given, "--registration", "cnn", "--model", "none", *atlas(24)],
+        ),
+        "register": ("register", [*given, "--registration", "cnn"]),
     }
-    for name, extra in recon.items():
+    for name, (command, extra) in recon.items():
         folder = out / name
-        seconds[name] = math.nan if reuse and folder.is_dir() else _svr(
+        folder.mkdir(parents=True, exist_ok=True)
+        # svr register keeps its own default of one round.
+        fast = FAST if command == "reconstruct" else ["--output-resolution", "1.5", *FAST[4:]]
+        seconds[name] = math.nan if reuse and (folder / "transforms.csv").exists() else _svr(
             [
-                "reconstruct", "--input-stacks", *stacks, "--thicknesses", "3", *extra, *FAST,
+                command, "--input-stacks", *stacks, "--thicknesses", "3", *extra, *fast,
                 "--output-volume", str(folder / "volume.nii.gz"),
                 "--output-transforms", str(folder / "transforms.csv"), "--overwrite",
             ]
@@ -96,6 +129,18 @@ def run(out: Path, reuse: bool = False) -> None:
             "volume": _hash_nifti(folder / "volume.nii.gz"),
             "transforms": _hash_text(folder / "transforms.csv"),
         }
+    folder = out / "bids"
+    if not (reuse and folder.is_dir()):
+        seconds["bids"] = _bids(folder)
+    else:
+        seconds["bids"] = math.nan
+    anat = folder / "derivatives" / "sub-01" / "anat"
+    hashes["bids"] = {
+        "volume": _hash_nifti(anat / "sub-01_rec-svr_T2w.nii.gz"),
+        "mask": _hash_nifti(anat / "sub-01_rec-svr_desc-brain_mask.nii.gz"),
+        # The table names each stack by its path, which holds the run's folder.
+        "transforms": _hash_text(anat / "sub-01_rec-svr_transforms.csv", str(folder.resolve())),
+    }
     real = sorted(str(p) for p in REAL.glob("sub-01_run-*_T2w.nii.gz"))
     for name, inputs, extra in (
         ("segment", stacks, []),
@@ -115,6 +160,30 @@ def run(out: Path, reuse: bool = False) -> None:
     seconds["otsu"] = time.time() - began
     (out / "hashes.json").write_text(json.dumps({"hashes": hashes, "seconds": seconds}, indent=1))
     print(f"wrote {out / 'hashes.json'}")
+
+
+def _bids(folder: Path) -> float:
+    """``svr bids`` on the real scan as a BIDS dataset (automatic masks); returns its seconds."""
+    import shutil
+
+    if folder.exists():
+        shutil.rmtree(folder)
+    anat = folder / "input" / "sub-01" / "anat"
+    anat.mkdir(parents=True)
+    (folder / "input" / "dataset_description.json").write_text(
+        json.dumps({"Name": "real scan", "BIDSVersion": "1.9.0"})
+    )
+    for run in range(1, 7):
+        for suffix in (".nii.gz", ".json"):
+            name = f"sub-01_run-{run}_T2w{suffix}"
+            shutil.copy(REAL / name, anat / name)
+    return _svr(
+        [
+            "bids", str(folder / "input"), str(folder / "derivatives"), "participant",
+            "--registration", "stack", *FAST,
+        ],
+        cpus="0",
+    )  # fmt: skip
 
 
 def _otsu_hashes(paths: list[str]) -> dict[str, str]:

@@ -83,12 +83,13 @@ from svr.files import atomic_write_bytes, atomic_write_text, check_output_path
 from svr.geometry import vector_to_se3
 from svr.image import Image, load_nifti
 from svr.pose_io import read_pose_table
+from svr.reconstruction.acquisition import acquisition_model
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.operators import VolumeGrid
 from svr.reconstruction.outputs import slice_affines
-from svr.reconstruction.pipeline import acquisition_model, svr_pass
 from svr.reconstruction.qa import orthogonal_planes
 from svr.reconstruction.registration import slice_ncc
+from svr.reconstruction.rounds import svr_pass
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices, plane_poses
 from svr.reconstruction.stacks import load_stacks
 

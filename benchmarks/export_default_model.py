@@ -326,7 +326,7 @@ def model_card(
         f"\n- Trained up to the mirror twin about "
         f"{symmetry_words(model.get('symmetry_planes', []))}: a prediction stands for the pose or "
         "its mirror twin, and a stack's slice order decides which "
-        "(`svr.reconstruction.cnn_init.disambiguate_stack`).\n"
+        "(`svr.reconstruction.initialisation.slice_model.disambiguate_stack`).\n"
         f"- Input: {model['input_size'][0]}×{model['input_size'][1]} slices at "
         f"{model['spacing_mm']:g} mm, masked, divided by the in-mask 99th percentile "
         f"(`svr.models.predict` prepares stacks this way).\n"

@@ -15,7 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
-from svr.models.checkpoint import CHECKPOINT_CONFIG, latest_checkpoint, load_checkpoint
+from svr.models.checkpoint import CheckpointError, load_checkpoint, resolve_model_path
 from svr.models.pretrained.export import export_stack_pose_model
 
 CARD = """# Shipped stack-pose model (`--registration cnn --model stack-pose`)
@@ -109,12 +109,10 @@ def main() -> int:
     )
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args()
-    source = args.checkpoint
-    if not (source / CHECKPOINT_CONFIG).exists():
-        newest = latest_checkpoint(source)
-        if newest is None:
-            parser.error(f"{source}: no checkpoint")
-        source = newest
+    try:
+        source = resolve_model_path(args.checkpoint)
+    except CheckpointError as err:
+        parser.error(str(err))
     checkpoint = load_checkpoint(source, with_training_state=True)
     config = checkpoint.config
     assert checkpoint.training_state is not None

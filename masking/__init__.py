@@ -23,6 +23,8 @@ Homes:
 * :mod:`svr.masking.otsu`: the Otsu mask, for stacks cropped around the brain;
 * :mod:`svr.masking.fuse`: the masks of one fetus's stacks made to agree in 3D;
 * :mod:`svr.masking.train`: training the networks on simulated scenes.
+* :mod:`svr.masking.recipe`: a training run of both networks, and the model folder it makes
+  (``svr train-brain-mask``).
 
 The stage sits above stack preparation and registration (:mod:`svr.reconstruction`), which the
 fusion uses, and below the command line; nothing in :mod:`svr.reconstruction` imports it.

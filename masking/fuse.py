@@ -33,7 +33,7 @@ On the real clinical scan (6 whole-uterus stacks) fusion with soft votes raises 
 masks' Dice against the manual ones from 0.868-0.900 to 0.908-0.919 (recall 0.884-0.906, against
 0.864-0.896 with votes of the masks); on cropped stacks with large motion (bench case sb24-large)
 it costs 0.01 (0.928-0.959 from 0.939-0.967), the rigid stack registration leaving the slices
-misaligned (``benchmarks/results/brain-masks.md``).
+misaligned.
 """
 
 from __future__ import annotations
@@ -47,6 +47,7 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
+from svr.frames import Frame
 from svr.geometry import se3_compose, se3_inverse
 from svr.image import Image, stack_slice_poses
 from svr.masking.config import MaskFusionConfig
@@ -151,7 +152,7 @@ def _plane_set(
     masks: Sequence[np.ndarray],
     thicknesses: Sequence[float],
     poses: Sequence[Tensor],
-    frame: str,
+    frame: Frame,
     footprint_mm: float,
     values: Sequence[np.ndarray] | None = None,
 ) -> SliceSet:
@@ -473,7 +474,7 @@ def fuse_stack_masks(
         names=names,
     )
     slices = extract_slices(prepared).to(device)
-    poses, template = stack_registration(slices, cfg.registration_mm)
+    poses, template = stack_registration(slices, 2 * cfg.registration_mm)
     log.info("mask fusion: stacks registered to %s", names[template])
     widths = [stack.thickness_mm for stack in prepared]
     return fuse_masks(

@@ -205,5 +205,5 @@ def segment_stack(
             f"{100 * fraction:.0f} % of the stack, expected at most {cfg.max_volume_ml:g} ml and "
             f"{100 * cfg.max_stack_fraction:g} %); pass a mask with --stack-masks"
         )
-    log.info("%s: automatic brain mask of %.1f ml", name, volume_ml)
+    log.info("%s: automatic brain mask (network), %.1f ml", name, volume_ml)
     return MaskResult(torch.from_numpy(mask), probability, centre, volume_ml)

@@ -81,7 +81,6 @@ def auto_masks(
         brains, probabilities = [], []
         for image, name in zip(images, names, strict=True):
             result = segment_stack(image, networks, name=name, device=device)
-            log.info("%s: automatic brain mask (network), %.0f ml", name, result.volume_ml)
             brains.append(result.mask)
             probabilities.append(result.probability)
         if config.fuse:

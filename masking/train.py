@@ -18,7 +18,8 @@ slices are resampled onto the canvases that :func:`svr.masking.segment.segment_s
 
 :func:`make_examples` builds them, :func:`train_network` fits one U-Net (soft Dice + binary cross
 entropy, Adam, random flips, gamma, contrast and optional random intensity maps), checkpointing
-and resuming, and ``benchmarks/train_brain_masker.py`` runs both stages and writes the model.
+and resuming (:mod:`svr.models.resume`), and ``svr train-brain-mask`` runs both stages and writes
+the model.
 """
 
 from __future__ import annotations
@@ -165,8 +166,8 @@ _TIGHT_HEAD: dict[str, Any] = {
 
 # ``thick_skulls``: a variant testing whether the grey band the clinical scan's manual masks hold
 # (skull and scalp blurred together by thick slices) is a thick, grey skull inside the mask with
-# fluid close outside. Measured worse on the real scan (Dice 0.775-0.857: the masks shrank;
-# benchmarks/results/brain-masks-variants.md, session 6); kept to reproduce that figure.
+# fluid close outside. Measured worse on the real scan (Dice 0.775-0.857: the masks shrank); kept
+# to reproduce that measurement.
 _THICK_SKULL: dict[str, Any] = {
     "skull_mm": (2.0, 5.0),
     "skull_intensity": (0.1, 0.7),
@@ -434,8 +435,12 @@ def train_network(
     config: BrainMaskTrainingConfig,
     folder: str | Path | None = None,
     progress: bool = False,
+    device: str | torch.device = "cpu",
 ) -> BrainUNet:
     """Fit a :class:`BrainUNet` to examples, checkpointing into ``folder`` and resuming from it.
+
+    The batches are drawn and augmented on the CPU (the same stream on any device), then moved
+    to ``device``.
 
     Args:
         examples: The canvases and targets (:func:`make_examples`).
@@ -444,16 +449,17 @@ def train_network(
         folder: Where ``step_NNNNNNNNN`` checkpoints go (the newest is resumed); ``None`` for
             no checkpoints.
         progress: Log the loss every checkpoint interval.
+        device: Where the network trains.
 
     Returns:
         The trained network (eval mode).
     """
     torch.manual_seed(config.seed)
     generator = torch.Generator().manual_seed(config.seed)
-    net = BrainUNet(net_config)
+    net = BrainUNet(net_config).to(device)
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     schedule = cosine_schedule(optimiser, config.steps)
-    start = resume_training(folder, net, optimiser, schedule, generator)
+    start = resume_training(folder, net, optimiser, schedule, generator, device)
     net.train()
     n = examples.inputs.shape[0]
     running, began = 0.0, time.time()
@@ -470,7 +476,8 @@ def train_network(
         # so 2D runs keep their random stream)
         if x.shape[1] > 1 and float(torch.rand(1, generator=generator)) < 0.5:
             x = x.flip(1)
-        loss = dice_bce_loss(net(_augment(x, generator, config.intensity_curves)), y)
+        x = _augment(x, generator, config.intensity_curves)
+        loss = dice_bce_loss(net(x.to(device)), y.to(device))
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

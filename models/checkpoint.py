@@ -225,8 +225,9 @@ def latest_checkpoint(folder: str | os.PathLike[str]) -> Path | None:
 def resolve_model_path(path_or_name: str | os.PathLike[str]) -> Path:
     """The checkpoint folder that a model argument (``--model``, ``--checkpoints``) names.
 
-    One meaning everywhere: the name :data:`svr.models.pretrained.DEFAULT_MODEL` (``"default"``)
-    is the shipped model (a folder literally named ``default`` is given as ``./default``); a
+    One meaning everywhere: the names :data:`svr.models.pretrained.DEFAULT_MODEL` (``"default"``)
+    and :data:`~svr.models.pretrained.SLICE_POSE_MODEL` (``"slice-pose"``) are the shipped
+    slice-pose model (a folder literally named so is given as ``./default``); a
     folder holding ``config.json`` is that checkpoint; a training run folder (``checkpoints/``
     inside) or a folder of ``step_*`` checkpoints stands for its newest complete checkpoint.
 
@@ -240,14 +241,17 @@ def resolve_model_path(path_or_name: str | os.PathLike[str]) -> Path:
         CheckpointError: Naming the folder, if it does not exist, holds no checkpoint, or is the
             shipped model's and its files are not installed.
     """
-    if isinstance(path_or_name, str) and path_or_name == pretrained.DEFAULT_MODEL:
+    if isinstance(path_or_name, str) and path_or_name in (
+        pretrained.DEFAULT_MODEL,
+        pretrained.SLICE_POSE_MODEL,
+    ):
         folder = pretrained.default_model_path()
         missing = [f for f in (CHECKPOINT_WEIGHTS, CHECKPOINT_CONFIG) if not (folder / f).is_file()]
         if missing:
             raise CheckpointError(
                 folder,
                 f"the shipped default model is not installed (missing {', '.join(missing)}); "
-                "export one with benchmarks/export_default_model.py or give a checkpoint folder",
+                "export one with svr export-model or give a checkpoint folder",
             )
         return folder
     path = Path(path_or_name)

@@ -35,6 +35,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -68,6 +69,7 @@ __all__ = [
     "load_pose_model",
     "load_slice_folder",
     "pose_model_from_checkpoint",
+    "pose_model_kind",
     "predict_plane_poses",
     "predict_slice_folder",
     "prepare_stack_slices",
@@ -394,14 +396,37 @@ def predict_slice_folder(
     return PoseTable([name] * len(poses), prepared.indices, se3_to_vector(poses), "canonical")
 
 
+def pose_model_kind(path_or_name: str | os.PathLike[str]) -> Literal["stack-pose", "slice-pose"]:
+    """Which kind of pose model a ``--model`` argument names, from its configuration alone.
+
+    Args:
+        path_or_name: ``"default"`` or ``"slice-pose"`` (the shipped slice-pose model),
+            ``"stack-pose"`` (the shipped stack-pose model) or a checkpoint / training-run folder
+            of either kind.
+
+    Returns:
+        ``"stack-pose"`` or ``"slice-pose"``.
+
+    Raises:
+        CheckpointError: If the folder holds no checkpoint (nothing in it is read but JSON).
+    """
+    if str(path_or_name) == STACK_POSE_MODEL:
+        return "stack-pose"
+    folder = resolve_model_path(path_or_name)
+    try:
+        architecture = json.loads((folder / CHECKPOINT_CONFIG).read_text()).get("architecture")
+    except (OSError, ValueError, AttributeError):
+        architecture = None
+    return "stack-pose" if architecture == "stack_pose" else "slice-pose"
+
+
 def load_any_pose_model(
     path_or_name: str | os.PathLike[str], device: torch.device | str = "cpu"
 ) -> SlicePoseNet | StackPoseNet:
     """The pose model a ``--model`` argument names: a stack-pose or a slice-pose network.
 
     Args:
-        path_or_name: ``"default"`` (the shipped slice-pose model), ``"stack-pose"`` (the shipped
-            stack-pose model) or a checkpoint / training-run folder of either kind.
+        path_or_name: As :func:`pose_model_kind` takes it.
         device: Where the network runs.
 
     Returns:
@@ -411,13 +436,8 @@ def load_any_pose_model(
     Raises:
         CheckpointError: If the folder holds neither kind of model (nothing in it is executed).
     """
-    if str(path_or_name) == STACK_POSE_MODEL:
-        return load_stack_pose_model(STACK_POSE_MODEL, device)
-    folder = resolve_model_path(path_or_name)
-    try:
-        architecture = json.loads((folder / CHECKPOINT_CONFIG).read_text()).get("architecture")
-    except (OSError, ValueError, AttributeError):
-        architecture = None
-    if architecture == "stack_pose":
+    if pose_model_kind(path_or_name) == "stack-pose":
+        name = STACK_POSE_MODEL if str(path_or_name) == STACK_POSE_MODEL else path_or_name
+        folder = name if name == STACK_POSE_MODEL else resolve_model_path(name)
         return load_stack_pose_model(folder, device)
     return load_pose_model(path_or_name, device)

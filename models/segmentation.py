@@ -3,10 +3,9 @@
 :class:`BrainUNet` maps (B, C, H, W) slices (intensities normalised per stack; C = 1, or a slice
 with its neighbours for 2.5D) to (B, 1, H, W) brain logits; H and W must be multiples of
 ``2 ** depth``. It is small enough to ship inside the package (:func:`parameter_bytes`) and
-fast enough on a CPU for clinical stacks (320 x 320 x 22): see
-``benchmarks/results/segmentation-speed.md``. :mod:`svr.masking` runs two of them
-(localise, then segment) behind ``svr segment-stack``; :mod:`svr.masking.train`
-trains them on simulated scenes.
+fast enough on a CPU for clinical stacks (320 x 320 x 22, measured). :mod:`svr.masking` runs two
+of them (localise, then segment) behind ``svr segment-stack``; :mod:`svr.masking.train` trains
+them on simulated scenes (``svr train-brain-mask``).
 """
 
 from __future__ import annotations

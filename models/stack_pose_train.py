@@ -40,17 +40,15 @@ from torch.nn import functional
 from torch.utils.data import DataLoader, Dataset
 
 from svr.errors import ConfigFieldError
-from svr.geometry import (
-    ANCHOR_HALF_SIZE_MM,
-    se3_compose,
-    se3_to_vector,
-    so3_exp,
-    vector_to_se3,
+from svr.geometry import se3_compose, so3_exp, vector_to_se3
+from svr.models.resume import (
+    cosine_schedule,
+    restart_as_new_run,
+    resume_training,
+    save_training_checkpoint,
 )
-from svr.losses.se3 import se3_geodesic_loss
-from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
-from svr.models.stack_pose import StackPoseConfig, StackPoseNet, StackPoseOutput
-from svr.representation_registry import Representation, get_representation
+from svr.models.stack_pose import StackPoseConfig, StackPoseNet
+from svr.models.stack_pose_loss import stack_pose_loss
 from svr.sampling.blocks import (
     TrainingStack,
     TrainingStackConfig,
@@ -68,7 +66,6 @@ __all__ = [
     "StackPoseTrainingConfig",
     "draw_samples",
     "simulate_batch",
-    "stack_pose_loss",
     "step_seed",
     "train_stack_pose",
 ]
@@ -170,6 +167,16 @@ class StackPoseTrainingConfig:
         check_int(owner, "fine_tune_seed", self.fine_tune_seed, allow_none=True)
         check_instance(owner, "stacks", self.stacks, TrainingStackConfig)
 
+    @property
+    def turn(self) -> int:
+        """The first step of the second phase (``steps`` without one)."""
+        return self.steps - self.fine_tune_steps
+
+    @property
+    def second_phase_is_new_run(self) -> bool:
+        """Whether the second phase runs as a separate fine-tuning run (``fine_tune_seed``)."""
+        return self.fine_tune_seed is not None and self.fine_tune_steps > 0
+
 
 def _random_axis(n: int, generator: torch.Generator) -> Tensor:
     return functional.normalize(torch.randn(n, 3, generator=generator, dtype=torch.float64), dim=-1)
@@ -212,7 +219,7 @@ def draw_samples(
         start stack poses, the (4, 4) true stack pose and (n,) float labels (1 = within reach).
         A subset's block is taught the whole stack's pose: teaching it its own slices' pose
         (:func:`svr.sampling.blocks.stack_pose_from_slices` of the present slices) measured no
-        better (``benchmarks/results/packet-truth.md``).
+        better.
     """
     n = config.samples_per_stack
     frame_true = se3_compose(stack.pose, torch.linalg.inv(stack_frame(stack.image)))
@@ -341,81 +348,148 @@ def _one_thread(_worker: int) -> None:
     torch.set_num_threads(1)  # the workers share the cores; one thread each simulates fastest
 
 
-def stack_pose_loss(
-    output: StackPoseOutput,
-    starts: Tensor,
-    targets: Tensor,
-    labels: Tensor,
+def _check_arguments(
+    volumes: list[CanonicalVolume],
+    workers: int,
+    model_config: StackPoseConfig,
     config: StackPoseTrainingConfig,
-    grid_points: Tensor | None = None,
-    representation: Representation = "se3",
-) -> tuple[Tensor, dict[str, float]]:
-    """The pose loss on the blocks within reach, plus the score's and coordinates' losses.
+) -> None:
+    """Refuse arguments :func:`train_stack_pose` cannot train with (ValueError naming them)."""
+    if not volumes:
+        raise ValueError("train_stack_pose(): 'volumes' is empty")
+    if not (is_integer(workers) and workers >= 0):
+        raise ValueError(f"train_stack_pose(): 'workers' must be an int >= 0, got {workers!r}")
+    if model_config.hidden_norm and config.stacks_per_step * config.samples_per_stack < 2:
+        raise ValueError(
+            "train_stack_pose(): 'config' must give >= 2 blocks per step (stacks_per_step x "
+            "samples_per_stack) for the hidden layer's batch normalisation, got "
+            f"{config.stacks_per_step} x {config.samples_per_stack}"
+        )
 
-    The pose loss is the SE(3) geodesic loss on the refined stack poses (``"se3"``), or a
-    baseline's own loss (:data:`svr.representation_registry.REPRESENTATIONS`) between the head's raw
-    outputs and the true residual's labels.
 
-    Args:
-        output: The network's prediction for B blocks.
-        starts: (B, 4, 4) start stack poses.
-        targets: (B, 4, 4) true stack poses.
-        labels: (B,) 1 where the start is within reach (only these get the pose loss).
-        config: The weights.
-        grid_points: (N, 3) the coordinate cells in the block frame (``"coords"`` head).
-        representation: The regress head's representation (the network config's).
+def _phases(
+    volumes: list[CanonicalVolume],
+    extra: list[CanonicalVolume],
+    volume_weights: Sequence[float] | None,
+    fine_tune_weights: Sequence[float] | None,
+    config: StackPoseTrainingConfig,
+) -> tuple[_Brains, _Brains]:
+    """The brains (and draw weights) before the turn to the second phase and from it on.
 
-    Returns:
-        The scalar loss and its parts (floats, for the log).
+    Without a second phase both are every brain. The weights are ``None`` (every brain alike,
+    the draws made before weights existed) unless either list is given.
 
     Raises:
-        ValueError: If a baseline representation is asked for without the head's raw outputs.
+        ValueError: If a weights list does not match its brains or has a weight not > 0.
     """
-    # The true residual (block frame -> canonical): target o start^-1.
-    true_residual = se3_compose(targets.double(), torch.linalg.inv(starts.double()))
-    if representation == "se3":
-        pred = se3_to_vector(se3_compose(output.residual.double(), starts))
-        per = se3_geodesic_loss(pred, se3_to_vector(targets.double()), reduction="none")
-    else:
-        if output.raw is None:
-            raise ValueError(
-                f"stack_pose_loss(): the {representation!r} loss needs the regress head's outputs"
-            )
-        entry = get_representation(representation, "stack_pose_loss()")
-        truth = entry.encode(se3_to_vector(true_residual), ANCHOR_HALF_SIZE_MM)
-        per = entry.loss(None, ANCHOR_HALF_SIZE_MM)(output.raw.double(), truth, reduction="none")
-    within = labels > 0.5
-    pose = (per * within).sum() / within.sum().clamp(min=1)
-    bce = functional.binary_cross_entropy_with_logits(output.score, labels)
-    total = pose + config.score_weight * bce.double()
-    parts = {"pose": float(pose.detach()), "score": float(bce.detach())}
-    if output.coords is not None and grid_points is not None:
-        truth = (
-            grid_points.double() @ true_residual[:, :3, :3].transpose(1, 2)
-            + true_residual[:, None, :3, 3]
-        )
-        err = functional.smooth_l1_loss(
-            output.coords[..., :3].double() / 10.0, truth / 10.0, reduction="none"
-        )
-        aux = (err.mean(-1).mean(-1) * within).sum() / within.sum().clamp(min=1)
-        total = total + config.coords_weight * aux
-        parts["coords"] = float(aux.detach())
-    return total, parts
+    first_weights = _draw_weights(volume_weights, len(volumes), "volume_weights")
+    extra_weights = _draw_weights(fine_tune_weights, len(extra), "fine_tune_weights")
+    weighted = volume_weights is not None or fine_tune_weights is not None
+    every: _Brains = (
+        [*volumes, *extra],
+        torch.cat([first_weights, extra_weights]) if weighted else None,
+    )
+    first: _Brains = (volumes, first_weights if weighted else None)
+    return (first if config.fine_tune_steps else every, every)
 
 
-def _restart_as_new_run(
-    optimiser: torch.optim.Optimizer, schedule: torch.optim.lr_scheduler.LambdaLR, rate: float
-) -> None:
-    """Make the optimiser and its schedule those of a new run from here.
+def _batches(
+    phases: tuple[_Brains, _Brains],
+    trajectories: list[Trajectory] | None,
+    model_config: StackPoseConfig,
+    config: StackPoseTrainingConfig,
+    generator: torch.Generator,
+    start: int,
+    workers: int,
+    device: str | torch.device,
+) -> Iterable[tuple[Tensor, ...]]:
+    """The batches of steps ``start, ..., steps - 1``.
 
-    Adam's moments and step counts reset; ``rate`` becomes the base rate that the schedule's
-    (restarted) cosine multiplies.
+    With no workers they are simulated lazily in this process from ``generator`` (reseeded at
+    the turn when the second phase is a new run, as the step's batch is drawn: after the last
+    checkpoint of the first phase), else by worker processes from each step's own seed.
     """
-    optimiser.state.clear()
-    schedule.base_lrs = [rate] * len(optimiser.param_groups)
-    for group, function in zip(optimiser.param_groups, schedule.lr_lambdas, strict=True):
-        group["initial_lr"] = rate
-        group["lr"] = rate * function(schedule.last_epoch)
+    turn = config.turn
+    if workers == 0:
+
+        def stream() -> Iterator[tuple[Tensor, ...]]:
+            for step in range(start, config.steps):
+                if config.second_phase_is_new_run and step == turn:
+                    assert config.fine_tune_seed is not None
+                    generator.manual_seed(config.fine_tune_seed)
+                brains, weights = phases[step >= turn]
+                yield simulate_batch(brains, trajectories, model_config, config, generator, weights)
+
+        return stream()
+    return DataLoader(
+        _StepBatches(phases, turn, trajectories, model_config, config),
+        batch_size=None,
+        sampler=range(start, config.steps),
+        num_workers=workers,
+        worker_init_fn=_one_thread,
+        prefetch_factor=4,
+        pin_memory=torch.device(device).type == "cuda",
+    )
+
+
+def _optimisation(
+    model_config: StackPoseConfig,
+    config: StackPoseTrainingConfig,
+    init: dict[str, Tensor] | None,
+    device: str | torch.device,
+) -> tuple[StackPoseNet, torch.optim.Adam, torch.optim.lr_scheduler.LambdaLR]:
+    """The network (initialised from the global RNG, or from ``init``), Adam and its schedule.
+
+    With a second phase the schedule restarts at the turn: at ``fine_tune_learning_rate`` for a
+    warm restart, or at the full rate when the second phase is a new run, whose own base rate
+    :func:`~svr.models.resume.restart_as_new_run` sets at the turn.
+    """
+    net = StackPoseNet(model_config)
+    if init is not None:
+        net.load_state_dict(init)
+    net = net.to(device)
+    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
+    schedule = cosine_schedule(
+        optimiser,
+        config.steps,
+        restart_at=config.turn if config.fine_tune_steps else None,
+        restart_scale=1.0
+        if config.second_phase_is_new_run
+        else config.fine_tune_learning_rate / config.learning_rate,
+    )
+    return net, optimiser, schedule
+
+
+def _train_step(
+    net: StackPoseNet,
+    optimiser: torch.optim.Optimizer,
+    schedule: torch.optim.lr_scheduler.LRScheduler,
+    batch: tuple[Tensor, ...],
+    config: StackPoseTrainingConfig,
+    device: str | torch.device,
+) -> dict[str, float]:
+    """One optimisation step on ``(blocks, starts, targets, labels)``; the loss's parts."""
+    blocks, starts, targets, labels = (part.to(device) for part in batch)
+    loss, parts = stack_pose_loss(
+        net(blocks),
+        starts,
+        targets,
+        labels,
+        config,
+        getattr(net, "cells", None),
+        net.config.representation,
+    )
+    optimiser.zero_grad()
+    loss.backward()
+    optimiser.step()
+    schedule.step()
+    return parts
+
+
+def _log_progress(done: int, steps: int, sums: dict[str, float], count: int, rate: float) -> None:
+    """Log the mean losses since the last checkpoint and the steps per second."""
+    means = " ".join(f"{k} {v / max(count, 1):.4f}" for k, v in sums.items())
+    log.info("step %d/%d %s (%.2f steps/s)", done, steps, means, rate)
 
 
 def train_stack_pose(
@@ -470,80 +544,29 @@ def train_stack_pose(
             match its brains or has a weight that is not > 0, or a step has a single block for
             a network with ``hidden_norm``.
     """
-    if not volumes:
-        raise ValueError("train_stack_pose(): 'volumes' is empty")
-    if not (is_integer(workers) and workers >= 0):
-        raise ValueError(f"train_stack_pose(): 'workers' must be an int >= 0, got {workers!r}")
-    if model_config.hidden_norm and config.stacks_per_step * config.samples_per_stack < 2:
-        raise ValueError(
-            "train_stack_pose(): 'config' must give >= 2 blocks per step (stacks_per_step x "
-            "samples_per_stack) for the hidden layer's batch normalisation, got "
-            f"{config.stacks_per_step} x {config.samples_per_stack}"
-        )
-    extra = fine_tune_volumes or []
-    first_weights = _draw_weights(volume_weights, len(volumes), "volume_weights")
-    extra_weights = _draw_weights(fine_tune_weights, len(extra), "fine_tune_weights")
-    torch.manual_seed(config.seed)
+    _check_arguments(volumes, workers, model_config, config)
+    phases = _phases(volumes, fine_tune_volumes or [], volume_weights, fine_tune_weights, config)
+    torch.manual_seed(config.seed)  # the weights' initialisation
     generator = torch.Generator().manual_seed(config.seed)
-    net = StackPoseNet(model_config)
-    if init is not None:
-        net.load_state_dict(init)
-    net = net.to(device)
-    optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
-    turn = config.steps - config.fine_tune_steps
-    # A second phase as a new run takes its own base rate at the turn (_restart_as_new_run).
-    as_new_run = config.fine_tune_seed is not None and config.fine_tune_steps > 0
-    schedule = cosine_schedule(
-        optimiser,
-        config.steps,
-        restart_at=turn if config.fine_tune_steps else None,
-        restart_scale=1.0 if as_new_run else config.fine_tune_learning_rate / config.learning_rate,
-    )
+    net, optimiser, schedule = _optimisation(model_config, config, init, device)
     start = resume_training(folder, net, optimiser, schedule, generator, device)
-    weighted = volume_weights is not None or fine_tune_weights is not None
-    every: _Brains = (
-        [*volumes, *extra],
-        torch.cat([first_weights, extra_weights]) if weighted else None,
+    batches = _batches(
+        phases, trajectories, model_config, config, generator, start, workers, device
     )
-    first: _Brains = (volumes, first_weights if weighted else None)
-    phases = (first if config.fine_tune_steps else every, every)
-    cells = getattr(net, "cells", None)
+    saved_config = {
+        "architecture": "stack_pose",
+        "model": model_config.to_dict(),
+        "train": asdict(config),
+        **(extra_config or {}),
+    }
     net.train()
     sums: dict[str, float] = {}
     count = 0
     began = time.time()
-    if workers == 0:
-
-        def stream() -> Iterator[tuple[Tensor, ...]]:
-            for step in range(start, config.steps):
-                if as_new_run and step == turn:
-                    assert config.fine_tune_seed is not None
-                    generator.manual_seed(config.fine_tune_seed)
-                brains, weights = phases[step >= turn]
-                yield simulate_batch(brains, trajectories, model_config, config, generator, weights)
-
-        batches: Iterable[tuple[Tensor, ...]] = stream()
-    else:
-        batches = DataLoader(
-            _StepBatches(phases, turn, trajectories, model_config, config),
-            batch_size=None,
-            sampler=range(start, config.steps),
-            num_workers=workers,
-            worker_init_fn=_one_thread,
-            prefetch_factor=4,
-            pin_memory=torch.device(device).type == "cuda",
-        )
     for step, batch in zip(range(start, config.steps), batches, strict=True):
-        if as_new_run and step == turn:
-            _restart_as_new_run(optimiser, schedule, config.fine_tune_learning_rate)
-        blocks, starts, targets, labels = (part.to(device) for part in batch)
-        loss, parts = stack_pose_loss(
-            net(blocks), starts, targets, labels, config, cells, model_config.representation
-        )
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
-        schedule.step()
+        if config.second_phase_is_new_run and step == config.turn:
+            restart_as_new_run(optimiser, schedule, config.fine_tune_learning_rate)
+        parts = _train_step(net, optimiser, schedule, batch, config, device)
         for key, value in parts.items():
             sums[key] = sums.get(key, 0.0) + value
         count += 1
@@ -551,29 +574,12 @@ def train_stack_pose(
         out_of_time = time_limit_s is not None and time.time() - began > time_limit_s
         if done % config.checkpoint_every == 0 or done == config.steps or out_of_time:
             if progress:
-                means = " ".join(f"{k} {v / max(count, 1):.4f}" for k, v in sums.items())
-                log.info(
-                    "step %d/%d %s (%.2f steps/s)",
-                    done,
-                    config.steps,
-                    means,
-                    (done - start) / (time.time() - began),
-                )
+                rate = (done - start) / (time.time() - began)
+                _log_progress(done, config.steps, sums, count, rate)
             sums, count = {}, 0
             if folder is not None:
                 save_training_checkpoint(
-                    folder,
-                    done,
-                    net,
-                    optimiser,
-                    schedule,
-                    generator,
-                    {
-                        "architecture": "stack_pose",
-                        "model": model_config.to_dict(),
-                        "train": asdict(config),
-                        **(extra_config or {}),
-                    },
+                    folder, done, net, optimiser, schedule, generator, saved_config
                 )
             if out_of_time:
                 break

@@ -34,14 +34,9 @@ from tqdm import tqdm
 
 from svr.errors import ConfigFieldError
 from svr.files import OutputExistsError
-from svr.models.checkpoint import (
-    checkpoint_name,
-    latest_checkpoint,
-    load_checkpoint,
-    prune_checkpoints,
-    save_checkpoint,
-)
+from svr.models.checkpoint import checkpoint_name, latest_checkpoint
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config, loss_function
+from svr.models.resume import resume_training, save_training_checkpoint
 from svr.models.training_log import TrainingLog
 from svr.sampling.dataset import EulerGridStream, SliceDatasetConfig, SliceStream
 from svr.sampling.poses import DEFAULT_EULER_GRID, EulerGridConfig
@@ -321,6 +316,57 @@ def checkpoint_config(config: TrainConfig, step: int) -> dict:
     }
 
 
+def _refuse_restart(out: Path, checkpoints: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to start a run afresh over an earlier one unless ``overwrite`` allows it.
+
+    Raises:
+        OutputExistsError: If ``checkpoints`` holds a checkpoint and neither ``resume`` nor
+            ``overwrite`` is set.
+    """
+    if not resume and not overwrite and latest_checkpoint(checkpoints) is not None:
+        raise OutputExistsError(
+            out, "holds checkpoints of an earlier run (resume it, or allow overwriting)"
+        )
+
+
+def _step_batches(
+    config: TrainConfig,
+    volumes: Sequence[CanonicalVolume],
+    device: torch.device,
+    start: int,
+    rank: int,
+    world: int,
+) -> _StepBatches:
+    """The batches this process trains on from step ``start``: every ``world``-th, from ``rank``.
+
+    With no worker processes the volumes move to ``device`` (batches are made there); worker
+    processes make them on the CPU.
+    """
+    sources = [v.to(device) for v in volumes] if config.workers == 0 else volumes
+    if config.pose_sampling == "grid":
+        stream: SliceStream = EulerGridStream(sources, config.data, config.grid)
+    else:
+        stream = SliceStream(sources, config.data)
+    return _StepBatches(stream, range(start * world + rank, config.steps * world, world))
+
+
+def _log_line(
+    log_file: TrainingLog,
+    step: int,
+    loss: float,
+    scheduler: torch.optim.lr_scheduler.LRScheduler,
+    images: int,
+    seconds: float,
+) -> None:
+    """Write step ``step``'s loss, learning rate and throughput (``images`` in ``seconds``)."""
+    log_file.write(
+        step,
+        loss=loss,
+        lr=cast("float", scheduler.get_last_lr()[0]),  # the optimiser's lr is a float
+        images_per_s=images / seconds,
+    )
+
+
 def train(
     config: TrainConfig,
     volumes: Sequence[CanonicalVolume],
@@ -330,6 +376,9 @@ def train(
     progress: bool = True,
 ) -> TrainResult:
     """Train a slice-pose network, resuming from the newest checkpoint in ``output_dir``.
+
+    Checkpoints are written and resumed by :mod:`svr.models.resume` (the training state holds
+    the optimiser, schedule and loss-scaler states and the step, which addresses the batches).
 
     Args:
         config: The run.
@@ -350,75 +399,37 @@ def train(
     device = torch.device(config.device)
     out = Path(config.output_dir)
     ckpt_dir = out / "checkpoints"
-    previous = latest_checkpoint(ckpt_dir)
-    if previous is not None and not resume and not overwrite:
-        raise OutputExistsError(
-            out, "holds checkpoints of an earlier run (resume it, or allow overwriting)"
-        )
-
+    _refuse_restart(out, ckpt_dir, resume, overwrite)
     torch.manual_seed(config.seed)
     model = build_model(config.model).to(device)
     optimizer = _optimizer(model, config.optim)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _schedule(config.optim, config.steps))
     scaler = torch.amp.GradScaler("cuda", enabled=config.amp and device.type == "cuda")
-    start = 0
-    if previous is not None and resume:
-        ckpt = load_checkpoint(previous, map_location=device, with_training_state=True)
-        model.load_state_dict(ckpt.state_dict)
-        state = ckpt.training_state
-        assert state is not None  # loaded with_training_state
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        scaler.load_state_dict(state["scaler"])
-        start = int(state["step"])
-        log.info("resumed from %s at step %d", previous, start)
+    start = resume_training(
+        ckpt_dir if resume else None, model, optimizer, scheduler, None, device, scaler=scaler
+    )
     net: nn.Module = model
     if world > 1:
         net = nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
         )
-
     criterion = loss_function(
         config.model.representation,
         config.weights_tensor(),
         config.model.symmetry_planes,
         config.model.anchor_half_size_mm,
     )
-    sources = [v.to(device) for v in volumes] if config.workers == 0 else volumes
-    if config.pose_sampling == "grid":
-        stream: SliceStream = EulerGridStream(sources, config.data, config.grid)
-    else:
-        stream = SliceStream(sources, config.data)
-    batches = _StepBatches(stream, range(start * world + rank, config.steps * world, world))
+    batches = _step_batches(config, volumes, device, start, rank, world)
     loader = DataLoader(
         batches, batch_size=None, num_workers=config.workers, persistent_workers=False
     )
-
     log_file = TrainingLog(out, ["loss", "lr", "images_per_s"]) if rank == 0 else None
     if rank == 0:
         ckpt_dir.mkdir(parents=True, exist_ok=True)
         (out / "train_config.json").write_text(json.dumps(config.to_dict(), indent=1) + "\n")
 
-    def save(step: int) -> Path:
-        state = {
-            "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "scaler": scaler.state_dict(),
-            "step": step,
-        }
-        path = save_checkpoint(
-            ckpt_dir / checkpoint_name(step),
-            model.state_dict(),
-            checkpoint_config(config, step),
-            training_state=state,
-            overwrite=True,
-        )
-        prune_checkpoints(ckpt_dir, config.keep_checkpoints)
-        return path
-
     model.train()
     last_loss, step, seen, tick = float("nan"), start, 0, time.perf_counter()
-    final = previous
     bar = tqdm(
         loader, total=len(batches), initial=0, desc="train", disable=not progress or rank != 0
     )
@@ -431,20 +442,24 @@ def train(
             last_loss = float(loss)
             now = time.perf_counter()
             if log_file is not None:
-                log_file.write(
-                    step,
-                    loss=last_loss,
-                    lr=cast("float", scheduler.get_last_lr()[0]),  # the optimiser's lr is a float
-                    images_per_s=seen / (now - tick),
-                )
+                _log_line(log_file, step, last_loss, scheduler, seen, now - tick)
                 bar.set_postfix(loss=f"{last_loss:.4g}")
             seen, tick = 0, now
         if rank == 0 and (step % config.checkpoint_every == 0 or step == config.steps):
-            final = save(step)
+            save_training_checkpoint(
+                ckpt_dir,
+                step,
+                model,
+                optimizer,
+                scheduler,
+                None,
+                checkpoint_config(config, step),
+                scaler=scaler,
+                keep=config.keep_checkpoints,
+            )
         if world > 1 and step % config.checkpoint_every == 0:
             dist.barrier()
     if log_file is not None:
         log_file.close()
-    if final is None:  # nothing left to do and no checkpoint: only when steps == start == 0
-        final = save(step)
-    return TrainResult(Path(final), last_loss, step)
+    # Rank 0 wrote it (or resumed from it, when the run had no step left).
+    return TrainResult(ckpt_dir / checkpoint_name(step), last_loss, step)

@@ -1,30 +1,24 @@
 """The reconstructed volume brought into an atlas's frame: rigid registration from many starts.
 
 A learned or per-stack canonical frame is only as good as its estimate (a few degrees, a few
-millimetres, a half turn if a brain looked the same either way, or tens of degrees on a real scan
-whose stacks the model was unsure of). :func:`align_to_atlas` registers the finished volume rigidly
-to an atlas of about the same age from several starts: the frame it is in, that frame turned by 180
+millimetres, a half turn if a brain looked the same either way, or tens of degrees where the
+stacks' estimates were unsure). :func:`align_to_atlas` registers the finished volume rigidly to an
+atlas of about the same age from several starts: the frame it is in, that frame turned by 180
 degrees about each axis, and the 8 frames of the volume's own brain-mask principal axes
-(:func:`svr.models.stack_pose.mask_axis_hypotheses`; a whole reconstructed brain's axes are far
-more reliable than a stack's), so that a wrong start is found and left. Each start is fitted
-coarsely; the volume's own frame and the two best distinct others are fitted finely, and another
-frame replaces the volume's own only if it fits the atlas clearly better (:data:`KEEP_MARGIN`). On
-a case simulated from the atlas family the right frame fits 0.09-0.22 (NCC) better than any wrong
-one, but on the real clinical scan (a fetus without spina bifida, unlike the atlas's brains) the
-front-back twin of the right frame fitted 0.008 better one time and 0.008 worse another: there, NCC
-alone flipped the output with the thread count, and the frame the learned stack poses agree on is
-the better evidence. (The stack-pose model does not choose among the starts: on the real scan it
-was confident of the frame turned by 180 degrees about z.) The origin is then put at the centre
-of the brain, which is what canonical space means (``docs/conventions.md``): an atlas of a
-neighbouring age or another cohort differs in shape, and its fit pulled the centre by about 5 mm on
-sb28-moderate, where the brain's own centre does not depend on it. That centre is the one the
-slices' brain masks give (:func:`svr.reconstruction.slices.mask_centre`), not the centroid of the
-volume's coverage mask, which reaches about 10 mm past the brain (the slice profile) and more on
-one side than the other: on the six benchmark outputs of five models, the masks' centre was 0.1-2.2
-mm from the true centre where the coverage's was 0.1-3.8 mm
-(``benchmarks/results/fabian-and-centre.md``). Everything is
-relabelled in that frame: the volume's and mask's affines and every slice pose. Nothing is
-resampled, so the volume's values are unchanged.
+(:func:`~svr.reconstruction.initialisation.stack_pose.mask_axis_hypotheses`), so that a wrong
+start is found and left. Each start is fitted coarsely; the volume's own frame and the two best
+distinct others are fitted finely, and another frame replaces the volume's own only if it fits
+the atlas clearly better (:data:`KEEP_MARGIN`): where a brain matches the atlas poorly (another
+anatomy, real contrast), the right frame and its front-back twin fit within noise of each other,
+and the frame the learned stack poses agree on is the better evidence.
+
+The origin is then put at the centre of the brain, which is what canonical space means
+(``docs/conventions.md``), as the slices' brain masks give it
+(:func:`svr.reconstruction.slices.mask_centre`): an atlas of another age or cohort differs in
+shape and would pull the centre, and the volume's coverage mask reaches past the brain (the slice
+profile), more on one side than the other. Everything is relabelled in that frame: the volume's
+and mask's affines and every slice pose. Nothing is resampled, so the volume's values are
+unchanged.
 """
 
 from __future__ import annotations
@@ -40,27 +34,27 @@ from torch import Tensor
 
 from svr.geometry import half_turns, rotation_angle, se3_compose
 from svr.image import Image, voxel_to_world
-from svr.models.stack_pose import (
+from svr.reconstruction.atlas_fit import (
+    KEEP_MARGIN,
     AtlasFitConfig,
     atlas_levels,
     fit_to_atlas,
-    mask_axis_hypotheses,
+    preferred_atlas,
 )
-from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.initialisation.stack_pose import mask_axis_hypotheses
+from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import mask_centre
 from svr.sampling.volume import CanonicalVolume, as_atlases
 
 __all__ = [
     "COARSE_FIT",
     "FLIPS",
-    "KEEP_MARGIN",
     "AtlasChoice",
-    "AtlasFrame",
+    "AtlasFit",
     "align_to_atlas",
     "atlas_starts",
     "atlas_transform",
     "best_atlas_transform",
-    "preferred_atlas",
 ]
 
 log = logging.getLogger(__name__)
@@ -79,17 +73,11 @@ COARSE_FIT = AtlasFitConfig(blur_mm=(4.0, 2.0), iterations=15, max_points=4000)
 """The fit of every start: fewer iterations and a subsample of the mask, enough to rank them (a
 single 4 mm level is not: on a smooth brain, wrong frames reach a higher NCC there)."""
 
-KEEP_MARGIN = 0.05
-"""How much higher another start's NCC (after the final fit) must be to replace the volume's own
-frame. Measured (``benchmarks/results/atlas-frame-choice.md``): the right frame fits 0.09-0.22
-better than the best wrong one on five simulated cases; on the real scan the right frame and its
-front-back twin were within 0.008 of each other, either way round."""
-
 DISTINCT_DEG = 20.0
 """Fitted frames closer than this (degrees) are the same frame."""
 
 
-class AtlasFrame(NamedTuple):
+class AtlasFit(NamedTuple):
     """What :func:`atlas_transform` found.
 
     Attributes:
@@ -125,7 +113,8 @@ def atlas_starts(volume: Image, mask: Tensor) -> dict[str, Tensor]:
     Returns:
         ``"none"`` (the volume's own frame, the identity), ``"x"``, ``"y"``, ``"z"`` (that frame
         turned by 180 degrees about the axis), then ``"axes0"``..``"axes7"`` (the principal-axis
-        frames of the mask, :func:`svr.models.stack_pose.mask_axis_hypotheses`): (4, 4) float64
+        frames of the mask,
+        :func:`~svr.reconstruction.initialisation.stack_pose.mask_axis_hypotheses`): (4, 4) float64
         transforms, volume world -> a candidate canonical frame.
 
     Raises:
@@ -150,7 +139,7 @@ def atlas_transform(
     keep_margin: float = KEEP_MARGIN,
     alternatives: int = 2,
     centre: Tensor | None = None,
-) -> AtlasFrame:
+) -> AtlasFit:
     """The rigid transform from a volume's frame to an atlas's canonical frame.
 
     Every start (the volume's frame and its :data:`FLIPS`, then the 8 principal-axis frames of its
@@ -172,7 +161,7 @@ def atlas_transform(
             default the centroid of ``mask``.
 
     Returns:
-        The :class:`AtlasFrame` found.
+        The :class:`AtlasFit` found.
 
     Raises:
         ValueError: If the mask has fewer than 4 voxels, ``keep_margin`` < 0 or
@@ -214,7 +203,7 @@ def atlas_transform(
     best = best.clone()
     origin = points.mean(0) if centre is None else centre.to(points)
     best[:3, 3] = -best[:3, :3] @ origin
-    return AtlasFrame(best, names[won], scores, final)
+    return AtlasFit(best, names[won], scores, final)
 
 
 class AtlasChoice(NamedTuple):
@@ -222,34 +211,13 @@ class AtlasChoice(NamedTuple):
 
     Attributes:
         chosen: The winning atlas's index in the atlases given.
-        frame: Its :class:`AtlasFrame`.
+        fit: Its :class:`AtlasFit`.
         ncc: Each atlas's NCC after its final fit (of the frame its own fit chose), in order.
     """
 
     chosen: int
-    frame: AtlasFrame
+    fit: AtlasFit
     ncc: tuple[float, ...]
-
-
-def preferred_atlas(ncc: Sequence[float], keep_margin: float = KEEP_MARGIN) -> int:
-    """Which of several atlases to follow: the first unless another fits clearly better.
-
-    Args:
-        ncc: Each atlas's NCC after its fit, the preferred atlas first (at least one).
-        keep_margin: NCC by which the best must beat the first to be chosen instead, >= 0.
-
-    Returns:
-        The index of the atlas to follow.
-
-    Raises:
-        ValueError: If ``ncc`` is empty or ``keep_margin`` < 0.
-    """
-    if not ncc:
-        raise ValueError("preferred_atlas(): 'ncc' must hold at least one value")
-    if not keep_margin >= 0:
-        raise ValueError(f"preferred_atlas(): 'keep_margin' must be >= 0, got {keep_margin}")
-    best = max(range(len(ncc)), key=lambda i: ncc[i])
-    return best if ncc[best] > ncc[0] + keep_margin else 0
 
 
 def best_atlas_transform(
@@ -267,12 +235,8 @@ def best_atlas_transform(
     others fits the volume better by more than ``keep_margin`` (NCC after the final fit), as
     :func:`atlas_transform` keeps a volume's own frame: where a brain matches no atlas well,
     their fits are within noise of each other and the first, the age-matched one, is the better
-    evidence. On the real clinical scan (GA 27, 28 and 29 atlases, NCC 0.327-0.336) the choice
-    by NCC alone took a neighbour whose frame was 15.3 degrees from the looked-at reference,
-    against 7.0 for the GA 28 atlas's. Where the age's own atlas is missing, a neighbouring age
-    whose brain is clearly more like the fetus's sets the frame: given the GA 22 and GA 24
-    atlases, ga23-traj0.5-turn's output frame came 2.8 degrees from the true one, against 13.2
-    with the GA 24 atlas alone (``benchmarks/results/atlas-frame-two-atlases.md``).
+    evidence; where the age's own atlas is missing, a neighbouring age whose brain is clearly
+    more like the fetus's sets the frame.
 
     Args:
         volume: The volume (its world frame anywhere; best about the canonical one).
@@ -334,7 +298,7 @@ def align_to_atlas(
     kept = ~result.excluded.to(result.slices.device)
     centre = mask_centre(result.slices, kept if bool(kept.any()) else None)
     choice = best_atlas_transform(volume, result.mask.data > 0.5, atlas, config, centre=centre)
-    found = choice.frame
+    found = choice.fit
     transform = found.transform
     angle = math.degrees(rotation_angle(transform, torch.eye(4, dtype=transform.dtype)))
     log.info(

@@ -27,7 +27,7 @@ from torch import Tensor
 from svr.files import atomic_directory
 from svr.image import Image, save_nifti
 from svr.pose_io import matrices_to_table, write_pose_table
-from svr.reconstruction.config import ReconstructionResult
+from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import SliceSet, plane_poses
 
 __all__ = ["slice_affines", "write_slices_folder", "write_transforms", "write_volume"]

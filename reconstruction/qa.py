@@ -35,8 +35,8 @@ from torch import Tensor
 
 from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, resample_to_grid
-from svr.reconstruction.config import ReconstructionResult
 from svr.reconstruction.convergence import verdict
+from svr.reconstruction.result import ReconstructionResult
 
 __all__ = ["FIGURE_SUFFIXES", "axis_aligned", "masks_figure", "qa_figure"]
 
@@ -82,6 +82,15 @@ def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[
     """
     i, j, k = centre
     return [volume[i, :, :].T, volume[:, j, :].T, volume[:, :, k].T]
+
+
+_PLANES = ("sagittal", "coronal", "axial")
+
+
+def _column_title(frame: str, axis: int, mm: float) -> str:
+    """A column's title: the plane, in the frame it is in (canonical planes are anatomical)."""
+    where = f"{frame} {_AXES[axis]} = {mm:.1f} mm"
+    return f"{_PLANES[axis]} ({where})" if frame == "canonical" else where
 
 
 NOTE_WIDTH = 44
@@ -199,7 +208,7 @@ def qa_figure(
             if col == 0:
                 ax.set_ylabel(name)
             if row == 0:
-                ax.set_title(f"{_AXES[col]} = {float(world[col]):.1f} mm", fontsize=9)
+                ax.set_title(_column_title(result.slices.frame, col, float(world[col])), fontsize=9)
 
     ax = figure.add_subplot(grid[len(volumes), :2])
     ncc = result.slice_ncc.detach().cpu().double().numpy()

@@ -273,13 +273,13 @@ def _sda(slices: SliceSet, grid: VolumeGrid, psf_samples: int = SVR_PSF_SAMPLES)
 
 
 def stack_registration(
-    slices: SliceSet, resolution_mm: float, template: int | None = None
+    slices: SliceSet, grid_mm: float, template: int | None = None
 ) -> tuple[Tensor, int]:
     """Rigid registration of every stack to a volume estimated from the template stack.
 
     Args:
         slices: All slices at their starting poses.
-        resolution_mm: Voxel size of the template volume.
+        grid_mm: Voxel size of the template volume (mm).
         template: Template stack index, or ``None`` for the stack with the most masked pixels.
 
     Returns:
@@ -296,7 +296,7 @@ def stack_registration(
         raise ValueError(
             f"stack_registration(): 'template' must be in [0, {num_stacks}), got {template}"
         )
-    grid = output_grid(slices, 2 * resolution_mm)
+    grid = output_grid(slices, grid_mm)
     reference = _sda(slices.subset(slices.stack_ids == template), grid)
     projector = SliceProjector(grid, slices, psf_samples=SVR_PSF_SAMPLES)
     fixed = torch.zeros(num_stacks, dtype=torch.bool)
@@ -313,24 +313,24 @@ def stack_registration(
     return poses, template
 
 
-def stack_ncc(slices: SliceSet, resolution_mm: float, leave_out: bool = False) -> Tensor:
+def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:
     """(S,) mean NCC of each stack's slices with their simulation from a volume of the slices.
 
-    The volume is the scattered-data approximation of the slices on a grid of twice
-    ``resolution_mm``. With ``leave_out`` (and at least two stacks), each stack is simulated from
-    the volume of the *other* stacks' slices only, so that a stack cannot agree with itself: a
-    stack whose packets are placed apart, one of them the wrong twin, fits its own volume better
-    the more freely it is placed, but fits the other stacks only where it is right.
+    The volume is the scattered-data approximation of the slices on a grid of ``grid_mm``. With
+    ``leave_out`` (and at least two stacks), each stack is simulated from the volume of the *other*
+    stacks' slices only, so that a stack cannot agree with itself: a stack whose packets are placed
+    apart, one of them the wrong twin, fits its own volume better the more freely it is placed, but
+    fits the other stacks only where it is right.
 
     Args:
         slices: The slices at the poses to score.
-        resolution_mm: Half the grid spacing (mm).
+        grid_mm: The grid spacing (mm).
         leave_out: Score each stack against the other stacks only.
 
     Returns:
         (S,) mean slice NCC per stack.
     """
-    grid = output_grid(slices, 2 * resolution_mm)
+    grid = output_grid(slices, grid_mm)
     num_stacks = len(slices.stack_names)
     leave = leave_out and num_stacks > 1
     # Each stack's SDA sums once: the volume of all stacks is the ratio of their totals, the

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from svr.frames import FRAMES, Frame
 from svr.image import Image, stack_slice_poses
 from svr.validation import check_choice
 
@@ -28,7 +29,6 @@ __all__ = [
     "plane_poses",
 ]
 
-FRAMES = ("scanner", "canonical")
 # SliceSet fields that hold one entry per slice (moved and indexed together).
 _PER_SLICE_FIELDS = (
     "images",
@@ -92,7 +92,7 @@ class SliceSet:
     spacing_mm: Tensor
     thickness_mm: Tensor
     poses: Tensor
-    frame: str
+    frame: Frame
     stack_ids: Tensor
     slice_indices: Tensor
     plane_offsets_mm: Tensor
@@ -142,7 +142,7 @@ class SliceSet:
             **{name: getattr(self, name).to(device) for name in _PER_SLICE_FIELDS},
         )
 
-    def with_poses(self, poses: Tensor, frame: str | None = None) -> SliceSet:
+    def with_poses(self, poses: Tensor, frame: Frame | None = None) -> SliceSet:
         """A copy with new (N, 4, 4) poses (and optionally a new frame)."""
         return replace(self, poses=poses.to(self.poses), frame=frame or self.frame)
 

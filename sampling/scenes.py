@@ -313,6 +313,108 @@ def _paint_face(
         scene[(np.linalg.norm(xyz - lens_centre, axis=-1) <= 0.3 * radius) & outside] = lens
 
 
+def _scaled_brain(
+    brain: CanonicalVolume,
+    points: torch.Tensor,
+    cfg: SceneConfig,
+    rng: np.random.Generator,
+    seed: int,
+    tissue_labels: torch.Tensor | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step 1: the brain's intensities and mask at the scene's points, at a random scale.
+
+    The scene at x shows the brain at x / scale; its intensities are raised to a random gamma,
+    or, with ``tissue_labels``, replaced by a random intensity per label from the stream
+    ``[seed, 1]`` (SynthSeg-style), slightly blurred.
+
+    Returns:
+        (n, n, n) float64 intensities and (n, n, n) bool brain mask.
+    """
+    low, high = (math.log(v) for v in cfg.brain_scale)
+    scale = math.exp(rng.uniform(low, high))
+    source = brain.to("cpu")
+    moved = (points / scale).float()
+    intensity = sample_world(source.image, moved).numpy().astype(np.float64)
+    brain_mask = (
+        sample_world(Image(source.mask.float(), source.image.affine), moved, "nearest").numpy()
+        > 0.5
+    )
+    intensity = np.clip(intensity, 0.0, None) ** _uniform(rng, cfg.gamma)
+    if tissue_labels is not None:  # SynthSeg-style: a random intensity per label, own stream
+        label_rng = np.random.default_rng([seed, 1])
+        sampled = sample_world(Image(tissue_labels.float(), source.image.affine), moved, "nearest")
+        tissue = sampled.numpy().astype(np.int64)
+        values = label_rng.uniform(0.1, 1.0, size=int(tissue.max()) + 1)
+        synthetic = ndimage.gaussian_filter(values[tissue], 0.5)
+        intensity = np.where(brain_mask, synthetic, intensity)
+    return intensity, brain_mask
+
+
+def _body_and_fluid(
+    xyz: np.ndarray,
+    radius: float,
+    scalp: float,
+    cfg: SceneConfig,
+    rng: np.random.Generator,
+    face_rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step 3: the fetal body beside the head, the amniotic fluid and the abdomen around them.
+
+    The body lies in a random direction from the head (with ``face``: below and behind it,
+    drawn from ``face_rng``); the fluid and the abdomen are perturbed ellipsoids.
+
+    Returns:
+        (n, n, n) bool masks of the body, the fluid and the abdomen.
+    """
+    n = xyz.shape[0]
+    direction = rng.standard_normal(3)
+    direction /= np.linalg.norm(direction)
+    if cfg.face:
+        direction = _neck_direction(face_rng)
+    body_radii = radius * rng.uniform(*cfg.body_scale, size=3) * np.array([1.0, 1.0, 1.5])
+    body_centre = direction * (radius + scalp + body_radii[2] * rng.uniform(0.6, 0.9))
+    body = _ellipsoid(xyz, body_centre, body_radii, _random_rotation(rng))
+    margin = _uniform(rng, cfg.fluid_margin_mm)
+    fluid_centre = body_centre * rng.uniform(0.3, 0.6)
+    fluid_radii = (np.linalg.norm(body_centre - fluid_centre) + radius + margin) * rng.uniform(
+        0.9, 1.2, size=3
+    )
+    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 15.0 / cfg.spacing_mm)
+    fluid = _ellipsoid(xyz, fluid_centre, fluid_radii, _random_rotation(rng), wobble)
+    abdomen_radii = fluid_radii + rng.uniform(*cfg.abdomen_margin_mm, size=3)
+    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 25.0 / cfg.spacing_mm)
+    abdomen = _ellipsoid(xyz, fluid_centre, abdomen_radii, _random_rotation(rng), wobble)
+    return body, fluid, abdomen
+
+
+def _maternal_labels(n: int, cfg: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """Step 4: a random label field (arg-max of smoothed noise channels) and its label count."""
+    labels = int(rng.integers(cfg.maternal_labels[0], cfg.maternal_labels[1] + 1))
+    sigma = _uniform(rng, cfg.maternal_smoothness_mm) / cfg.spacing_mm
+    channels = np.stack([_smooth_noise(rng, (n, n, n), sigma) for _ in range(labels)])
+    return channels.argmax(axis=0), labels
+
+
+def _paint_cord(
+    scene: np.ndarray, cord: np.ndarray, beneath: np.ndarray, cfg: SceneConfig, seed: int
+) -> None:
+    """Paint a canal around the spinal cord, in place: CSF, then bone (stream ``[seed, 3]``).
+
+    Args:
+        scene: (n, n, n) intensities, modified where ``beneath``.
+        cord: (n, n, n) bool, the spinal cord.
+        beneath: (n, n, n) bool, what lies beyond the head's scalp.
+        cfg: Thickness is drawn here; intensity ranges from it.
+        seed: The scene's seed.
+    """
+    cord_rng = np.random.default_rng([seed, 3])
+    around = ndimage.distance_transform_edt(~cord, sampling=cfg.spacing_mm)
+    fluid_mm = _uniform(cord_rng, (0.5, 2.0))
+    bone_mm = fluid_mm + _uniform(cord_rng, (1.0, 4.0))
+    scene[(around <= bone_mm) & beneath] = _uniform(cord_rng, cfg.skull_intensity)
+    scene[(around <= fluid_mm) & beneath] = _uniform(cord_rng, cfg.csf_intensity)
+
+
 def make_scene(
     brain: CanonicalVolume,
     config: SceneConfig | None = None,
@@ -346,27 +448,9 @@ def make_scene(
     affine = torch.eye(4, dtype=torch.float64)
     affine[:3, :3] *= cfg.spacing_mm
     affine[:3, 3] = -(n - 1) / 2 * cfg.spacing_mm
-    grid = Image(torch.zeros(n, n, n), affine)
-    points = voxel_centres(grid)  # (n, n, n, 3) canonical mm
-
-    # 1. The brain at a random scale: the scene at x shows the atlas at x / scale.
-    low, high = (math.log(v) for v in cfg.brain_scale)
-    scale = math.exp(rng.uniform(low, high))
-    source = brain.to("cpu")
-    moved = (points / scale).float()
-    intensity = sample_world(source.image, moved).numpy().astype(np.float64)
-    brain_mask = (
-        sample_world(Image(source.mask.float(), source.image.affine), moved, "nearest").numpy()
-        > 0.5
-    )
-    intensity = np.clip(intensity, 0.0, None) ** _uniform(rng, cfg.gamma)
-    if tissue_labels is not None:  # SynthSeg-style: a random intensity per label, own stream
-        label_rng = np.random.default_rng([seed, 1])
-        sampled = sample_world(Image(tissue_labels.float(), source.image.affine), moved, "nearest")
-        tissue = sampled.numpy().astype(np.int64)
-        values = label_rng.uniform(0.1, 1.0, size=int(tissue.max()) + 1)
-        synthetic = ndimage.gaussian_filter(values[tissue], 0.5)
-        intensity = np.where(brain_mask, synthetic, intensity)
+    points = voxel_centres(Image(torch.zeros(n, n, n), affine))  # (n, n, n, 3) canonical mm
+    # 1. The brain at a random scale.
+    intensity, brain_mask = _scaled_brain(brain, points, cfg, rng, seed, tissue_labels)
 
     # 2. The head: shells by distance from the brain surface.
     # (with ``spinal_cord`` the head holds the brain above the skull base only)
@@ -381,30 +465,11 @@ def make_scene(
     radius = float(np.linalg.norm(xyz[head_brain], axis=-1).max()) if head_brain.any() else 30.0
 
     # 3. Body and amniotic fluid.
-    direction = rng.standard_normal(3)
-    direction /= np.linalg.norm(direction)
     face_rng = np.random.default_rng([seed, 2])  # (own stream: scenes without faces unchanged)
-    if cfg.face:
-        direction = _neck_direction(face_rng)
-    body_radii = radius * rng.uniform(*cfg.body_scale, size=3) * np.array([1.0, 1.0, 1.5])
-    body_centre = direction * (radius + scalp + body_radii[2] * rng.uniform(0.6, 0.9))
-    body = _ellipsoid(xyz, body_centre, body_radii, _random_rotation(rng))
-    margin = _uniform(rng, cfg.fluid_margin_mm)
-    fluid_centre = body_centre * rng.uniform(0.3, 0.6)
-    fluid_radii = (np.linalg.norm(body_centre - fluid_centre) + radius + margin) * rng.uniform(
-        0.9, 1.2, size=3
-    )
-    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 15.0 / cfg.spacing_mm)
-    fluid = _ellipsoid(xyz, fluid_centre, fluid_radii, _random_rotation(rng), wobble)
-    abdomen_radii = fluid_radii + rng.uniform(*cfg.abdomen_margin_mm, size=3)
-    wobble = cfg.irregularity * _smooth_noise(rng, (n, n, n), 25.0 / cfg.spacing_mm)
-    abdomen = _ellipsoid(xyz, fluid_centre, abdomen_radii, _random_rotation(rng), wobble)
+    body, fluid, abdomen = _body_and_fluid(xyz, radius, scalp, cfg, rng, face_rng)
 
     # 4. Maternal tissue: a random label field with random intensities.
-    labels = int(rng.integers(cfg.maternal_labels[0], cfg.maternal_labels[1] + 1))
-    sigma = _uniform(rng, cfg.maternal_smoothness_mm) / cfg.spacing_mm
-    channels = np.stack([_smooth_noise(rng, (n, n, n), sigma) for _ in range(labels)])
-    maternal_label = channels.argmax(axis=0)
+    maternal_label, labels = _maternal_labels(n, cfg, rng)
     tissue_values = rng.uniform(*cfg.tissue_intensity, size=labels)
     scene = tissue_values[maternal_label]
 
@@ -426,14 +491,8 @@ def make_scene(
     scene = np.where(distance <= scalp, _uniform(rng, cfg.tissue_intensity), scene)
     scene = np.where(distance <= skull, _uniform(rng, cfg.skull_intensity), scene)
     scene = np.where(distance <= csf, _uniform(rng, cfg.csf_intensity), scene)
-    if cord.any():  # a canal through what is beneath the head: CSF, then bone (own stream)
-        cord_rng = np.random.default_rng([seed, 3])
-        around = ndimage.distance_transform_edt(~cord, sampling=cfg.spacing_mm)
-        fluid_mm = _uniform(cord_rng, (0.5, 2.0))
-        bone_mm = fluid_mm + _uniform(cord_rng, (1.0, 4.0))
-        beneath = distance > scalp
-        scene[(around <= bone_mm) & beneath] = _uniform(cord_rng, cfg.skull_intensity)
-        scene[(around <= fluid_mm) & beneath] = _uniform(cord_rng, cfg.csf_intensity)
+    if cord.any():  # a canal through what is beneath the head (own stream)
+        _paint_cord(scene, cord, distance > scalp, cfg, seed)
     if cfg.texture > 0:
         texture = 1.0 + cfg.texture * _smooth_noise(rng, (n, n, n), 2.0 / cfg.spacing_mm)
         scene = scene * np.clip(texture, 0.2, None)

@@ -36,6 +36,7 @@ from svr.errors import ConfigFieldError
 from svr.files import atomic_directory
 from svr.geometry import quat_to_matrix, se3_compose, se3_inverse, so3_exp
 from svr.image import Image, save_nifti, voxel_to_world
+from svr.sampling.artefacts import stack_artefacts
 from svr.sampling.motion import (
     Trajectory,
     load_trajectories,
@@ -269,47 +270,181 @@ def _motions(
     return trajectory_motion(trajectory, times_s, start, config.motion_scale)
 
 
-def _bias(points: Tensor, strength: float, generator: torch.Generator, radius: float) -> Tensor:
-    """Smooth multiplicative field exp(sum of low-order polynomial terms) at (..., 3) points."""
-    x = points / radius
-    coeffs = torch.randn(9, generator=generator, dtype=torch.float64) * strength / 3
-    terms = torch.stack(
-        [
-            x[..., 0],
-            x[..., 1],
-            x[..., 2],
-            x[..., 0] ** 2,
-            x[..., 1] ** 2,
-            x[..., 2] ** 2,
-            x[..., 0] * x[..., 1],
-            x[..., 1] * x[..., 2],
-            x[..., 0] * x[..., 2],
-        ],
-        -1,
+@dataclass
+class _Scanner:
+    """What every stack of a case shares: the ground truth placed in the scanner, the grids.
+
+    Attributes:
+        gt_volume: The ground truth in the scanner frame (CPU).
+        gt_mask: Its brain mask, 0 or 1 (CPU).
+        gt_on_device: ``gt_volume`` where slices are sampled.
+        mask_on_device: ``gt_mask`` there.
+        rotation: (3, 3) the placement's rotation ``P`` (``x_s = P x_c + s``).
+        brain_centre: (3,) its offset ``s``: the brain centre in the scanner frame, mm.
+        device: Where slices are sampled.
+        source_from_scanner: (4, 4) the scanner frame into the source ("atlas") frame.
+        radius: The brain's radius about its centre, mm.
+        sigma: The Rician noise level (``noise`` times the brain's 99th percentile).
+        num_slices: Slices per stack.
+        side: Pixels per slice side.
+        slice_config: The slices' grid and PSF.
+        mask_config: The slice masks' grid (centre plane).
+        thick_mask_config: The same through the slice thickness.
+    """
+
+    gt_volume: Image
+    gt_mask: Image
+    gt_on_device: Image
+    mask_on_device: Image
+    rotation: Tensor
+    brain_centre: Tensor
+    device: torch.device | str
+    source_from_scanner: Tensor
+    radius: float
+    sigma: float
+    num_slices: int
+    side: int
+    slice_config: SliceConfig
+    mask_config: SliceConfig
+    thick_mask_config: SliceConfig
+
+
+def _place_in_scanner(
+    volume: CanonicalVolume,
+    config: SimulationConfig,
+    generator: torch.Generator,
+    device: torch.device | str,
+) -> _Scanner:
+    """Place the brain in the scanner (random unless ``random_placement`` is off); the grids."""
+    brain_idx = torch.nonzero(volume.mask).to(torch.float64)
+    brain_pts = voxel_to_world(volume.image.affine, brain_idx)
+    radius = float(brain_pts.norm(dim=1).max())
+
+    # Placement: x_s = P x_c + s, with x_c canonical coordinates.
+    if config.random_placement:
+        placement_R = _random_rotation(generator)
+        placement_t = (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 10.0
+    else:
+        placement_R, placement_t = (
+            torch.eye(3, dtype=torch.float64),
+            torch.zeros(3, dtype=torch.float64),
+        )
+    scanner_from_canonical = torch.eye(4, dtype=torch.float64)
+    scanner_from_canonical[:3, :3], scanner_from_canonical[:3, 3] = placement_R, placement_t
+    gt_affine = scanner_from_canonical @ volume.image.affine
+    gt_volume = Image(volume.image.data.clone(), gt_affine)
+    gt_mask = Image(volume.mask.float(), gt_affine)
+    source_from_scanner = torch.eye(4, dtype=torch.float64)
+    source_from_scanner[:3, :3] = placement_R.T
+    source_from_scanner[:3, 3] = volume.centre_mm - placement_R.T @ placement_t
+
+    half = radius + config.margin_mm
+    side = max(1, math.ceil(2 * half / config.in_plane_mm))
+    slice_config = SliceConfig(
+        size=(side, side),
+        spacing_mm=config.in_plane_mm,
+        thickness_mm=config.thickness_mm,
+        in_plane_psf=config.in_plane_psf,
+        psf_samples=3 if config.in_plane_psf else 5,
     )
-    return torch.exp(terms.to(torch.float64) @ coeffs).to(points.dtype)
+    mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
+    return _Scanner(
+        gt_volume=gt_volume,
+        gt_mask=gt_mask,
+        gt_on_device=gt_volume.to(device),
+        mask_on_device=gt_mask.to(device),
+        rotation=placement_R,
+        brain_centre=placement_t,
+        device=device,
+        source_from_scanner=source_from_scanner,
+        radius=radius,
+        sigma=config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99)),
+        num_slices=max(1, math.ceil(2 * half / config.slice_spacing_mm)),
+        side=side,
+        slice_config=slice_config,
+        mask_config=mask_config,
+        thick_mask_config=dataclasses.replace(mask_config, thickness_mm=config.thickness_mm),
+    )
 
 
-def _rician(slices: Tensor, sigma: float, generator: torch.Generator) -> Tensor:
-    n1 = torch.randn(slices.shape, generator=generator, dtype=slices.dtype) * sigma
-    n2 = torch.randn(slices.shape, generator=generator, dtype=slices.dtype) * sigma
-    return ((slices + n1).square() + n2.square()).sqrt()
+def _stack_motion(
+    config: SimulationConfig,
+    stack: int,
+    times_s: np.ndarray,
+    generator: torch.Generator,
+    trajectories: list[Trajectory] | None,
+) -> Tensor:
+    """(K, 4, 4) head motion at each slice's time; after the first stack, turned as a whole."""
+    motion = _motions(config, times_s, generator, trajectories)
+    if stack > 0 and config.stack_turn_deg[1] > 0:
+        low, high = config.stack_turn_deg
+        angle = math.radians(
+            low + (high - low) * float(torch.rand(1, generator=generator, dtype=torch.float64))
+        )
+        axis = torch.nn.functional.normalize(
+            torch.randn(3, generator=generator, dtype=torch.float64), dim=0
+        )
+        turn = torch.eye(4, dtype=torch.float64)
+        turn[:3, :3] = _axis_rotation(axis, angle)
+        motion = se3_compose(motion, turn)
+    return motion
 
 
-def _signal_voids(slices: Tensor, probability: float, generator: torch.Generator) -> Tensor:
-    b, h, w = slices.shape
-    hit = torch.rand(b, generator=generator) < probability
-    if not bool(hit.any()):
-        return slices
-    a = torch.arange(h, dtype=slices.dtype)[:, None]
-    c = torch.arange(w, dtype=slices.dtype)[None, :]
-    out = slices.clone()
-    for i in torch.nonzero(hit).flatten().tolist():
-        ca, cc = (torch.rand(2, generator=generator) * torch.tensor([h, w])).tolist()
-        r = float(torch.rand(1, generator=generator)) * min(h, w) / 4 + 3
-        blob = torch.exp(-((a - ca) ** 2 + (c - cc) ** 2) / (2 * r * r))
-        out[i] = slices[i] * (1 - 0.9 * blob)
-    return out
+def _simulate_stack(
+    scanner: _Scanner,
+    config: SimulationConfig,
+    stack: int,
+    orient: Tensor,
+    generator: torch.Generator,
+    trajectories: list[Trajectory] | None,
+) -> SimulatedStack:
+    """Stack number ``stack``, oriented by the (3, 3) ``orient``, acquired under motion."""
+    num_slices, side, spacing = scanner.num_slices, scanner.side, config.slice_spacing_mm
+    centre = (
+        scanner.brain_centre + (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 6.0
+    )
+    offsets = (torch.arange(num_slices, dtype=torch.float64) - (num_slices - 1) / 2) * spacing
+    nominal = torch.eye(4, dtype=torch.float64).repeat(num_slices, 1, 1)
+    nominal[:, :3, :3] = orient
+    nominal[:, :3, 3] = centre + offsets[:, None] * orient[:, 2]
+    acq = acquisition_order(num_slices, config.interleave)
+    times = ((stack * num_slices + acq).double() * config.slice_time_s).numpy()
+    motion = _stack_motion(config, stack, times, generator, trajectories)
+    # D acts about the brain centre.
+    about_centre = torch.eye(4, dtype=torch.float64)
+    about_centre[:3, 3] = scanner.brain_centre
+    moved = se3_compose(se3_compose(about_centre, motion), se3_inverse(about_centre))
+    true_poses = se3_compose(se3_inverse(moved), nominal)
+    on_device = true_poses.to(scanner.device)
+    slices = sample_slices(scanner.gt_on_device, on_device, scanner.slice_config).cpu()
+    masks = _slice_masks(
+        scanner.mask_on_device, on_device, scanner.mask_config, scanner.thick_mask_config, config
+    )
+    slices = stack_artefacts(
+        slices,
+        nominal,
+        config.in_plane_mm,
+        scanner.brain_centre,
+        scanner.radius,
+        config.bias_field,
+        config.signal_void_probability,
+        scanner.sigma if config.noise > 0 else None,
+        generator,
+    )
+    affine = torch.eye(4, dtype=torch.float64)
+    affine[:3, :3] = orient * torch.tensor(
+        [config.in_plane_mm, config.in_plane_mm, spacing], dtype=torch.float64
+    )
+    affine[:3, 3] = nominal[0, :3, 3] - (side - 1) / 2 * config.in_plane_mm * (
+        orient[:, 0] + orient[:, 1]
+    )
+    return SimulatedStack(
+        image=Image(slices.permute(1, 2, 0).contiguous(), affine),
+        mask=Image(masks.permute(1, 2, 0).contiguous(), affine),
+        true_poses=true_poses,
+        atlas_poses=se3_compose(scanner.source_from_scanner, true_poses),
+        acquisition_index=acq,
+    )
 
 
 def simulate_case(
@@ -339,112 +474,22 @@ def simulate_case(
     elif trajectories is None:
         assert config.motion_path is not None  # checked by SimulationConfig
         trajectories = load_trajectories(config.motion_path)
-    brain_idx = torch.nonzero(volume.mask).to(torch.float64)
-    brain_pts = voxel_to_world(volume.image.affine, brain_idx)
-    radius = float(brain_pts.norm(dim=1).max())
-
-    # Placement: x_s = P x_c + s, with x_c canonical coordinates.
-    if config.random_placement:
-        placement_R = _random_rotation(generator)
-        placement_t = (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 10.0
-    else:
-        placement_R, placement_t = (
-            torch.eye(3, dtype=torch.float64),
-            torch.zeros(3, dtype=torch.float64),
-        )
-    scanner_from_canonical = torch.eye(4, dtype=torch.float64)
-    scanner_from_canonical[:3, :3], scanner_from_canonical[:3, 3] = placement_R, placement_t
-    gt_affine = scanner_from_canonical @ volume.image.affine
-    gt_volume = Image(volume.image.data.clone(), gt_affine)
-    gt_mask = Image(volume.mask.float(), gt_affine)
-    source_from_scanner = torch.eye(4, dtype=torch.float64)
-    source_from_scanner[:3, :3] = placement_R.T
-    source_from_scanner[:3, 3] = volume.centre_mm - placement_R.T @ placement_t
-
-    spacing = config.slice_spacing_mm
-    half = radius + config.margin_mm
-    num_slices = max(1, math.ceil(2 * half / spacing))
-    side = max(1, math.ceil(2 * half / config.in_plane_mm))
-    slice_config = SliceConfig(
-        size=(side, side),
-        spacing_mm=config.in_plane_mm,
-        thickness_mm=config.thickness_mm,
-        in_plane_psf=config.in_plane_psf,
-        psf_samples=3 if config.in_plane_psf else 5,
-    )
-    mask_config = SliceConfig(size=(side, side), spacing_mm=config.in_plane_mm)
-    thick_mask_config = dataclasses.replace(mask_config, thickness_mm=config.thickness_mm)
-    sigma = config.noise * float(np.percentile(volume.image.data[volume.mask].numpy(), 99))
-
-    gt_on_device, mask_on_device = gt_volume.to(device), gt_mask.to(device)
-    stacks = []
+    scanner = _place_in_scanner(volume, config, generator, device)
     orientations = stack_orientations(config, generator)
-    for s, orient in enumerate(tqdm(orientations, desc="stacks", disable=not progress)):
-        centre = placement_t + (torch.rand(3, generator=generator, dtype=torch.float64) - 0.5) * 6.0
-        offsets = (torch.arange(num_slices, dtype=torch.float64) - (num_slices - 1) / 2) * spacing
-        nominal = torch.eye(4, dtype=torch.float64).repeat(num_slices, 1, 1)
-        nominal[:, :3, :3] = orient
-        nominal[:, :3, 3] = centre + offsets[:, None] * orient[:, 2]
-        acq = acquisition_order(num_slices, config.interleave)
-        times = ((s * num_slices + acq).double() * config.slice_time_s).numpy()
-        motion = _motions(config, times, generator, trajectories)
-        if s > 0 and config.stack_turn_deg[1] > 0:
-            low, high = config.stack_turn_deg
-            angle = math.radians(
-                low + (high - low) * float(torch.rand(1, generator=generator, dtype=torch.float64))
-            )
-            axis = torch.nn.functional.normalize(
-                torch.randn(3, generator=generator, dtype=torch.float64), dim=0
-            )
-            turn = torch.eye(4, dtype=torch.float64)
-            turn[:3, :3] = _axis_rotation(axis, angle)
-            motion = se3_compose(motion, turn)
-        # D acts about the brain centre, which sits at placement_t in the scanner frame.
-        about_centre = torch.eye(4, dtype=torch.float64)
-        about_centre[:3, 3] = placement_t
-        moved = se3_compose(se3_compose(about_centre, motion), se3_inverse(about_centre))
-        true_poses = se3_compose(se3_inverse(moved), nominal)
-        on_device = true_poses.to(device)
-        slices = sample_slices(gt_on_device, on_device, slice_config).cpu()
-        masks = _slice_masks(mask_on_device, on_device, mask_config, thick_mask_config, config)
-        if config.bias_field > 0:
-            pts_u = (torch.arange(side, dtype=torch.float64) - (side - 1) / 2) * config.in_plane_mm
-            grid = (
-                nominal[:, None, None, :3, 3]
-                + pts_u[None, :, None, None] * orient[:, 0]
-                + pts_u[None, None, :, None] * orient[:, 1]
-            ) - placement_t
-            slices = slices * _bias(grid, config.bias_field, generator, radius).float()
-        if config.signal_void_probability > 0:
-            slices = _signal_voids(slices, config.signal_void_probability, generator)
-        if config.noise > 0:
-            slices = _rician(slices, sigma, generator)
-        affine = torch.eye(4, dtype=torch.float64)
-        affine[:3, :3] = orient * torch.tensor(
-            [config.in_plane_mm, config.in_plane_mm, spacing], dtype=torch.float64
-        )
-        affine[:3, 3] = nominal[0, :3, 3] - (side - 1) / 2 * config.in_plane_mm * (
-            orient[:, 0] + orient[:, 1]
-        )
-        stacks.append(
-            SimulatedStack(
-                image=Image(slices.permute(1, 2, 0).contiguous(), affine),
-                mask=Image(masks.permute(1, 2, 0).contiguous(), affine),
-                true_poses=true_poses,
-                atlas_poses=se3_compose(source_from_scanner, true_poses),
-                acquisition_index=acq,
-            )
-        )
+    stacks = [
+        _simulate_stack(scanner, config, s, orient, generator, trajectories)
+        for s, orient in enumerate(tqdm(orientations, desc="stacks", disable=not progress))
+    ]
     info = {
         "thickness": [config.thickness_mm] * config.num_stacks,
-        "spacing": spacing,
+        "spacing": config.slice_spacing_mm,
         "inplane": config.in_plane_mm,
         "atlas_centre_mm": volume.centre_mm.tolist(),
-        "scanner_from_atlas_R": placement_R.tolist(),
-        "scanner_centre": placement_t.tolist(),
+        "scanner_from_atlas_R": scanner.rotation.tolist(),
+        "scanner_centre": scanner.brain_centre.tolist(),
         "simulation": asdict(config),
     }
-    return SimulatedCase(stacks, gt_volume, gt_mask, info)
+    return SimulatedCase(stacks, scanner.gt_volume, scanner.gt_mask, info)
 
 
 def _slice_masks(

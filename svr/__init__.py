@@ -6,4 +6,4 @@ first) or ``(..., 4, 4)`` matrices acting as ``x -> R x + t``, quaternions ``(w,
 ``w >= 0``.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"

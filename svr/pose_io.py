@@ -17,18 +17,19 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import torch
 from torch import Tensor
 
 from svr.files import atomic_write_text
+from svr.frames import FRAMES, Frame
 from svr.geometry import se3_to_vector, vector_to_se3
 from svr.validation import check_choice
 
 VECTOR_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
 MATRIX_COLUMNS = tuple(f"m{i}{j}" for i in range(3) for j in range(4))
 COLUMNS = ("file", "slice_index", *VECTOR_COLUMNS, *MATRIX_COLUMNS, "frame")
-FRAMES = ("canonical", "scanner", "atlas")
 
 
 @dataclass(frozen=True)
@@ -39,13 +40,13 @@ class PoseTable:
         files: One file name per slice.
         slice_indices: (N,) long slice index within its file.
         poses: (N, 6) float64 pose vectors.
-        frame: The target frame, one of ``FRAMES``.
+        frame: The target frame (:data:`svr.frames.Frame`).
     """
 
     files: list[str]
     slice_indices: Tensor
     poses: Tensor
-    frame: str
+    frame: Frame
 
     def __post_init__(self) -> None:
         n = self.poses.shape[0]
@@ -148,13 +149,14 @@ def read_pose_table(path: str | os.PathLike[str]) -> PoseTable:
     if len(frames) > 1:
         raise ValueError(f"{p}: rows mix frames {sorted(frames)}")
     try:
-        return PoseTable(files, indices, poses, frames.pop() if frames else "canonical")
+        frame = cast("Frame", frames.pop() if frames else "canonical")  # checked by PoseTable
+        return PoseTable(files, indices, poses, frame)
     except ValueError as err:
         raise ValueError(f"{p}: {err}") from err
 
 
 def matrices_to_table(
-    files: list[str], slice_indices: Tensor, matrices: Tensor, frame: str
+    files: list[str], slice_indices: Tensor, matrices: Tensor, frame: Frame
 ) -> PoseTable:
     """A pose table from (N, 4, 4) or (N, 3, 4) matrices."""
     return PoseTable(files, slice_indices, se3_to_vector(matrices.to(torch.float64)), frame)

@@ -13,7 +13,7 @@ from test_recon_init import oblique_stack
 from svr.errors import ConfigFieldError
 from svr.geometry import rotation_angle, se3_compose, so3_exp
 from svr.image import Image, stack_slice_poses
-from svr.reconstruction.atlas_slices import AtlasSliceConfig, fit_slices_to_atlas
+from svr.reconstruction.initialisation.atlas_slices import AtlasSliceConfig, fit_slices_to_atlas
 from svr.sampling.blocks import stack_frame, stack_pose_from_slices
 from svr.sampling.volume import canonicalize
 
@@ -68,12 +68,14 @@ def test_the_slices_follow_the_fetus_and_the_stack_pose_is_their_mean(moving_sta
     # slices of this ellipsoid go astray; the robust mean ignores them).
     assert _deg(truth[0], truth[-1]) > 7.5
     errors = torch.tensor([_deg(p, t) for p, t in zip(fit.plane_poses, truth, strict=True)])
-    rigid = se3_compose(fit.frame[None], stack_slice_poses(stack.image))
+    rigid = se3_compose(fit.to_canonical[None], stack_slice_poses(stack.image))
     rigid_errors = torch.tensor([_deg(p, t) for p, t in zip(rigid, truth, strict=True)])
     assert float(errors.median()) < 1.0 < float(rigid_errors.median()), (errors, rigid_errors)
     assert int((errors < 3.0).sum()) >= 10, errors
     # The frame and the pose are one transform.
-    assert torch.allclose(se3_compose(fit.frame, stack_frame(stack.image)), fit.pose, atol=1e-9)
+    assert torch.allclose(
+        se3_compose(fit.to_canonical, stack_frame(stack.image)), fit.pose, atol=1e-9
+    )
 
 
 def test_an_atlas_unlike_the_brain_keeps_the_start(moving_stack) -> None:
@@ -87,13 +89,13 @@ def test_an_atlas_unlike_the_brain_keeps_the_start(moving_stack) -> None:
     start[:3, :3] = so3_exp(torch.tensor([0.1, 0.2, -0.1], dtype=F64))
     fit = fit_slices_to_atlas(stack.image, stack.mask.data, start, unlike)
     assert not fit.kept and fit.ncc < 0.6
-    assert torch.equal(fit.frame, start)
+    assert torch.equal(fit.to_canonical, start)
     assert torch.allclose(fit.plane_poses, se3_compose(start[None], stack_slice_poses(stack.image)))
     # The same atlas with the gate opened: the fit is taken whatever it matched.
     forced = fit_slices_to_atlas(
         stack.image, stack.mask.data, start, unlike, config=AtlasSliceConfig(min_ncc=-1.0)
     )
-    assert forced.kept and not torch.equal(forced.frame, start)
+    assert forced.kept and not torch.equal(forced.to_canonical, start)
     # The matching atlas from the same start passes the gate.
     assert fit_slices_to_atlas(stack.image, stack.mask.data, start, atlas).ncc > fit.ncc
 
@@ -106,7 +108,7 @@ def test_bad_arguments_are_named(moving_stack) -> None:
         fit_slices_to_atlas(stack.image, mask[:, :, :-1], eye, atlas)
     with pytest.raises(ValueError, match="'mask' has no brain voxel"):
         fit_slices_to_atlas(stack.image, torch.zeros_like(mask), eye, atlas)
-    with pytest.raises(ValueError, match="'frame' must be"):
+    with pytest.raises(ValueError, match="'to_canonical' must be"):
         fit_slices_to_atlas(stack.image, mask, eye[:3], atlas)
     blank = Image(torch.zeros(stack.image.shape), stack.image.affine)
     with pytest.raises(ValueError, match=r"'stack': the 99th percentile .* expected a positive"):

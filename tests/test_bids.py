@@ -132,8 +132,11 @@ def test_participant_level_writes_bids_derivatives(participant_run, dataset):
         f"bids:raw:sub-01/anat/sub-01_run-{r}_T2w.nii.gz" for r in (1, 2, 3)
     ]
     assert svr_info["software"]["fetal-svr"] == svr.__version__
-    assert svr_info["options"]["reconstruction"]["registration"] == "stack"
-    assert svr_info["options"]["masks"] == "given (--masks-dir)"
+    assert svr_info["options"]["start"] == "stack"
+    assert svr_info["options"]["reconstruction"]["initialisation"]["kind"] == "stack"
+    # Every option of the reconstruction with its value, as the command line names it.
+    assert svr_info["options"]["options"]["--svr-iterations"] == 3
+    assert svr_info["options"]["masks"] == "given"
     assert [len(i["sha256"]) for i in svr_info["inputs"]] == [64] * 3
     assert len(svr_info["initialisation"]) == 3 and svr_info["slices"] > 0
     assert svr_info["device"] == "cpu" and "total_seconds" in svr_info
@@ -422,9 +425,9 @@ def test_the_real_scan_as_a_bids_dataset_matches_svr_reconstruct(shared_data, tm
 
 
 def test_the_provenance_names_the_model_by_its_weights_hash():
-    from svr.cli.bids import _model_digest
+    from svr.apps.bids_participant import model_digest
     from svr.files import file_sha256
     from svr.models.pretrained import stack_pose_model_path
 
     expected = file_sha256(stack_pose_model_path() / "model.safetensors")
-    assert _model_digest("stack-pose") == expected and len(expected) == 64
+    assert model_digest("stack-pose") == expected and len(expected) == 64

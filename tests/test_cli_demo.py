@@ -14,14 +14,12 @@ import torch
 
 import svr.apps.demo as demo
 import svr.cli
-from svr.apps.demo import (
-    DemoConfig,
+from svr.apps.demo import DemoConfig, demo_config, quick_phantom
+from svr.apps.demo_scores import (
     DemoResult,
     MethodResult,
     VolumeScore,
-    demo_config,
     frame_alignment,
-    quick_phantom,
     score_volume,
 )
 from svr.geometry import se3_compose, se3_inverse, vector_to_se3
@@ -109,6 +107,7 @@ def test_quick_demo_metrics_json(quick_run):
         "simulation",
         "reconstruction (stack)",
         "reconstruction (cnn)",
+        "outputs",
     }
 
 
@@ -198,7 +197,7 @@ def test_cli_maps_options_to_the_library(tmp_path, monkeypatch, capsys, caplog):
     assert svr.cli.main([*argv, *QUICK[:3], "--seed", "7", "--device", "cpu"]) == 0
     volume, config, output_dir, kwargs = calls[0]
     assert isinstance(config, DemoConfig) and config.registrations == ("stack",)
-    assert config.simulation.seed == 7 and config.reconstruction.seed == 7
+    assert config.simulation.seed == 7 and config.reconstructions[0].seed == 7
     assert config.simulation.in_plane_mm == volume.image.spacing[0].item() == 2.0
     assert output_dir == str(out) and kwargs["device"] == "cpu" and kwargs["overwrite"] is False
     assert "--model is used only with --registration cnn; ignoring default" in caplog.text
@@ -227,7 +226,10 @@ def test_demo_config_full_run_settings():
     assert config.simulation.thickness_mm == 3.0 and config.simulation.noise > 0
     assert not config.simulation.random_placement
     assert config.train.steps == 2000 and config.train.data.rotation == "euler"
-    assert config.reconstruction.output_resolution_mm == 0.8
+    stack, learned = config.reconstructions
+    assert stack.grid.resolution_mm == learned.grid.resolution_mm == 0.8
+    # Each start takes its own schedule (the learned one's rounds keep paying).
+    assert (stack.schedule.rounds, learned.schedule.rounds) == (16, 24)
     with pytest.raises(ValueError, match="'registrations' must be distinct values"):
         demo_config(registrations=("stack", "stack"))
     with pytest.raises(ValueError, match="'registrations' must be distinct values"):

@@ -10,6 +10,7 @@ import nibabel as nib
 import numpy as np
 import pytest
 import torch
+from recon_settings import recon_config
 
 import svr.cli
 import svr.files
@@ -20,7 +21,6 @@ from svr.models.checkpoint import save_checkpoint
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.models.predict import load_slice_folder
 from svr.pose_io import read_pose_table
-from svr.reconstruction.config import ReconstructionConfig
 from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.volume import canonicalize
@@ -132,7 +132,7 @@ def test_transforms_table(case, scanner_run):
     assert bool(((ncc >= -1) & (ncc <= 1)).all())
     # Only slices with enough brain to make their NCC meaningful are ever excluded by it.
     pixels = result.slices.masks.flatten(1).sum(1).cpu()
-    assert bool((pixels[result.excluded] >= ReconstructionConfig().min_slice_pixels).all())
+    assert bool((pixels[result.excluded] >= recon_config().schedule.min_slice_pixels).all())
 
 
 def test_slices_folder_round_trip(scanner_run):
@@ -153,7 +153,8 @@ def test_qa_figure_and_log(scanner_run):
         "# svr reconstruct summary",
         "time per phase (s):",
         "super-resolution: ",
-        "registration: none",
+        "start: scanner",
+        "--ncc-threshold: 0.5",
         "initialisation per stack:",
         "stack2.nii.gz: none",
         "frame: scanner",
@@ -331,12 +332,10 @@ def test_unwritable_output_folder(case, tmp_path, capsys, monkeypatch):
 @pytest.mark.parametrize("value", ["0", "-0.5", "nan"])
 def test_output_resolution_must_be_positive(case, value, tmp_path, capsys):
     argv = ["reconstruct", *inputs(case), "--output-volume", str(tmp_path / "v.nii.gz")]
-    with pytest.raises(SystemExit) as info:
-        svr.cli.main([*argv, f"--output-resolution={value}"])
-    assert info.value.code == 2
-    err = capsys.readouterr().err
-    assert f"argument --output-resolution: must be a finite number > 0, got {value}" in err
-    assert "Traceback" not in err and list(tmp_path.iterdir()) == []
+    assert svr.cli.main([*argv, f"--output-resolution={value}"]) == 1
+    err = one_line_error(capsys)
+    assert f"--output-resolution must be a finite number > 0, got {float(value)}" in err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_register_needs_an_output(case, capsys):
@@ -348,7 +347,11 @@ def test_help_uses_nesvor_option_names(capsys):
     with pytest.raises(SystemExit) as info:
         svr.cli.main(["reconstruct", "--help"])
     assert info.value.code == 0
-    text = capsys.readouterr().out
+    text = " ".join(capsys.readouterr().out.split())
+    # What a user must give and what they get comes first, then the options in sections.
+    assert text.index("You give the stacks") < text.index("options:") < text.index("inputs:")
+    for section in ("outputs:", "initialisation:", "rounds:", "super-resolution:", "outliers:"):
+        assert section in text
     for option in (
         "--input-stacks",
         "--stack-masks",
@@ -356,7 +359,7 @@ def test_help_uses_nesvor_option_names(capsys):
         "--output-volume",
         "--output-resolution",
         "--output-slices",
-        "--registration {cnn,stack,none}",
+        "--registration {stack,cnn,atlas,none}",
         "--output-log",
         "(default: 0.8)",
         "svr reconstruct --input-stacks ax.nii.gz",
@@ -364,14 +367,45 @@ def test_help_uses_nesvor_option_names(capsys):
         assert option in text
 
 
-def test_packets_reach_the_reconstruction_configuration() -> None:
-    from svr.cli.reconstruct import build_configs
+def test_options_resolve_once_into_the_job() -> None:
+    from svr.cli.recon_options import build_job
 
     parser = svr.cli.build_parser()
     base = ["reconstruct", "--input-stacks", "a.nii.gz", "--output-volume", "out.nii.gz"]
-    assert build_configs(parser.parse_args(base), 1).reconstruction.packets == 2
-    args = parser.parse_args([*base, "--packets", "3"])
-    assert build_configs(args, 1).reconstruction.packets == 3
+
+    def job(*extra):
+        return build_job(parser.parse_args([*base, *extra]), ["a.nii.gz"], None, None, "cpu")
+
+    default = job()
+    assert default.config.packets == 2 and default.config.initialisation.kind == "stack"
+    assert default.config.schedule.rounds == 16 and default.model is None
+    assert job("--packets", "3").config.packets == 3
+    # --registration cnn with the shipped stack-pose model: the learned start and its schedule.
+    learned = job("--registration", "cnn")
+    assert learned.config.initialisation.kind == "learned" and learned.model == "stack-pose"
+    assert (learned.config.schedule.rounds, learned.config.schedule.converged_deg) == (24, 0.15)
+    assert job("--registration", "cnn", "--iterations", "3").config.schedule.rounds == 3
+    slices = job("--registration", "cnn", "--model", "slice-pose")
+    assert slices.config.initialisation.kind == "learned-slices"
+    assert job("--registration", "none").config.initialisation.kind == "scanner"
+    assert job("--schedule", "fixed").config.schedule.rounds == 5
+
+
+def test_old_spellings_still_work_with_a_deprecation_message(caplog) -> None:
+    from svr.cli.recon_options import initialisation_kind
+
+    with caplog.at_level(logging.WARNING):
+        assert initialisation_kind("cnn", "none") == "atlas"
+    assert "--registration cnn --model none is deprecated" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert initialisation_kind("cnn", "default") == "learned-slices"
+    assert "write --model slice-pose" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert initialisation_kind("cnn", "slice-pose") == "learned-slices"
+        assert initialisation_kind("cnn", "stack-pose") == "learned"
+    assert caplog.text == ""
 
 
 @pytest.mark.parametrize("given", ["volumes", "folder"])
@@ -391,7 +425,7 @@ def test_reconstruct_takes_the_frame_of_an_atlas_that_fits_clearly_better(
         save_nifti(brain, path.with_name("mask.nii.gz"))
     caplog.set_level(logging.INFO, logger="svr.reconstruction.atlas_frame")
     log = tmp_path / "srr.log"
-    argv = ["reconstruct", *inputs(case), *FAST, "--registration", "cnn", "--model", "none"]
+    argv = ["reconstruct", *inputs(case), *FAST, "--registration", "atlas"]
     if given == "volumes":
         argv += ["--atlas-volume", *map(str, volumes)]
         argv += ["--atlas-mask", *(str(v.with_name("mask.nii.gz")) for v in volumes)]

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from recon_settings import recon_config
 
-from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.outputs import write_volume
 from svr.reconstruction.pipeline import reconstruct
 from svr.reconstruction.stacks import load_stacks
@@ -39,7 +39,7 @@ def test_sb28_moderate_meets_the_quality_floors(shared_data: Path, tmp_path: Pat
     stacks = load_stacks(stack_paths, mask_paths, thickness)
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    result = reconstruct(stacks, ReconstructionConfig(), device=device, progress=False)
+    result = reconstruct(stacks, recon_config(), device=device, progress=False)
     volume = write_volume(result.volume, tmp_path / "recon.nii.gz")
 
     run = subprocess.run(

@@ -13,27 +13,29 @@ import itertools
 import numpy as np
 import pytest
 import torch
+from recon_settings import recon_config
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
+from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image
-from svr.reconstruction.cnn_init import robust_mean_pose
-from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.acquisition import Acquisition, acquisition_model, slice_groups
 from svr.reconstruction.operators import SliceProjector, VolumeGrid, gaussian_blur, psf_nodes
-from svr.reconstruction.pipeline import (
+from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.registration import (
     SVR_PSF_SAMPLES,
-    Acquisition,
-    acquisition_model,
+    RegistrationConfig,
+    register_rigid,
+    slice_ncc,
+)
+from svr.reconstruction.robust import robust_weights
+from svr.reconstruction.rounds import (
     finalise,
     initial_volume,
-    reconstruct,
     reject_outliers,
-    slice_groups,
     super_resolve,
     svr_pass,
 )
-from svr.reconstruction.registration import RegistrationConfig, register_rigid, slice_ncc
-from svr.reconstruction.robust import robust_weights
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 from svr.reconstruction.superres import (
@@ -699,12 +701,12 @@ def test_reconstruct_round_trip_improves_on_the_initial_volume(monkeypatch):
     )
     case = simulate_case(canonicalize(volume, mask), config)
     stacks = prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
-    settings = ReconstructionConfig(
-        output_resolution_mm=1.5,
-        outer_iterations=2,
-        sr_iterations=(3, 5),
+    settings = recon_config(
+        resolution_mm=1.5,
+        rounds=2,
+        iterations=(3, 5),
         svr_iterations=3,
-        registration="stack",
+        start="stack",
     )
     torch.manual_seed(123)
     state = torch.random.get_rng_state()
@@ -754,10 +756,10 @@ def test_reconstruct_on_cuda_matches_cpu():
     # side, which moved the volume's agreement to 0.976 in 2 of 10 runs on an H200 (0.9998 with
     # the same exclusions). The test compares the arithmetic, not a decision at a threshold:
     # without exclusions, 0.99954 in 8 of 8 runs, slice NCCs within 0.008.
-    settings = ReconstructionConfig(
-        output_resolution_mm=1.5,
-        outer_iterations=2,
-        sr_iterations=(3, 5),
+    settings = recon_config(
+        resolution_mm=1.5,
+        rounds=2,
+        iterations=(3, 5),
         svr_iterations=3,
         ncc_threshold=-1.0,
     )
@@ -810,8 +812,8 @@ def test_svr_pass_recovers_slice_offsets_and_keeps_small_slices(
     rotvecs, shifts = random_offsets(rng, len(truth), 3.0, 2.0)
     start = perturb(truth, rotvecs, shifts, truth[:, :3, 3].numpy())
     pixels = phantom_acquisition.brain_pixels
-    config = ReconstructionConfig(min_slice_pixels=int(pixels.float().quantile(0.2)))
-    small = pixels < config.min_slice_pixels
+    config = recon_config(min_slice_pixels=int(pixels.float().quantile(0.2)))
+    small = pixels < config.schedule.min_slice_pixels
     assert 0 < int(small.sum()) < 0.5 * len(truth)
     estimate = svr_pass(phantom_acquisition, volume.data, start, config, anchor=False)
     assert estimate.dtype == F64 and estimate.shape == start.shape
@@ -836,7 +838,7 @@ def test_svr_pass_anchoring_takes_the_common_motion_out(
         np.repeat([[1.0, -1.0, 0.5]], n, 0),
         np.repeat(centre[None], n, 0),
     )
-    config = ReconstructionConfig(min_slice_pixels=0)
+    config = recon_config(min_slice_pixels=0)
     free = svr_pass(phantom_acquisition, volume.data, start, config, anchor=False)
     anchored = svr_pass(phantom_acquisition, volume.data, start, config)
     angle, shift = pose_errors(free, truth)
@@ -855,7 +857,7 @@ def test_svr_pass_moves_groups_as_rigid_bodies(phantom, phantom_slices, phantom_
     rotvecs, shifts = random_offsets(rng, len(truth), 3.0, 2.0)
     start = perturb(truth, rotvecs, shifts, truth[:, :3, 3].numpy())
     # In groups no slice is held, however little brain it has.
-    config = ReconstructionConfig(packets=2, min_slice_pixels=10**6, svr_levels=2)
+    config = recon_config(packets=2, min_slice_pixels=10**6, svr_levels=2)
     estimate = svr_pass(phantom_acquisition, volume.data, start, config, 3, anchor=False)
     correction = (estimate @ torch.linalg.inv(start)).numpy()
     groups = slice_groups(phantom_slices, 2, 3).numpy()
@@ -883,8 +885,8 @@ def test_reject_outliers_scales_weights_and_excludes(phantom, phantom_slices):
     corrupted = dataclasses.replace(slices, images=images)
     acquisition = acquisition_model(corrupted, VolumeGrid(volume.shape, volume.affine))
     points = acquisition.points(corrupted.poses)
-    config = ReconstructionConfig(min_slice_pixels=int(pixels[small_broken]) + 1)
-    assert int(pixels[broken]) >= config.min_slice_pixels
+    config = recon_config(min_slice_pixels=int(pixels[small_broken]) + 1)
+    assert int(pixels[broken]) >= config.schedule.min_slice_pixels
 
     out = reject_outliers(acquisition, volume.data, points, config)
     slice_of = acquisition.projector.slice_of
@@ -904,7 +906,7 @@ def test_reject_outliers_scales_weights_and_excludes(phantom, phantom_slices):
         acquisition,
         volume.data,
         points,
-        dataclasses.replace(config, robust=False),
+        dataclasses.replace(config, outliers=dataclasses.replace(config.outliers, robust=False)),
         pixel_w,
         slice_w,
     )
@@ -917,7 +919,7 @@ def test_super_resolve_runs_the_rounds_settings(phantom_slices, phantom_acquisit
     acquisition = phantom_acquisition
     points = acquisition.points(phantom_slices.poses)
     sda = initial_volume(acquisition, points)
-    config = ReconstructionConfig(sr_iterations=(1, 4), regularization=(0.1, 0.02))
+    config = recon_config(iterations=(1, 4), regularization=(0.1, 0.02))
     outliers = reject_outliers(acquisition, sda, points, config)
 
     def expected(iterations: int, regularization: float) -> torch.Tensor:
@@ -930,7 +932,7 @@ def test_super_resolve_runs_the_rounds_settings(phantom_slices, phantom_acquisit
             sda,
             iterations,
             regularization,
-            config.edge_delta,
+            config.superres.edge_delta,
         )
 
     first = super_resolve(acquisition, sda, points, outliers, config, 0)
@@ -982,12 +984,12 @@ def test_the_steps_in_sequence_reproduce_reconstruct():
     )
     case = simulate_case(canonicalize(volume, mask), simulation)
     stacks = prepare_stacks([s.image for s in case.stacks], [s.mask for s in case.stacks], 3.0)
-    config = ReconstructionConfig(
-        output_resolution_mm=2.0,
-        registration="none",
+    config = recon_config(
+        resolution_mm=2.0,
+        start="scanner",
         schedule="fixed",
-        outer_iterations=4,
-        sr_iterations=(2, 3),
+        rounds=4,
+        iterations=(2, 3),
         regularization=(0.2, 0.1),
         svr_levels=2,
         svr_iterations=2,
@@ -997,7 +999,7 @@ def test_the_steps_in_sequence_reproduce_reconstruct():
     result = reconstruct(stacks, config, progress=False)
 
     slices = extract_slices(stacks)
-    acquisition = acquisition_model(slices, output_grid(slices, config.output_resolution_mm))
+    acquisition = acquisition_model(slices, output_grid(slices, config.grid.resolution_mm))
     poses = slices.poses
     points = acquisition.points(poses)
     sda = volume = initial_volume(acquisition, points)

@@ -7,9 +7,10 @@ from dataclasses import replace
 
 import pytest
 import torch
+from recon_settings import recon_config
 from synthetic import ellipsoid_brain
 
-import svr.reconstruction.cnn_init as cnn_init
+import svr.reconstruction.initialisation.slice_model as cnn_init
 from svr.geometry import (
     quat_to_matrix,
     se3_compose,
@@ -24,8 +25,11 @@ from svr.image import Image, stack_slice_poses
 from svr.models.backbones import BackboneConfig
 from svr.models.network import ModelConfig, build_model
 from svr.models.predict import PlanePredictions
-from svr.reconstruction.cnn_init import cnn_slice_poses, learned_consensus, learned_initialisation
-from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation.slice_model import (
+    consensus_start,
+    learned_consensus,
+    slice_predictions,
+)
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
@@ -156,7 +160,7 @@ def test_robust_mean_argument_errors():
         robust_mean_pose(T, tolerance=0.0)
 
 
-# --- cnn_slice_poses ----------------------------------------------------------------------------
+# --- slice_predictions ----------------------------------------------------------------------------
 
 
 def oblique_stack(
@@ -278,7 +282,7 @@ def oracle(truth: dict[str, torch.Tensor], corrupt: float = 0.0, drop_last: bool
 def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch):
     volume, stacks, truth, slices = scene
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
-    init = cnn_slice_poses(build_model(TINY).eval(), stacks, slices)
+    init = slice_predictions(build_model(TINY).eval(), stacks, slices)
     n = len(slices)
     assert init.predicted_poses.shape == init.consensus_poses.shape == (n, 4, 4)
     assert init.stack_transforms.shape == (3, 4, 4) and init.global_transform.shape == (4, 4)
@@ -312,7 +316,7 @@ def test_oracle_predictions_give_the_true_transform_and_poses(scene, monkeypatch
 def test_consensus_survives_25_percent_random_predictions(scene, monkeypatch):
     _, stacks, truth, slices = scene
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, corrupt=0.25))
-    init = cnn_slice_poses(build_model(TINY).eval(), stacks, slices)
+    init = slice_predictions(build_model(TINY).eval(), stacks, slices)
     expected = se3_compose(se3_inverse(G), slices.scanner_poses)
     wrong = (init.predicted_poses - expected).abs().amax(dim=(1, 2)) > 1e-6
     assert 0.2 < float(wrong.double().mean()) < 0.3
@@ -329,20 +333,20 @@ def test_cnn_slice_poses_errors(scene, monkeypatch):
     _, stacks, truth, slices = scene
     model = build_model(TINY).eval()
     with pytest.raises(ValueError, match="'stacks' must be the stacks of 'slices', in order"):
-        cnn_slice_poses(model, stacks[::-1], slices)
+        slice_predictions(model, stacks[::-1], slices)
     with pytest.raises(ValueError, match="'batch_size' must be an int >= 1"):
-        cnn_slice_poses(model, stacks, slices, batch_size=0)
+        slice_predictions(model, stacks, slices, batch_size=0)
     moved = stacks[1].image.affine.clone()
     moved[:3, 3] += 2.0 * moved[:3, 2] / moved[:3, 2].norm()  # 2 mm along the normal
     shifted = [stacks[0], replace(stacks[1], image=Image(stacks[1].image.data, moved)), stacks[2]]
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth))
     with pytest.raises(ValueError, match=r"'coronal\.nii\.gz': slices of 'slices' do not lie"):
-        cnn_slice_poses(model, shifted, slices)
+        slice_predictions(model, shifted, slices)
     monkeypatch.setattr(cnn_init, "predict_plane_poses", oracle(truth, drop_last=True))
     with pytest.raises(
         ValueError, match=r"'axial\.nii\.gz': no prediction for the slices k = \[\d+\]"
     ):
-        cnn_slice_poses(model, stacks, slices)
+        slice_predictions(model, stacks, slices)
 
 
 def test_cnn_slice_poses_end_to_end_with_a_tiny_network(scene):
@@ -351,7 +355,7 @@ def test_cnn_slice_poses_end_to_end_with_a_tiny_network(scene):
     with torch.no_grad():
         for p in model.head.parameters():
             p.normal_(0.0, 0.1)  # input-dependent predictions
-    init = cnn_slice_poses(model.eval(), stacks, slices.subset(slices.stack_ids != 1), 16)
+    init = slice_predictions(model.eval(), stacks, slices.subset(slices.stack_ids != 1), 16)
     n = int((slices.stack_ids != 1).sum())
     assert init.predicted_poses.shape == init.consensus_poses.shape == (n, 4, 4)
     for field in (init.predicted_poses, init.consensus_poses, init.global_transform):
@@ -445,16 +449,16 @@ def test_learned_initialisation_keeps_good_predictions_per_slice(moving_scene):
     # Each stack is scored against the other two (11-13 slices each) on a grid of twice this
     # spacing; at 2.5 mm (a 5 mm grid) one stack's exact poses and its registered ones scored
     # within 0.04 of each other either way round, at 2 mm exact poses win by 0.14-0.19.
-    config = ReconstructionConfig(output_resolution_mm=2.0, template=0)
+    config = recon_config(resolution_mm=2.0, template=0)
     exact = true_array_poses(slices, truth, stacks)
-    start, kept, _ = learned_initialisation(slices, learned_consensus(slices, exact), config)
+    start, kept, _ = consensus_start(slices, learned_consensus(slices, exact), config)
     assert kept == ("cnn", "cnn", "cnn") and start.frame == "canonical"
     torch.testing.assert_close(start.poses, exact)
 
 
 def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
     _, stacks, truth, slices = moving_scene
-    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    config = recon_config(resolution_mm=2.5, template=0)
     exact = true_array_poses(slices, truth, stacks)
     generator = torch.Generator().manual_seed(4)
     # A model that knows the brain's orientation but not the slices: 40 degrees of noise each.
@@ -462,9 +466,11 @@ def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
     noisy = exact.clone()
     noisy[:, :3, :3] = exact[:, :3, :3] @ so3_exp(math.radians(40) * axes.to(F64))
     learned = learned_consensus(slices, noisy)
-    start, kept, notes = learned_initialisation(slices, learned, config)
+    start, kept, notes = consensus_start(slices, learned, config)
     assert kept == ("stack", "stack", "stack")
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    registered, _ = stack_registration(
+        slices, config.initialisation_grid_mm, config.initialisation.template
+    )
     # Registration alone, rigidly moved into canonical space by one transform.
     moved = start.poses @ torch.linalg.inv(registered)
     torch.testing.assert_close(moved, moved[:1].expand_as(moved), atol=1e-6, rtol=0)
@@ -532,15 +538,15 @@ def test_disambiguation_with_noisy_predictions_and_motion(moving_scene):
 def test_learned_initialisation_falls_back_on_a_wrong_model(moving_scene):
     """Random predictions: the model is unsure of every stack, which starts from registration."""
     _, _stacks, _truth, slices = moving_scene
-    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    config = recon_config(resolution_mm=2.5, template=0)
     generator = torch.Generator().manual_seed(23)
     wrong = rigid(
         random_rotations(len(slices), generator),
         40 * torch.randn(len(slices), 3, generator=generator, dtype=F64),
     )
     learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
-    assert float(learned.stack_support.max()) < config.cnn_min_support
-    _start, kept, notes = learned_initialisation(slices, learned, config)
+    assert float(learned.stack_support.max()) < config.initialisation.slice_min_support
+    _start, kept, notes = consensus_start(slices, learned, config)
     assert kept == ("stack",) * 3
     assert all(n.startswith("cnn unsure") for n in notes)
 
@@ -548,7 +554,7 @@ def test_learned_initialisation_falls_back_on_a_wrong_model(moving_scene):
 def test_learned_initialisation_rejects_confident_but_inconsistent_stacks(moving_scene):
     """Each stack rigidly wrong by its own 25 deg: full support, but the stacks disagree."""
     _, stacks, truth, slices = moving_scene
-    config = ReconstructionConfig(output_resolution_mm=2.5, template=0)
+    config = recon_config(resolution_mm=2.5, template=0)
     exact = true_array_poses(slices, truth, stacks)
     errors = so3_exp(
         torch.tensor([[0.44, 0.0, 0.0], [0.0, -0.44, 0.0], [0.0, 0.0, 0.44]], dtype=F64)
@@ -557,10 +563,12 @@ def test_learned_initialisation_rejects_confident_but_inconsistent_stacks(moving
     wrong[:, :3, :3] = errors[slices.stack_ids] @ exact[:, :3, :3]
     learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
     assert bool((learned.stack_support == 1).all())
-    start, kept, _notes = learned_initialisation(slices, learned, config)
+    start, kept, _notes = consensus_start(slices, learned, config)
     # At most one stack keeps its own frame: the others would tear the brain apart.
     assert kept.count("cnn") <= 1
-    registered, _ = stack_registration(slices, config.output_resolution_mm, config.template)
+    registered, _ = stack_registration(
+        slices, config.initialisation_grid_mm, config.initialisation.template
+    )
     stack_rows = torch.tensor([k == "stack" for k in kept])[slices.stack_ids]
     moved = start.poses[stack_rows] @ torch.linalg.inv(registered[stack_rows])
     torch.testing.assert_close(moved, moved[:1].expand_as(moved), atol=1e-6, rtol=0)

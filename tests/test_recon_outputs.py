@@ -16,7 +16,6 @@ from svr.geometry import so3_exp, vector_to_se3
 from svr.image import Image, ImageError, load_nifti, resample_to_grid, stack_slice_poses
 from svr.models.predict import load_slice_folder
 from svr.pose_io import COLUMNS, PoseTable, read_pose_table, write_pose_table
-from svr.reconstruction.config import ReconstructionResult
 from svr.reconstruction.outputs import (
     slice_affines,
     write_slices_folder,
@@ -24,6 +23,7 @@ from svr.reconstruction.outputs import (
     write_volume,
 )
 from svr.reconstruction.qa import axis_aligned, qa_figure
+from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.stacks import prepare_stacks
 

@@ -109,7 +109,7 @@ def test_slice_set_checks_and_copies(stacks):
     torch.testing.assert_close(moved.scanner_poses, slices.scanner_poses)
     assert slices.to("cpu").device.type == "cpu"
     with pytest.raises(ValueError, match="'frame' must be one of"):
-        slices.with_poses(slices.poses, "atlas")
+        slices.with_poses(slices.poses, "world")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"'poses' must have shape \(4, 4, 4\)"):
         slices.with_poses(slices.poses[:, :3])
     with pytest.raises(ValueError, match=r"'images' must be \(N, H, W\)"):

@@ -6,21 +6,20 @@ import math
 
 import pytest
 import torch
+from recon_settings import recon_config
 from synthetic import ellipsoid_brain
 from test_recon_init import oblique_stack
 
 from svr.geometry import se3_compose, so3_exp
 from svr.image import Image
-from svr.models.stack_pose import StackPoseConfig, StackPoseNet, estimate_stack_pose
-from svr.reconstruction.atlas_frame import (
-    KEEP_MARGIN,
-    align_to_atlas,
-    atlas_transform,
-    best_atlas_transform,
-    preferred_atlas,
-)
-from svr.reconstruction.cnn_init import agreeing_stacks, stack_pose_initialisation
-from svr.reconstruction.config import ReconstructionConfig, ReconstructionResult
+from svr.models.stack_pose import StackPoseConfig, StackPoseNet
+from svr.reconstruction.atlas_fit import KEEP_MARGIN, preferred_atlas
+from svr.reconstruction.atlas_frame import align_to_atlas, atlas_transform, best_atlas_transform
+from svr.reconstruction.initialisation.atlas import atlas_start
+from svr.reconstruction.initialisation.choice import agreeing_stacks
+from svr.reconstruction.initialisation.learned import learned_start
+from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose
+from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import extract_slices, mask_centre
 from svr.sampling.blocks import stack_pose_from_slices
 from svr.sampling.volume import as_atlases, canonicalize
@@ -71,8 +70,8 @@ def test_the_atlas_chain_places_each_stack_from_its_own_data(turned_scene) -> No
 def test_stack_pose_initialisation_keeps_good_per_stack_poses(turned_scene) -> None:
     atlas, stacks, _truths = turned_scene
     slices = extract_slices(stacks)
-    config = ReconstructionConfig(output_resolution_mm=2.5)
-    start, kept, notes = stack_pose_initialisation(slices, stacks, None, config, atlas)
+    config = recon_config(resolution_mm=2.5)
+    start, kept, notes = atlas_start(slices, stacks, [atlas], config)
     assert start.frame == "canonical"
     assert "cnn" in kept
     assert all("axes+atlas" in n for n in notes)
@@ -86,37 +85,39 @@ def test_a_wrong_model_falls_back_to_stack_registration(turned_scene) -> None:
         # Residuals of about 70 degrees about a different axis for every stack's block.
         net.pose.linear.weight.normal_(0.0, 0.5)
         net.pose.linear.bias.copy_(torch.tensor([1.2, -0.6, 0.3, 0.5, 0.0, 0.0]))
-    config = ReconstructionConfig(output_resolution_mm=2.5)
-    start, kept, _ = stack_pose_initialisation(slices, stacks, net, config)
+    config = recon_config(resolution_mm=2.5)
+    start, kept, _ = learned_start(slices, stacks, net, config)
     assert kept == ("stack", "stack", "stack")
     assert start.frame == "canonical"
 
 
-def test_with_a_model_the_atlas_does_not_fit_each_stack(turned_scene, monkeypatch) -> None:
-    """With a model each stack's pose is the model's; the atlas is used per stack only without.
-
-    The reconstruction's start takes no restarts about the chosen frame (``restart_deg=0``):
-    measured lower after reconstruction (``benchmarks/results/stack-pose-restarts.md``).
-    """
-    import svr.reconstruction.cnn_init as cnn_init
+def test_each_start_estimates_a_stack_its_own_way(turned_scene, monkeypatch) -> None:
+    """The learned start: the model's pose, no atlas, the configured restarts (0 by default);
+    the atlas start: no model, the atlas per stack."""
+    import svr.reconstruction.initialisation.atlas as atlas_module
+    import svr.reconstruction.initialisation.learned as learned_module
 
     atlas, stacks, _ = turned_scene
     slices = extract_slices(stacks)
     seen = []
-    original = cnn_init.estimate_stack_pose
+    original = learned_module.estimate_stack_pose
 
     def recording(model, image, mask, atlas=None, levels=None, **kwargs):
         seen.append((model is None, atlas is None, levels is None, kwargs.get("restart_deg")))
         return original(model, image, mask, atlas=atlas, levels=levels, **kwargs)
 
-    monkeypatch.setattr(cnn_init, "estimate_stack_pose", recording)
+    monkeypatch.setattr(learned_module, "estimate_stack_pose", recording)
+    monkeypatch.setattr(atlas_module, "estimate_stack_pose", recording)
     net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
-    config = ReconstructionConfig(output_resolution_mm=2.5)
-    stack_pose_initialisation(slices, stacks, net, config, atlas)
+    config = recon_config(resolution_mm=2.5, packets=1)
+    learned_start(slices, stacks, net, config)
     assert seen == [(False, True, True, 0.0)] * len(stacks)
     seen.clear()
-    stack_pose_initialisation(slices, stacks, None, config, atlas)
-    assert seen == [(True, False, False, 0.0)] * len(stacks)
+    learned_start(slices, stacks, net, recon_config(resolution_mm=2.5, packets=1, restart_deg=5.0))
+    assert seen == [(False, True, True, 5.0)] * len(stacks)
+    seen.clear()
+    atlas_start(slices, stacks, [atlas], config)
+    assert seen == [(True, False, False, None)] * len(stacks)
 
 
 @pytest.mark.parametrize(
@@ -263,7 +264,7 @@ def test_align_to_atlas_turns_everything_and_centres_the_kept_slices_masks(turne
 
 
 def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None:
-    from svr.models.stack_pose import AtlasFitConfig, atlas_levels, fit_to_atlas
+    from svr.reconstruction.atlas_fit import AtlasFitConfig, atlas_levels, fit_to_atlas
 
     _volume, _mask, atlas = _brain()
     turn = torch.eye(4, dtype=F64)
@@ -280,7 +281,7 @@ def test_fit_to_atlas_takes_precomputed_levels_and_checks_their_number() -> None
 
 
 def test_estimate_stack_pose_passes_precomputed_levels_to_the_atlas_fit(turned_scene) -> None:
-    from svr.models.stack_pose import atlas_levels
+    from svr.reconstruction.atlas_fit import atlas_levels
 
     atlas, stacks, _truths = turned_scene
     stack = stacks[0]
@@ -295,8 +296,8 @@ def test_estimate_stack_pose_passes_precomputed_levels_to_the_atlas_fit(turned_s
 
 def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch) -> None:
     """Per-packet frames are a third candidate; a stack whose second packet turned keeps them."""
-    import svr.reconstruction.cnn_init as cnn_init
-    from svr.models.stack_pose import PacketPoseEstimate, StackPoseEstimate
+    import svr.reconstruction.initialisation.learned as learned_module
+    from svr.reconstruction.initialisation.stack_pose import PacketPoseEstimate, StackPoseEstimate
     from svr.sampling.blocks import implied_stack_poses, stack_frame
 
     volume, mask, _atlas = _brain()
@@ -331,16 +332,16 @@ def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch)
             frame @ stack_frame(image), frame, 5.0, frame[None], torch.ones(1), "learned"
         )
 
-    def oracle_packets(model, image, inside, frame, packet_of, iterations=3):
+    def oracle_packets(model, image, inside, to_canonical, packet_of, iterations=3):
         sid = next(i for i, s in enumerate(stacks) if s.image is image)
         calls.append(packet_of.tolist())
         return PacketPoseEstimate(packet_frames[sid], torch.ones(2), torch.tensor([False, True]))
 
-    monkeypatch.setattr(cnn_init, "estimate_stack_pose", oracle_stack)
-    monkeypatch.setattr(cnn_init, "estimate_packet_poses", oracle_packets)
+    monkeypatch.setattr(learned_module, "estimate_stack_pose", oracle_stack)
+    monkeypatch.setattr(learned_module, "estimate_packet_poses", oracle_packets)
     net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
-    config = ReconstructionConfig(output_resolution_mm=2.5)
-    start, kept, notes = stack_pose_initialisation(slices, stacks, net, config)
+    config = recon_config(resolution_mm=2.5)
+    start, kept, notes = learned_start(slices, stacks, net, config)
     assert calls == [[k % 2 for k in range(14)]] * 2
     assert kept[1] == "packets", notes
     assert "packets 0 deg, 50 deg" in notes[1]
@@ -351,9 +352,7 @@ def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch)
     assert abs(_angle_deg(even, odd) - 50.0) < 2.0
     # With one packet per stack there is no packet candidate.
     calls.clear()
-    _, kept, _ = stack_pose_initialisation(
-        slices, stacks, net, ReconstructionConfig(output_resolution_mm=2.5, packets=1)
-    )
+    _, kept, _ = learned_start(slices, stacks, net, recon_config(resolution_mm=2.5, packets=1))
     assert calls == [] and "packets" not in kept
 
 

@@ -21,11 +21,7 @@ from svr.models.stack_pose import (
     StackPoseConfig,
     StackPoseNet,
     StackPoseOutput,
-    estimate_packet_poses,
-    estimate_stack_pose,
     load_stack_pose_model,
-    mask_axis_hypotheses,
-    restart_frames,
 )
 from svr.models.stack_pose_train import (
     StackPoseTrainingConfig,
@@ -34,6 +30,12 @@ from svr.models.stack_pose_train import (
     stack_pose_loss,
     step_seed,
     train_stack_pose,
+)
+from svr.reconstruction.initialisation.stack_pose import (
+    estimate_packet_poses,
+    estimate_stack_pose,
+    mask_axis_hypotheses,
+    restart_transforms,
 )
 from svr.representation_registry import REPRESENTATIONS
 from svr.sampling.blocks import (
@@ -454,7 +456,7 @@ def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:
         torch.linalg.det(estimate.pose[:3, :3]), torch.tensor(1.0, dtype=torch.float64)
     )
     assert torch.allclose(
-        estimate.pose, se3_compose(estimate.frame, stack_frame(case.stacks[0].image))
+        estimate.pose, se3_compose(estimate.to_canonical, stack_frame(case.stacks[0].image))
     )
     with pytest.raises(ValueError, match="fewer than 4"):
         estimate_stack_pose(net, case.stacks[0].image, torch.zeros(case.stacks[0].image.shape))
@@ -466,7 +468,7 @@ def test_restart_frames_turn_about_each_canonical_axis() -> None:
         [[0.0, -1.0, 0.0, 4.0], [1.0, 0.0, 0.0, -2.0], [0.0, 0.0, 1.0, 7.0], [0, 0, 0, 1]],
         dtype=torch.float64,
     )
-    frames = restart_frames(frame, 12.0)
+    frames = restart_transforms(frame, 12.0)
     assert frames.shape == (7, 4, 4) and frames.dtype == torch.float64
     assert torch.equal(frames[0], frame)
     for i, (axis, sign) in enumerate([(a, s) for a in range(3) for s in (1, -1)], start=1):
@@ -475,16 +477,16 @@ def test_restart_frames_turn_about_each_canonical_axis() -> None:
         turn = Rotation.from_rotvec(vector).as_matrix()
         np.testing.assert_allclose(frames[i, :3, :3], turn @ frame[:3, :3].numpy(), atol=1e-12)
         np.testing.assert_allclose(frames[i, :3, 3], turn @ frame[:3, 3].numpy(), atol=1e-12)
-    assert torch.allclose(restart_frames(frame, 0.0), frame.expand(7, 4, 4))
+    assert torch.allclose(restart_transforms(frame, 0.0), frame.expand(7, 4, 4))
     with pytest.raises(ValueError, match="'turn_deg'"):
-        restart_frames(frame, -1.0)
-    with pytest.raises(ValueError, match="'frame'"):
-        restart_frames(frame[:3], 10.0)
+        restart_transforms(frame, -1.0)
+    with pytest.raises(ValueError, match="'to_canonical'"):
+        restart_transforms(frame[:3], 10.0)
 
 
 def test_the_chosen_frame_is_the_robust_mean_of_its_restarts(monkeypatch) -> None:
     """The best-scored hypothesis is refined again from 7 starts; their robust mean is kept."""
-    import svr.models.stack_pose as stack_pose
+    import svr.reconstruction.initialisation.stack_pose as stack_pose
 
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
@@ -510,22 +512,24 @@ def test_the_chosen_frame_is_the_robust_mean_of_its_restarts(monkeypatch) -> Non
         # the restarts: two land on a frame turned 90 degrees from the target, five on it
         return torch.stack([outlier] * 2 + [target] * 5), scores
 
-    monkeypatch.setattr(stack_pose, "refine_frames", fake_refine)
-    estimate = stack_pose.estimate_stack_pose(net, stack.image, stack.mask.data, iterations=2)
+    monkeypatch.setattr(stack_pose, "refine_transforms", fake_refine)
+    estimate = stack_pose.estimate_stack_pose(
+        net, stack.image, stack.mask.data, iterations=2, restart_deg=10.0
+    )
     assert [c.shape[0] for c in calls] == [8, 7]
-    assert torch.allclose(calls[1], restart_frames(calls[0][2], 10.0))
-    assert torch.allclose(estimate.frame, target, atol=1e-6)
+    assert torch.allclose(calls[1], restart_transforms(calls[0][2], 10.0))
+    assert torch.allclose(estimate.to_canonical, target, atol=1e-6)
     assert torch.equal(estimate.hypotheses, calls[0])
     calls.clear()
     plain = stack_pose.estimate_stack_pose(
         net, stack.image, stack.mask.data, iterations=2, restart_deg=0.0
     )
-    assert len(calls) == 1 and torch.equal(plain.frame, calls[0][2])
+    assert len(calls) == 1 and torch.equal(plain.to_canonical, calls[0][2])
 
 
 def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
     """The stack's frame and the packet's own 8 hypotheses compete on the packet's slices."""
-    import svr.models.stack_pose as stack_pose
+    import svr.reconstruction.initialisation.stack_pose as stack_pose
 
     model_config, _ = _tiny_training()
     net = StackPoseNet(model_config)
@@ -553,7 +557,7 @@ def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
         )
         return out
 
-    monkeypatch.setattr(stack_pose, "refine_frames", fake_refine)
+    monkeypatch.setattr(stack_pose, "refine_transforms", fake_refine)
     # The stack's frame 30 degrees from packet 1's own choice: each packet keeps its choice.
     near = turned(own[4], 30.0)
     estimate = stack_pose.estimate_packet_poses(net, stack.image, stack.mask.data, near, packet_of)
@@ -561,13 +565,13 @@ def test_each_packet_keeps_its_best_scored_candidate(monkeypatch) -> None:
     assert torch.equal(seen[0][1], packet_of == 0)
     assert torch.equal(seen[1][1], packet_of == 1)
     assert estimate.own.tolist() == [False, True]
-    assert torch.equal(estimate.frames[0], near)
-    assert torch.allclose(estimate.frames[1], own[4])
+    assert torch.equal(estimate.to_canonical[0], near)
+    assert torch.allclose(estimate.to_canonical[1], own[4])
     # 150 degrees apart (a twin): every packet keeps the stack's frame refined on its slices.
     far = turned(own[4], 150.0)
     estimate = stack_pose.estimate_packet_poses(net, stack.image, stack.mask.data, far, packet_of)
     assert estimate.own.tolist() == [False, False]
-    assert torch.equal(estimate.frames, far.expand(2, 4, 4))
+    assert torch.equal(estimate.to_canonical, far.expand(2, 4, 4))
     allowed = stack_pose.estimate_packet_poses(
         net, stack.image, stack.mask.data, far, packet_of, max_apart_deg=180.0
     )
@@ -590,9 +594,9 @@ def test_packet_poses_from_a_real_network_are_rigid() -> None:
         torch.arange(k) % 3,
         iterations=1,
     )
-    assert estimate.frames.shape == (3, 4, 4)
+    assert estimate.to_canonical.shape == (3, 4, 4)
     assert estimate.scores.shape == (3,)
-    dets = torch.linalg.det(estimate.frames[:, :3, :3])
+    dets = torch.linalg.det(estimate.to_canonical[:, :3, :3])
     assert torch.allclose(dets, torch.ones(3, dtype=torch.float64))
     # A packet with no plane in the stack (cropped away) keeps the stack's frame, score NaN.
     frame = torch.eye(4, dtype=torch.float64)
@@ -600,8 +604,8 @@ def test_packet_poses_from_a_real_network_are_rigid() -> None:
     gap = estimate_packet_poses(
         net, stack.image, stack.mask.data, frame, torch.arange(k) % 3 * 2, iterations=1
     )
-    assert gap.frames.shape == (5, 4, 4)
-    assert torch.equal(gap.frames[1], frame) and torch.equal(gap.frames[3], frame)
+    assert gap.to_canonical.shape == (5, 4, 4)
+    assert torch.equal(gap.to_canonical[1], frame) and torch.equal(gap.to_canonical[3], frame)
     assert bool(gap.scores[1].isnan()) and not bool(gap.scores[0].isnan())
     assert gap.own[1].item() is False
 

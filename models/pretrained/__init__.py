@@ -4,7 +4,7 @@ The shipped model lives in the package-data folder ``models/pretrained/default/`
 folder in the layout of :mod:`svr.models.checkpoint` (``model.safetensors`` in float16,
 ``config.json`` with the model configuration and its provenance) plus a ``README.md`` with its
 training command, data licence and evaluation. It is written by
-:func:`svr.models.pretrained.export.export_model` (``benchmarks/export_default_model.py``) and
+:func:`svr.models.pretrained.export.export_model` (``svr export-model``) and
 read, like any checkpoint, by :func:`svr.models.predict.load_pose_model`, which accepts the name
 :data:`DEFAULT_MODEL` for it (:func:`svr.models.checkpoint.resolve_model_path`): safetensors and
 JSON only, so loading never executes code, and the float16 weights come back in their original
@@ -22,6 +22,7 @@ __all__ = [
     "BRAIN_MASK_FOLDER",
     "DEFAULT_MODEL",
     "MAX_MODEL_BYTES",
+    "SLICE_POSE_MODEL",
     "STACK_POSE_FOLDER",
     "brain_mask_model_path",
     "default_model_path",
@@ -29,7 +30,11 @@ __all__ = [
 ]
 
 DEFAULT_MODEL = "default"
-"""The name that stands for the shipped model wherever a checkpoint folder is accepted."""
+"""The name that stands for the shipped slice-pose model wherever a checkpoint folder is accepted
+(the first model the project shipped, hence the name)."""
+
+SLICE_POSE_MODEL = "slice-pose"
+"""Another name for the shipped slice-pose model, beside the shipped ``"stack-pose"`` one."""
 
 MAX_MODEL_BYTES = 10_000_000
 """Largest size of a shipped model's files (weights and config), bytes (10 MB)."""

@@ -13,12 +13,14 @@ import logging
 import sys
 import traceback
 from collections.abc import Sequence
+from typing import NoReturn
 
 from svr import __version__
 from svr.cli import (
     bids,
     demo,
     evaluate,
+    export_model,
     predict,
     reconstruct,
     register,
@@ -26,29 +28,53 @@ from svr.cli import (
     segment_stack,
     simulate,
     train,
+    train_brain_mask,
     train_stack_pose,
 )
 from svr.cli.common import CliError
 from svr.files import OutputExistsError
 
 SUBCOMMANDS = {
-    "simulate": simulate,
-    "sample": sample,
-    "train": train,
-    "train-stack-pose": train_stack_pose,
-    "predict": predict,
-    "evaluate": evaluate,
-    "segment-stack": segment_stack,
-    "register": register,
     "reconstruct": reconstruct,
     "bids": bids,
+    "segment-stack": segment_stack,
+    "register": register,
+    "predict": predict,
     "demo": demo,
+    "simulate": simulate,
+    "train-stack-pose": train_stack_pose,
+    "train": train,
+    "evaluate": evaluate,
+    "sample": sample,
+    "train-brain-mask": train_brain_mask,
+    "export-model": export_model,
 }
+"""The commands, in the order ``svr --help`` lists them: what most users run first."""
+
+
+class UsageError(Exception):
+    """A command line that argparse refuses (an unknown option, a value of the wrong type).
+
+    Attributes:
+        prog: The (sub)command's name, e.g. ``"svr reconstruct"``.
+        message: What argparse says is wrong.
+    """
+
+    def __init__(self, prog: str, message: str) -> None:
+        super().__init__(message)
+        self.prog, self.message = prog, message
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line and exit status 1, as every other error."""
+
+    def error(self, message: str) -> NoReturn:
+        raise UsageError(self.prog, message)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``svr`` argument parser with all subcommands."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="svr",
         description="Fetal MRI slice-to-volume reconstruction with learned SE(3) slice poses.",
     )
@@ -71,9 +97,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         argv: Arguments without the program name (default: ``sys.argv[1:]``).
 
     Returns:
-        The exit status: 0 on success, 1 on a reported error, 2 on bad usage (from argparse).
+        The exit status: 0 on success, 1 on a reported error (bad usage included), 130 on an
+        interrupt.
     """
-    args = build_parser().parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser().parse_args(words)
+    except UsageError as err:
+        if "-v" in words or "--verbose" in words:
+            traceback.print_exc(file=sys.stderr)
+        print(
+            f"{err.prog}: error: {_one_line(err)} ({err.prog} --help lists the options)",
+            file=sys.stderr,
+        )
+        return 1
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -1,34 +1,30 @@
 """``svr bids``: reconstruct a BIDS cohort, one participant per job (a BIDS App).
 
 ``svr bids BIDS_DIR OUTPUT_DIR participant`` reconstructs every T2w stack of each subject (and
-session) together, exactly as ``svr reconstruct`` would with the same options
-(:func:`svr.cli.reconstruct.load_and_reconstruct`), and writes BIDS derivatives
-(:mod:`svr.apps.bids`); ``group`` writes one table and one review page over all of them.
+session) together, exactly as ``svr reconstruct`` would with the same options (both run
+:func:`svr.apps.reconstruct.run_reconstruction`), and writes BIDS derivatives
+(:mod:`svr.apps.bids_participant`); ``group`` writes one table and one review page over all of
+them (:mod:`svr.apps.bids`).
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
+import dataclasses
 import logging
 import os
 import sys
-import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from svr.apps.bids import (
     Participant,
-    ParticipantOutputs,
     check_output_dir,
-    environment,
     find_participants,
     group_report,
     participant_age,
-    participant_outputs,
     write_dataset_description,
 )
 from svr.cli.common import (
@@ -40,15 +36,7 @@ from svr.cli.common import (
     positive_int,
     resolve_device,
 )
-from svr.cli.reconstruct import (
-    add_mask_options,
-    add_settings_options,
-    build_configs,
-    check_atlas_options,
-    excluded_by_stack,
-    load_and_reconstruct,
-)
-from svr.files import file_sha256
+from svr.cli.recon_options import add_reconstruction_options, build_job
 
 DESCRIPTION = """\
 Reconstruct a cohort kept as a BIDS dataset (a BIDS App). Participant level: every T2w stack of
@@ -87,7 +75,7 @@ examples:
 """
 
 if TYPE_CHECKING:
-    from svr.reconstruction.config import ReconstructionResult
+    from svr.apps.bids_participant import ParticipantJob, ParticipantSummary
 
 log = logging.getLogger(__name__)
 
@@ -158,59 +146,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     bids.add_argument(
         "--overwrite", action="store_true", help="redo participants whose outputs exist"
     )
-    masks = p.add_argument_group("automatic masks (without --masks-dir)")
-    add_mask_options(masks)
+    masks = p.add_argument_group("automatic brain masks (without --masks-dir)")
     masks.add_argument(
         "--bias-correction",
         action="store_true",
         help="correct each stack's bias field with N4 before reconstruction",
     )
-    add_settings_options(p, iterations=None)
+    add_reconstruction_options(p, masks)
     add_common_options(p)
-
-
-@dataclass(frozen=True)
-class ParticipantJob:
-    """What one participant's process needs (picklable).
-
-    Attributes:
-        participant: The participant and its stacks.
-        output_dir: The derivatives folder.
-        settings: The parsed reconstruction settings (a copy, never changed).
-        thicknesses: Per stack, the slice thickness (mm).
-        threads: CPU threads of this process.
-        device: Torch device.
-        progress: Show progress bars.
-        command: The command line, for the provenance.
-    """
-
-    participant: Participant
-    output_dir: Path
-    settings: argparse.Namespace
-    thicknesses: tuple[float, ...]
-    threads: int
-    device: str
-    progress: bool
-    command: tuple[str, ...]
-
-
-@dataclass(frozen=True)
-class ParticipantSummary:
-    """What a participant's job reports back.
-
-    Attributes:
-        label: ``sub-XX[_ses-YY]``.
-        seconds: Wall time.
-        error: The one-line error, or ``None`` when it succeeded.
-        slices: Slices reconstructed.
-        excluded: Slices left out.
-    """
-
-    label: str
-    seconds: float
-    error: str | None = None
-    slices: int = 0
-    excluded: int = 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -228,64 +171,34 @@ def run(args: argparse.Namespace) -> int:
         args.masks_dir,
         validate=not args.skip_bids_validation,
     )
-    for participant in participants:
-        try:
-            build_configs(args, len(participant.stacks))
-        except CliError as err:
-            raise CliError(f"{participant.label}: {err}") from err
-    _check_model_options(args)
-    if args.age_column is not None:
-        for participant in participants:  # every age read before any work
-            participant_age(args.bids_dir, participant, args.age_column)
+    if args.age_column is not None and args.atlas_dir is None:
+        raise CliError("--age-column needs --atlas-dir")
+    if args.age_column is not None and args.gestational_age is not None:
+        raise CliError("give --gestational-age or --age-column, not both")
     device = resolve_device(args.device)
-    thicknesses = {p.label: _thicknesses(p, args.thickness) for p in participants}
     output = Path(args.output_dir)
-    output.mkdir(parents=True, exist_ok=True)
-    write_dataset_description(output, args.bids_dir)
     todo = []
     for participant in participants:
         if (output / participant.folder).exists() and not args.overwrite:
             log.info("%s: outputs exist, skipped (--overwrite redoes it)", participant.label)
         else:
             todo.append(participant)
+    # Every participant's options, ages and model checked before any work.
+    jobs = min(args.n_jobs, len(todo)) or 1
+    work = [_participant_job(args, p, device, jobs) for p in todo]
+    output.mkdir(parents=True, exist_ok=True)
+    write_dataset_description(output, args.bids_dir)
     if not todo:
         print(f"nothing to do: all {len(participants)} participants are done in {output}")
         return 0
-    jobs = min(args.n_jobs, len(todo))
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    threads = max(1, (cpus or 1) // jobs)
-    work = [
-        ParticipantJob(
-            participant=p,
-            output_dir=output,
-            settings=copy.copy(args),
-            thicknesses=thicknesses[p.label],
-            threads=threads,
-            device=device,
-            progress=jobs == 1 and not args.quiet,
-            command=("svr", *sys.argv[1:]),
-        )
-        for p in todo
-    ]
     log.info(
         "%d participants to reconstruct (%d skipped), %d at a time, %d threads each",
         len(todo),
         len(participants) - len(todo),
         jobs,
-        threads,
+        work[0].threads,
     )
-    summaries = []
-    if jobs == 1:
-        for job in work:
-            log.info("%s: started", job.participant.label)
-            summaries.append(_report(run_participant(job)))
-    else:
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(run_participant, job): job for job in work}
-            for job in work:
-                log.info("%s: queued", job.participant.label)
-            for future in as_completed(futures):
-                summaries.append(_report(future.result()))
+    summaries = _run_all(work, jobs)
     failed = [s for s in summaries if s.error is not None]
     done = len(summaries) - len(failed)
     print(
@@ -293,6 +206,65 @@ def run(args: argparse.Namespace) -> int:
         + (f"; failed: {', '.join(s.label for s in failed)}" if failed else "")
     )
     return 1 if failed else 0
+
+
+def _participant_job(
+    args: argparse.Namespace, participant: Participant, device: str, jobs: int
+) -> ParticipantJob:
+    """The participant's job: its stacks, masks, thicknesses and age, the options resolved."""
+    from svr.apps.bids_participant import ParticipantJob
+
+    weeks = None
+    if args.age_column is not None:
+        weeks = participant_age(args.bids_dir, participant, args.age_column)
+    masks = None
+    if participant.stacks[0].mask is not None:
+        masks = [str(s.mask) for s in participant.stacks]
+    thicknesses = _thicknesses(participant, args.thickness)
+    try:
+        job = build_job(
+            args, [str(s.path) for s in participant.stacks], masks, thicknesses, device, weeks
+        )
+    except CliError as err:
+        raise CliError(f"{participant.label}: {err}") from err
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    job = dataclasses.replace(job, progress=jobs == 1 and not args.quiet)
+    arguments = {
+        key: value
+        for key, value in vars(args).items()
+        if isinstance(value, str | int | float | bool | list | type(None))
+    }
+    return ParticipantJob(
+        participant=participant,
+        output_dir=Path(args.output_dir),
+        job=job,
+        threads=max(1, (cpus or 1) // jobs),
+        command=("svr", *sys.argv[1:]),
+        arguments=arguments,
+        weeks=weeks if weeks is not None else args.gestational_age,
+        overwrite=args.overwrite,
+        verbose=args.verbose,
+        quiet=args.quiet,
+    )
+
+
+def _run_all(work: list[ParticipantJob], jobs: int) -> list[ParticipantSummary]:
+    """Every participant, one after another or ``jobs`` processes side by side."""
+    from svr.apps.bids_participant import run_participant
+
+    summaries = []
+    if jobs == 1:
+        for item in work:
+            log.info("%s: started", item.participant.label)
+            summaries.append(_report(run_participant(item)))
+        return summaries
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(run_participant, item): item for item in work}
+        for item in work:
+            log.info("%s: queued", item.participant.label)
+        for future in as_completed(futures):
+            summaries.append(_report(future.result()))
+    return summaries
 
 
 def _report(summary: ParticipantSummary) -> ParticipantSummary:
@@ -307,23 +279,6 @@ def _report(summary: ParticipantSummary) -> ParticipantSummary:
     else:
         print(f"svr bids: {summary.label}: error: {summary.error}", file=sys.stderr)
     return summary
-
-
-def _check_model_options(args: argparse.Namespace) -> None:
-    """The model and atlas checks of ``svr reconstruct``, once, before any participant."""
-    if args.age_column is not None:
-        if args.atlas_dir is None:
-            raise CliError("--age-column needs --atlas-dir")
-        if args.gestational_age is not None:
-            raise CliError("give --gestational-age or --age-column, not both")
-        weeks = 1.0  # any age: the folder and the other options are checked here
-    else:
-        weeks = None
-    check_atlas_options(args, args.registration, weeks)
-    if args.registration == "cnn" and args.model != "none":
-        from svr.models.predict import load_any_pose_model
-
-        load_any_pose_model(args.model)  # a bad --model fails here, before any work
 
 
 def _thicknesses(participant: Participant, default: float | None) -> tuple[float, ...]:
@@ -347,179 +302,3 @@ def _thicknesses(participant: Participant, default: float | None) -> tuple[float
             )
             out.append(spacing)
     return tuple(out)
-
-
-class _Warnings(logging.Handler):
-    """Collects the warnings logged while a participant runs, for its sidecar."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.messages: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.messages.append(" ".join(record.getMessage().split()))
-
-
-def run_participant(job: ParticipantJob) -> ParticipantSummary:
-    """Reconstruct one participant and write its derivatives atomically (in this process).
-
-    Errors are returned, not raised, so that the other participants go on.
-    """
-    import torch
-
-    participant = job.participant
-    began = time.perf_counter()
-    if not logging.getLogger().handlers:  # a fresh worker process
-        logging.basicConfig(
-            level=logging.WARNING if job.settings.quiet else logging.INFO,
-            format=f"%(asctime)s %(levelname)s {participant.label}: %(message)s",
-        )
-    threads = torch.get_num_threads()  # the caller's, restored after (an in-process call)
-    torch.set_num_threads(job.threads)
-    handler = _Warnings()
-    logging.getLogger().addHandler(handler)
-    try:
-        result, sidecar = _reconstruct(job, handler)
-        _write(job, participant_outputs(participant), result, sidecar, began)
-    except (CliError, OSError, ValueError, RuntimeError) as err:
-        if job.settings.verbose:
-            log.exception("%s failed", participant.label)
-        return ParticipantSummary(
-            participant.label, time.perf_counter() - began, " ".join(str(err).split())
-        )
-    finally:
-        logging.getLogger().removeHandler(handler)
-        torch.set_num_threads(threads)
-    return ParticipantSummary(
-        participant.label,
-        time.perf_counter() - began,
-        slices=len(result.slices),
-        excluded=int(result.excluded.sum()),
-    )
-
-
-def _reconstruct(
-    job: ParticipantJob, warnings: _Warnings
-) -> tuple[ReconstructionResult, dict[str, Any]]:
-    args, participant = job.settings, job.participant
-    args = copy.copy(args)
-    args.quiet = args.quiet or not job.progress
-    settings = build_configs(args, len(participant.stacks))
-    config = settings.reconstruction
-    masks = None
-    if participant.stacks[0].mask is not None:
-        masks = [str(s.mask) for s in participant.stacks]
-    weeks = None
-    if args.age_column is not None:
-        weeks = participant_age(args.bids_dir, participant, args.age_column)
-    atlases = check_atlas_options(args, config.registration, weeks)
-    _, result = load_and_reconstruct(
-        args,
-        [str(s.path) for s in participant.stacks],
-        masks,
-        list(job.thicknesses),
-        settings,
-        job.device,
-        weeks,
-    )
-    slices = result.slices
-    excluded = {Path(name).name: ks for name, ks in excluded_by_stack(result).items()}
-    names = [Path(n).name for n in slices.stack_names]
-    model = None
-    if config.registration == "cnn" and args.model != "none":
-        model = {"name": args.model, "sha256": _model_digest(args.model)}
-    sidecar = {
-        "Description": "Slice-to-volume reconstruction of the participant's T2w stacks",
-        "Sources": [f"bids:raw:{s.relative}" for s in participant.stacks],
-        "svr": {
-            "subject": participant.subject,
-            "session": participant.session,
-            "command": list(job.command),
-            "arguments": {
-                key: value
-                for key, value in vars(args).items()
-                if isinstance(value, str | int | float | bool | list | type(None))
-            },
-            "software": environment(),
-            "model": model,
-            "gestational_age_weeks": weeks if weeks is not None else args.gestational_age,
-            "atlas": [
-                {"volume": volume, "mask": mask, "volume_sha256": file_sha256(volume)}
-                for volume, mask in atlases
-            ]
-            or None,
-            "options": {
-                "masking": None if masks else asdict(settings.masking),
-                "stack_preparation": asdict(settings.stacks),
-                "reconstruction": config.settings(),
-                "masks": "given (--masks-dir)" if masks else f"automatic ({args.auto_masks})",
-                "mask_model": None if masks else args.mask_model,
-                "thickness_mm": list(job.thicknesses),
-            },
-            "inputs": [
-                {
-                    "file": s.relative,
-                    "sha256": file_sha256(s.path),
-                    "mask": None if s.mask is None else str(s.mask),
-                    "mask_sha256": None if s.mask is None else file_sha256(s.mask),
-                    "thickness_mm": t,
-                }
-                for s, t in zip(participant.stacks, job.thicknesses, strict=True)
-            ],
-            "initialisation": dict(zip(names, result.initialisation, strict=True)),
-            "initialisation_notes": dict(zip(names, result.initialisation_notes, strict=False)),
-            "slices": len(slices),
-            "slices_excluded": int(result.excluded.sum()),
-            "excluded_slices": excluded,
-            "frame": slices.frame,
-            "atlas_ncc": list(result.atlas_ncc),
-            "atlas_chosen": result.atlas_chosen,
-            "rounds": len(result.rounds),
-            "converged": result.converged,
-            "timings_s": result.timings_s,
-            "device": job.device,
-            "threads": job.threads,
-            "warnings": warnings.messages,
-        },
-    }
-    return result, sidecar
-
-
-def _write(
-    job: ParticipantJob,
-    names: ParticipantOutputs,
-    result: ReconstructionResult,
-    sidecar: dict[str, Any],
-    began: float,
-) -> None:
-    """Write every derivative into a temporary folder, then move it into place."""
-    import json
-
-    from svr.files import atomic_directory
-    from svr.reconstruction.outputs import write_transforms, write_volume
-    from svr.reconstruction.qa import qa_figure
-
-    target = job.output_dir / job.participant.folder
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_directory(target, overwrite=job.settings.overwrite) as tmp:
-        (tmp / "anat").mkdir()
-        write_volume(result.volume, tmp / names.volume)
-        write_volume(result.mask, tmp / names.mask)
-        write_transforms(result, tmp / names.transforms)
-        masks = sidecar["svr"]["options"]["masks"]
-        qa_figure(result, tmp / names.qa, notes=[job.participant.label, f"masks: {masks}"])
-        sidecar["svr"]["total_seconds"] = time.perf_counter() - began
-        (tmp / names.sidecar).write_text(json.dumps(sidecar, indent=1) + "\n", encoding="utf-8")
-
-
-def _model_digest(name: str) -> str | None:
-    """SHA-256 of the weights file of the model that ``--model`` names."""
-    from svr.models.checkpoint import CHECKPOINT_WEIGHTS, latest_checkpoint, resolve_model_path
-    from svr.models.pretrained import stack_pose_model_path
-    from svr.models.stack_pose import STACK_POSE_MODEL
-
-    folder = stack_pose_model_path() if name == STACK_POSE_MODEL else resolve_model_path(name)
-    if not (folder / CHECKPOINT_WEIGHTS).is_file():
-        folder = latest_checkpoint(folder) or folder
-    weights = folder / CHECKPOINT_WEIGHTS
-    return file_sha256(weights) if weights.is_file() else None

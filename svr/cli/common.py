@@ -9,8 +9,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import torch
-
 from svr.errors import ConfigFieldError
 
 if TYPE_CHECKING:
@@ -38,8 +36,8 @@ MODEL_HELP = (
 
 
 MASK_MODEL_HELP = (
-    "brain-mask model: 'default' (shipped with the package) or a folder written by "
-    "benchmarks/train_brain_masker.py"
+    "brain-mask model: 'default' (shipped with the package) or a model folder written by "
+    "svr train-brain-mask"
 )
 """The meaning of ``--mask-model`` (:func:`svr.masking.load_brain_masker`)."""
 
@@ -110,6 +108,8 @@ def resolve_device(name: str) -> str:
     Raises:
         CliError: If the device is unknown or CUDA is requested but not available.
     """
+    import torch
+
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     try:
@@ -272,3 +272,31 @@ def load_input_volume(args: argparse.Namespace) -> tuple[CanonicalVolume, str]:
     if args.input_volume is None:
         return volumes[0], f"phantom (GA {args.phantom_ga:g} weeks)"
     return volumes[0], names[0]
+
+
+def registered_loss(text: str) -> str:
+    """Argparse type of ``--loss``: a registered representation's command-line name.
+
+    The registry (:func:`svr.representation_registry.representations_by_cli_name`) is read when
+    the option is parsed, not when the parser is built, so that ``svr --help`` imports no torch
+    and a representation registered by a plug-in is a loss on the command line.
+
+    Raises:
+        argparse.ArgumentTypeError: Listing the registered names.
+    """
+    from svr.representation_registry import representations_by_cli_name
+
+    names = representations_by_cli_name()
+    if text not in names:
+        raise argparse.ArgumentTypeError(
+            f"invalid choice: {text!r} (choose from {', '.join(map(repr, sorted(names)))})"
+        )
+    return text
+
+
+LOSS_HELP = (
+    "pose output and loss, a registered representation's name: se3 (the SE(3) geodesic loss, "
+    "default), or the baselines posenet (quaternion and translation), anchor (anchor points) "
+    "and rot6d (6D rotation and translation)"
+)
+"""The meaning of ``--loss`` (``svr train``, ``svr train-stack-pose``)."""

@@ -8,9 +8,6 @@ import logging
 from dataclasses import asdict
 from typing import TYPE_CHECKING
 
-import torch
-
-from svr.apps.loss_demo import LossDemoConfig, LossDemoResult, run_loss_demo
 from svr.cli.common import (
     MODEL_HELP,
     CliError,
@@ -26,7 +23,8 @@ from svr.cli.common import (
 from svr.files import atomic_write_text, check_output_path
 
 if TYPE_CHECKING:
-    from svr.apps.demo import DemoResult
+    from svr.apps.demo_scores import DemoResult
+    from svr.apps.loss_demo import LossDemoResult
 
 DEFAULT_OUTPUT_DIR = "svr-demo"
 
@@ -60,6 +58,10 @@ examples:
 
 default output folder: {DEFAULT_OUTPUT_DIR}
 """
+
+LOSS_DEMO_DEFAULTS = {"num_poses": 512, "steps": 200, "learning_rate": 0.05}
+"""The defaults of :class:`svr.apps.loss_demo.LossDemoConfig` that the help shows (a test checks
+them against the library), so that building the parser imports no torch."""
 
 # Options of one mode only; their defaults are None so that a stray one can be reported.
 RECONSTRUCTION_OPTIONS = ("output_dir", "model", "registration", "train_steps")
@@ -111,21 +113,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="run the loss demo (pose recovery by gradient descent on each loss) instead",
     )
-    defaults = LossDemoConfig()
+    defaults = LOSS_DEMO_DEFAULTS
     losses.add_argument(
         "--num-poses",
         type=positive_int,
-        help=f"number of random target poses (default: {defaults.num_poses})",
+        help=f"number of random target poses (default: {defaults['num_poses']})",
     )
     losses.add_argument(
         "--steps",
         type=positive_int,
-        help=f"optimisation steps per loss (default: {defaults.steps})",
+        help=f"optimisation steps per loss (default: {defaults['steps']})",
     )
     losses.add_argument(
         "--learning-rate",
         type=positive_float,
-        help=f"Adam learning rate (default: {defaults.learning_rate})",
+        help=f"Adam learning rate (default: {defaults['learning_rate']})",
     )
     losses.add_argument("--output", metavar="FILE", help="write the loss table to this JSON file")
     parser.add_argument(
@@ -206,6 +208,10 @@ _OPTIONS = {
 
 
 def _run_loss_demo(args: argparse.Namespace) -> int:
+    import torch
+
+    from svr.apps.loss_demo import LossDemoConfig, run_loss_demo
+
     if args.output is not None:
         check_output_path(args.output, args.overwrite)
     defaults = LossDemoConfig()

@@ -11,9 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
-
 from svr.cli.common import (
     MODEL_HELP,
     CliError,
@@ -27,6 +24,9 @@ from svr.cli.common import (
 )
 
 if TYPE_CHECKING:
+    import numpy as np
+    import torch
+
     from svr.models.network import SlicePoseNet
     from svr.sampling.slicer import SliceConfig
     from svr.sampling.volume import CanonicalVolume
@@ -242,6 +242,8 @@ def _validation_slices(
 
 def _predict(model: SlicePoseNet, slices: torch.Tensor, batch_size: int) -> torch.Tensor:
     """(N, 6) predicted poses of (N, H, W) slices, in batches, without gradients."""
+    import torch
+
     return torch.cat(
         [model.predict_poses(batch.unsqueeze(1)) for batch in torch.split(slices, batch_size)]
     )
@@ -249,6 +251,8 @@ def _predict(model: SlicePoseNet, slices: torch.Tensor, batch_size: int) -> torc
 
 def _example_indices(geodesic: np.ndarray) -> list[int]:
     """The slices with the largest geodesic errors, then those around the median."""
+    import numpy as np
+
     order = np.argsort(geodesic, kind="stable")
     worst = order[::-1][:NUM_EXAMPLES].tolist()
     start = max(0, len(order) // 2 - NUM_EXAMPLES // 2)
@@ -263,6 +267,9 @@ def _examples(
     config: SliceConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth and predicted-pose slices of a method's worst and median cases."""
+    import numpy as np
+    import torch
+
     from svr.sampling.slicer import sample_slices
 
     volume_of = np.concatenate([np.full(len(d.poses), v) for v, d in enumerate(data)])
@@ -278,6 +285,8 @@ def _examples(
 
 def _poses_csv(data: list[_VolumeSlices], predicted: dict[str, torch.Tensor]) -> str:
     """CSV of the true pose (``poses = true``) and each method's prediction of every slice."""
+    import torch
+
     sources = [d.source for d in data for _ in range(len(d.poses))]
     true = torch.cat([d.poses.cpu() for d in data])
     buffer = io.StringIO()
@@ -295,6 +304,9 @@ _OPTIONS = {"thickness_mm": "--thickness"}
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr evaluate``."""
+    import numpy as np
+    import torch
+
     from svr.files import atomic_write_text, check_output_path
     from svr.models.evaluation import EvalConfig, evaluate_poses, write_report
     from svr.sampling.slicer import SliceConfig

@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 
 from svr.cli.common import CliError, HelpFormatter
+from svr.cli.config_options import set_option_default
 from svr.cli.reconstruct import add_options
 from svr.cli.reconstruct import run as run_reconstruction
 
 DESCRIPTION = """\
 Estimate the pose of every slice of thick-slice stacks: the pose initialisation of `svr
-reconstruct` (--registration cnn|stack|none) followed by one super-resolution round, which scores
-every slice (NCC with its simulation) for the outputs; --iterations above 1 adds rounds of
+reconstruct` (--registration stack|cnn|atlas|none) followed by one super-resolution round, which
+scores every slice (NCC with its simulation) for the outputs; --iterations above 1 adds rounds of
 slice-to-volume registration. The same pipeline and options as `svr reconstruct`, with the volume
 optional: write the poses (--output-transforms), the posed slices (--output-slices, NeSVoR's
 folder format, for `nesvor reconstruct --input-slices` or `svr predict --input-slices`) and/or the
@@ -35,7 +36,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         description=DESCRIPTION,
         formatter_class=HelpFormatter,
     )
-    add_options(p, volume_required=False, iterations=1)
+    add_options(p, volume_required=False)
+    set_option_default(p, "--iterations", 1)
 
 
 def run(args: argparse.Namespace) -> int:

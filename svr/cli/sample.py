@@ -6,10 +6,6 @@ import argparse
 import json
 from typing import TYPE_CHECKING
 
-import numpy as np
-import torch
-from tqdm import tqdm
-
 from svr.cli.common import (
     CliError,
     HelpFormatter,
@@ -24,6 +20,8 @@ from svr.cli.common import (
 from svr.files import atomic_directory, check_output_path
 
 if TYPE_CHECKING:
+    import torch
+
     from svr.sampling.poses import PoseDraw
 
 DESCRIPTION = """\
@@ -90,6 +88,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def _preview_png(slices: torch.Tensor, path: str, overwrite: bool) -> None:
     import imageio.v3 as iio
+    import numpy as np
 
     from svr.files import atomic_write_bytes
 
@@ -112,6 +111,9 @@ _OPTIONS = {"size": "--size", "spacing_mm": "--spacing", "thickness_mm": "--thic
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr sample``."""
+    import torch
+    from tqdm import tqdm
+
     from svr.image import Image, save_nifti
     from svr.pose_io import PoseTable, write_pose_table
     from svr.sampling.poses import draw_validation_poses

@@ -6,8 +6,6 @@ import argparse
 import logging
 import time
 
-from tqdm import tqdm
-
 from svr.cli.common import (
     MASK_MODEL_HELP,
     CliError,
@@ -110,6 +108,8 @@ _OPTIONS = {"thicknesses": "--thicknesses"}
 
 def run(args: argparse.Namespace) -> int:
     """Run ``svr segment-stack``."""
+    from tqdm import tqdm
+
     from svr.image import NIFTI_SUFFIXES, load_nifti, save_mask_like
     from svr.masking import fuse_stack_masks, load_brain_masker, segment_stack
     from svr.reconstruction.qa import FIGURE_SUFFIXES, masks_figure

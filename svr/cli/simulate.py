@@ -14,6 +14,7 @@ from svr.cli.common import (
     positive_int,
     resolve_device,
 )
+from svr.cli.defaults import SIMULATION
 from svr.files import check_output_path
 
 DESCRIPTION = """\
@@ -33,9 +34,6 @@ examples:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr simulate``."""
-    from svr.sampling.simulate import SimulationConfig
-
-    d = SimulationConfig()
     p = subparsers.add_parser(
         "simulate",
         help="simulate motion-corrupted stacks with ground truth",
@@ -44,17 +42,28 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--output-dir", required=True, help="folder to create")
     add_volume_options(p)
-    p.add_argument("--num-stacks", type=positive_int, default=d.num_stacks, help="number of stacks")
+    _add_acquisition_options(p)
+    _add_motion_options(p)
+    _add_artefact_options(p)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --output-dir")
+    add_common_options(p)
+
+
+def _add_acquisition_options(p: argparse.ArgumentParser) -> None:
+    """The stacks' geometry and acquisition timing."""
+    p.add_argument(
+        "--num-stacks", type=positive_int, default=SIMULATION["num_stacks"], help="number of stacks"
+    )
     p.add_argument(
         "--orientations",
         choices=["orthogonal", "oblique", "random"],
-        default=d.orientations,
+        default=SIMULATION["orientations"],
         help="stack orientations in the scanner",
     )
     p.add_argument(
         "--thickness",
         type=positive_float,
-        default=d.thickness_mm,
+        default=SIMULATION["thickness_mm"],
         help="slice thickness in mm (FWHM of the through-plane PSF)",
     )
     p.add_argument(
@@ -66,19 +75,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--in-plane-resolution",
         type=positive_float,
-        default=d.in_plane_mm,
+        default=SIMULATION["in_plane_mm"],
         help="in-plane pixel spacing in mm",
     )
     p.add_argument("--in-plane-psf", action="store_true", help="also apply the in-plane PSF")
     p.add_argument(
         "--interleave",
         type=positive_int,
-        default=d.interleave,
+        default=SIMULATION["interleave"],
         help="acquisition interleave factor (1 = sequential)",
     )
     p.add_argument(
-        "--slice-time", type=positive_float, default=d.slice_time_s, help="seconds per slice"
+        "--slice-time",
+        type=positive_float,
+        default=SIMULATION["slice_time_s"],
+        help="seconds per slice",
     )
+
+
+def _add_motion_options(p: argparse.ArgumentParser) -> None:
+    """The fetal motion during and between stacks."""
     p.add_argument(
         "--motion",
         choices=["random-walk", "trajectories", "none"],
@@ -91,7 +107,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--motion-scale",
         type=float,
-        default=d.motion_scale,
+        default=SIMULATION["motion_scale"],
         help="magnitude factor for the trajectories",
     )
     p.add_argument(
@@ -99,38 +115,42 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         nargs=2,
         metavar=("LOW", "HIGH"),
-        default=list(d.stack_turn_deg),
+        default=list(SIMULATION["stack_turn_deg"]),
         help="the fetus turns between stacks: each stack after the first sees the brain turned "
         "by an angle drawn in [LOW, HIGH] degrees about a random axis (0 0: no turn)",
     )
     p.add_argument(
         "--rotation-deg",
         type=float,
-        default=d.random_walk_rotation_deg,
+        default=SIMULATION["random_walk_rotation_deg"],
         help="random walk: per-axis std of the final rotation (degrees)",
     )
     p.add_argument(
         "--translation-mm",
         type=float,
-        default=d.random_walk_translation_mm,
+        default=SIMULATION["random_walk_translation_mm"],
         help="random walk: per-axis std of the final translation (mm)",
     )
+
+
+def _add_artefact_options(p: argparse.ArgumentParser) -> None:
+    """Noise, bias field, signal voids and the brain's placement."""
     p.add_argument(
         "--noise",
         type=float,
-        default=d.noise,
+        default=SIMULATION["noise"],
         help="Rician noise sigma relative to the brain's 99th-percentile intensity",
     )
     p.add_argument(
         "--bias-field",
         type=float,
-        default=d.bias_field,
+        default=SIMULATION["bias_field"],
         help="bias field strength (0 = none, 0.2 ~ +-20%%)",
     )
     p.add_argument(
         "--signal-voids",
         type=float,
-        default=d.signal_void_probability,
+        default=SIMULATION["signal_void_probability"],
         help="probability of a signal void per slice",
     )
     p.add_argument(
@@ -138,8 +158,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="keep the brain's orientation and position in the scanner",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --output-dir")
-    add_common_options(p)
 
 
 _OPTIONS = {

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from svr.cli.common import (
+    LOSS_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -17,8 +18,10 @@ from svr.cli.common import (
     option_errors,
     positive_float,
     positive_int,
+    registered_loss,
     resolve_device,
 )
+from svr.cli.defaults import SE3_ROTATIONS, SYMMETRY_MODES, SYMMETRY_THRESHOLD
 
 DESCRIPTION = """\
 Train a CNN that predicts each 2D slice's pose in canonical (atlas) space, on slices cut on the
@@ -42,10 +45,6 @@ examples:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train``."""
-    from svr.models.heads import SE3_ROTATIONS
-    from svr.representation_registry import representations_by_cli_name
-    from svr.sampling.mirror_planes import SYMMETRY_MODES, SYMMETRY_THRESHOLD
-
     p = subparsers.add_parser(
         "train",
         help="train a slice-pose CNN",
@@ -53,6 +52,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=HelpFormatter,
     )
     p.add_argument("--output-dir", required=True, help="folder for checkpoints and logs")
+    _add_volume_options(p)
+    _add_model_options(p)
+    _add_slice_options(p)
+    _add_optimisation_options(p)
+    _add_run_options(p)
+    add_common_options(p)
+
+
+def _add_volume_options(p: argparse.ArgumentParser) -> None:
+    """The training volumes: an atlas folder, volume/mask pairs or the built-in phantoms."""
     data = p.add_argument_group("training volumes (default: the built-in phantom)")
     data.add_argument("--atlas-dir", help="folder of GA*/srr.nii.gz + GA*/mask.nii.gz volumes")
     data.add_argument(
@@ -71,14 +80,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=[24.0, 28.0, 32.0],
         help="gestational ages of built-in phantoms, without other volumes",
     )
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    """The network, its output representation and loss, and the loss's mirror symmetry."""
     model = p.add_argument_group("model")
-    losses = representations_by_cli_name()
     model.add_argument(
         "--loss",
-        choices=sorted(losses),
+        type=registered_loss,
         default="se3",
-        help="loss and output representation: "
-        + ", ".join(f"{cli} ({entry.name})" for cli, entry in losses.items()),
+        metavar="NAME",
+        help=LOSS_HELP,
     )
     model.add_argument("--backbone", choices=["resnet", "inception"], default="resnet")
     model.add_argument("--width", type=positive_int, default=32, help="channels of the first stage")
@@ -90,6 +102,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="SE(3) loss Z: 6 diagonal or 36 row-major numbers (rad, mm units)",
     )
+    model.add_argument(
+        "--se3-rotation",
+        choices=SE3_ROTATIONS,
+        default="rotvec",
+        help="se3 head: regress the rotation vector, or 6D columns turned into it (continuous "
+        "over all of SO(3); the loss is the same SE(3) geodesic loss)",
+    )
+    model.add_argument(
+        "--symmetry",
+        choices=SYMMETRY_MODES,
+        default="auto",
+        help="mirror symmetry of the training anatomy: the loss goes to the nearer of a slice's "
+        "pose and its mirror twin. auto: measure each volume's reflection plane and use it when "
+        f"every volume is symmetric (brain r >= {SYMMETRY_THRESHOLD}); sagittal: the canonical "
+        "plane x = 0; none: the plain loss",
+    )
+
+
+def _add_slice_options(p: argparse.ArgumentParser) -> None:
+    """The training slices: grid, thickness, poses and augmentation."""
     slices = p.add_argument_group("slices")
     slices.add_argument("--size", type=positive_int, default=128, help="slice size in pixels")
     slices.add_argument("--spacing", type=positive_float, default=1.0, help="in-plane spacing mm")
@@ -119,22 +151,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "shuffled (needs --rotation euler; the sweep at the start takes a while on a CPU)",
     )
     slices.add_argument("--shift-mm", type=float, default=0.0, help="in-plane shift range")
-    model.add_argument(
-        "--se3-rotation",
-        choices=SE3_ROTATIONS,
-        default="rotvec",
-        help="se3 head: regress the rotation vector, or 6D columns turned into it (continuous "
-        "over all of SO(3); the loss is the same SE(3) geodesic loss)",
-    )
-    model.add_argument(
-        "--symmetry",
-        choices=SYMMETRY_MODES,
-        default="auto",
-        help="mirror symmetry of the training anatomy: the loss goes to the nearer of a slice's "
-        "pose and its mirror twin. auto: measure each volume's reflection plane and use it when "
-        f"every volume is symmetric (brain r >= {SYMMETRY_THRESHOLD}); sagittal: the canonical "
-        "plane x = 0; none: the plain loss",
-    )
     slices.add_argument(
         "--augment",
         action="store_true",
@@ -156,6 +172,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="random smooth non-rigid deformation of each batch's brain: standard deviation of "
         "the control displacements (about 30 mm apart), mm; 0 (default) for none",
     )
+
+
+def _add_optimisation_options(p: argparse.ArgumentParser) -> None:
+    """Steps, batch size, optimiser and schedule."""
     opt = p.add_argument_group("optimisation")
     opt.add_argument("--steps", type=positive_int, default=1000)
     opt.add_argument("--batch-size", type=positive_int, default=32)
@@ -166,6 +186,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     opt.add_argument("--warmup-steps", type=int, default=100)
     opt.add_argument("--amp", action="store_true", help="mixed precision (CUDA)")
     opt.add_argument("--workers", type=int, default=0, help="data-loading processes")
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Checkpoints, logs and resuming."""
     run = p.add_argument_group("checkpoints and logs")
     run.add_argument("--checkpoint-every", type=positive_int, default=500)
     run.add_argument("--keep-checkpoints", type=positive_int, default=3)
@@ -176,7 +200,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="start afresh in an --output-dir that holds checkpoints",
     )
-    add_common_options(p)
 
 
 _OPTIONS = {

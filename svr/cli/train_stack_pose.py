@@ -7,10 +7,12 @@ import logging
 import shlex
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from svr.cli.common import (
+    LOSS_HELP,
     CliError,
     HelpFormatter,
     add_common_options,
@@ -19,10 +21,15 @@ from svr.cli.common import (
     option_errors,
     positive_float,
     positive_int,
+    registered_loss,
     resolve_device,
 )
+from svr.cli.defaults import STACK_POSE_MODEL, STACK_POSE_TRAINING
 
 if TYPE_CHECKING:
+    from torch import Tensor
+
+    from svr.models.stack_pose import StackPoseConfig
     from svr.sampling.volume import CanonicalVolume
 
 DESCRIPTION = """\
@@ -68,11 +75,6 @@ log = logging.getLogger(__name__)
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``svr train-stack-pose``."""
-    from svr.models.stack_pose import StackPoseConfig
-    from svr.models.stack_pose_train import StackPoseTrainingConfig
-    from svr.representation_registry import representations_by_cli_name
-
-    m, t = StackPoseConfig(), StackPoseTrainingConfig()
     p = subparsers.add_parser(
         "train-stack-pose",
         help="train the stack-pose CNN (canonical pose of a whole stack)",
@@ -80,6 +82,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=HelpFormatter,
     )
     p.add_argument("--output-dir", required=True, help="folder for the run's checkpoints")
+    _add_brain_options(p)
+    _add_network_options(p)
+    _add_schedule_options(p)
+    _add_run_options(p)
+    add_common_options(p)
+
+
+def _add_brain_options(p: argparse.ArgumentParser) -> None:
+    """The training brains: atlas ages, phantoms, anatomy variants, motion."""
     p.add_argument(
         "--atlas-dir", required=True, help="folder of GA*/srr.nii.gz + GA*/mask.nii.gz volumes"
     )
@@ -141,8 +152,20 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="average the training volumes over blocks of this many voxels per side (faster "
         "simulation; the blocks are 4 mm)",
     )
-    p.add_argument("--head", choices=("regress", "coords"), help=f"pose head (default: {m.head})")
-    p.add_argument("--width", type=positive_int, help=f"first-stage channels (default: {m.width})")
+
+
+def _add_network_options(p: argparse.ArgumentParser) -> None:
+    """The network and its loss, or the weights to start from."""
+    p.add_argument(
+        "--head",
+        choices=("regress", "coords"),
+        help=f"pose head (default: {STACK_POSE_MODEL['head']})",
+    )
+    p.add_argument(
+        "--width",
+        type=positive_int,
+        help=f"first-stage channels (default: {STACK_POSE_MODEL['width']})",
+    )
     p.add_argument(
         "--hidden-norm",
         action=argparse.BooleanOptionalAction,
@@ -152,9 +175,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--loss",
-        choices=list(representations_by_cli_name()),
-        help="pose output and loss: se3 (the SE(3) geodesic loss, default), or the posenet, "
-        "anchor and rot6d baselines (regress head only)",
+        type=registered_loss,
+        metavar="NAME",
+        help=f"{LOSS_HELP} (the baselines: regress head only)",
     )
     p.add_argument(
         "--init-from",
@@ -162,30 +185,36 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="start from these weights: 'stack-pose' (the shipped model), a checkpoint or a run "
         "folder (used when --output-dir holds no checkpoint yet)",
     )
-    p.add_argument("--steps", type=positive_int, default=t.steps, help="optimiser steps")
+
+
+def _add_schedule_options(p: argparse.ArgumentParser) -> None:
+    """Steps, learning rates and the second phase."""
+    p.add_argument(
+        "--steps", type=positive_int, default=STACK_POSE_TRAINING["steps"], help="optimiser steps"
+    )
     p.add_argument(
         "--learning-rate",
         type=positive_float,
-        default=t.learning_rate,
+        default=STACK_POSE_TRAINING["learning_rate"],
         help="Adam's initial rate (cosine decay to 5 %% of it)",
     )
     p.add_argument(
         "--fine-tune-steps",
         type=non_negative_int,
-        default=t.fine_tune_steps,
+        default=STACK_POSE_TRAINING["fine_tune_steps"],
         help="the last steps of --steps, a second phase: the learning rate restarts at "
         "--fine-tune-learning-rate and the phantoms join the atlas brains (0: one phase)",
     )
     p.add_argument(
         "--fine-tune-learning-rate",
         type=positive_float,
-        default=t.fine_tune_learning_rate,
+        default=STACK_POSE_TRAINING["fine_tune_learning_rate"],
         help="Adam's rate at the start of the second phase (cosine decay to 5 %% of it)",
     )
     p.add_argument(
         "--fine-tune-seed",
         type=int,
-        default=t.fine_tune_seed,
+        default=STACK_POSE_TRAINING["fine_tune_seed"],
         help="run the second phase as the separate fine-tuning run of the first phase's weights "
         "with this --seed would be (a fresh Adam at --fine-tune-learning-rate, the random stream "
         "reseeded): the shipped model's recipe (default: %(default)s; --no-fine-tune-seed: the "
@@ -198,8 +227,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         const=None,
         help="continue the first phase's random stream and Adam's moments in the second",
     )
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    """Checkpoints, simulation processes and the time limit."""
     p.add_argument(
-        "--checkpoint-every", type=positive_int, default=t.checkpoint_every, help="steps"
+        "--checkpoint-every",
+        type=positive_int,
+        default=STACK_POSE_TRAINING["checkpoint_every"],
+        help="steps",
     )
     p.add_argument(
         "--workers",
@@ -215,7 +251,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="stop after a checkpoint once this much time passed",
     )
-    add_common_options(p)
 
 
 _OPTIONS = {
@@ -282,15 +317,32 @@ def _anatomy_variants(
     return variants
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``svr train-stack-pose``."""
-    import torch
+@dataclass
+class _TrainingBrains:
+    """The brains the command trains on, as :func:`train_stack_pose` takes them.
 
-    from svr.models.checkpoint import CheckpointError
-    from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
-    from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
-    from svr.representation_registry import representations_by_cli_name
-    from svr.sampling.motion import load_trajectories
+    Attributes:
+        pairs: The training atlas ages' (volume, mask) files.
+        first: The brains of every step (atlas ages, and variants with --variants-phase all).
+        second: The brains that join for the second phase (variants with --variants-phase
+            second, then the phantoms).
+        first_weights: A draw weight per brain of ``first``.
+        second_weights: A draw weight per brain of ``second``.
+        phantoms: The phantoms' (weeks, seed).
+        alike: Whether every brain is drawn alike (no weights given).
+    """
+
+    pairs: list[tuple[Path, Path]]
+    first: list[CanonicalVolume]
+    second: list[CanonicalVolume]
+    first_weights: list[float]
+    second_weights: list[float]
+    phantoms: list[tuple[float, int]]
+    alike: bool
+
+
+def _training_brains(args: argparse.Namespace) -> _TrainingBrains:
+    """Load the atlas ages, make the anatomy variants and phantoms, and weigh them."""
     from svr.sampling.phantom import gestational_age_config, make_phantom
     from svr.sampling.volume import (
         VolumeSourceError,
@@ -300,20 +352,6 @@ def run(args: argparse.Namespace) -> int:
         load_canonical_volume,
     )
 
-    if args.minutes is not None and not args.minutes > 0:
-        raise CliError(f"--minutes must be > 0, got {args.minutes:g}")
-    check_run_folder(args.output_dir)
-    with option_errors(_OPTIONS):
-        training = StackPoseTrainingConfig(
-            steps=args.steps,
-            learning_rate=args.learning_rate,
-            fine_tune_steps=args.fine_tune_steps,
-            fine_tune_learning_rate=args.fine_tune_learning_rate,
-            fine_tune_seed=args.fine_tune_seed,
-            checkpoint_every=args.checkpoint_every,
-            seed=args.seed,
-        )
-    device = resolve_device(args.device)
     try:
         pairs = atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)
     except VolumeSourceError as err:
@@ -342,7 +380,21 @@ def run(args: argparse.Namespace) -> int:
         image, mask = make_phantom(gestational_age_config(age, seed=seed))
         second_phase.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
     alike = args.variants_weight == 1.0 and args.phantoms_weight == 1.0
-    trajectories = load_trajectories(args.motion_path) if args.motion_path else None
+    return _TrainingBrains(
+        pairs, volumes, second_phase, volume_weights, second_weights, phantoms, alike
+    )
+
+
+def _network(args: argparse.Namespace) -> tuple[StackPoseConfig, dict[str, Tensor] | None]:
+    """The network asked for, or --init-from's with its weights.
+
+    Raises:
+        CliError: If --init-from cannot be loaded, or a network option contradicts its network.
+    """
+    from svr.models.checkpoint import CheckpointError
+    from svr.models.stack_pose import StackPoseConfig, load_stack_pose_model
+    from svr.representation_registry import representations_by_cli_name
+
     asked = {
         "head": args.head,
         "width": args.width,
@@ -352,63 +404,92 @@ def run(args: argparse.Namespace) -> int:
         else representations_by_cli_name()[args.loss].name,
     }
     asked = {key: value for key, value in asked.items() if value is not None}
-    init = None
-    if args.init_from is not None:
-        try:
-            start = load_stack_pose_model(args.init_from)
-        except (CheckpointError, OSError) as err:
-            raise CliError(f"--init-from {args.init_from}: {err}") from err
-        model = start.config
-        for key, value in asked.items():
-            if getattr(model, key) == value:
-                continue
-            if isinstance(value, bool):  # --hidden-norm / --no-hidden-norm
-                flag = _OPTIONS[key].replace("--", "--" if value else "--no-", 1)
-                raise CliError(f"{flag} differs from the --init-from model's network; leave it out")
-            raise CliError(
-                f"{_OPTIONS[key]} {value} differs from the --init-from model's "
-                f"{getattr(model, key)}; leave it out"
-            )
-        init = start.state_dict()
-    else:
+    if args.init_from is None:
         with option_errors(_OPTIONS):
-            model = StackPoseConfig(**asked)
+            return StackPoseConfig(**asked), None
+    try:
+        start = load_stack_pose_model(args.init_from)
+    except (CheckpointError, OSError) as err:
+        raise CliError(f"--init-from {args.init_from}: {err}") from err
+    model = start.config
+    for key, value in asked.items():
+        if getattr(model, key) == value:
+            continue
+        if isinstance(value, bool):  # --hidden-norm / --no-hidden-norm
+            flag = _OPTIONS[key].replace("--", "--" if value else "--no-", 1)
+            raise CliError(f"{flag} differs from the --init-from model's network; leave it out")
+        raise CliError(
+            f"{_OPTIONS[key]} {value} differs from the --init-from model's "
+            f"{getattr(model, key)}; leave it out"
+        )
+    return model, start.state_dict()
+
+
+def _run_config(args: argparse.Namespace, brains: _TrainingBrains) -> dict[str, Any]:
+    """What the checkpoints record about the run beyond the network and the training."""
+    return {
+        "data": {
+            "volumes": [str(v) for v, _ in brains.pairs],
+            "hold_out_weeks": list(args.hold_out),
+            "phantoms": [{"weeks": age, "seed": seed} for age, seed in brains.phantoms],
+            "anatomy_variants": args.anatomy_variants,
+            "variants_phase": args.variants_phase,
+            "variants_weight": args.variants_weight,
+            "phantoms_weight": args.phantoms_weight,
+            "motion": args.motion_path,
+            "volume_downsample": args.volume_downsample,
+        },
+        "command": shlex.join(["svr", *sys.argv[1:]]),
+        "init_from": args.init_from,
+        "workers": args.workers,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``svr train-stack-pose``."""
+    import torch
+
+    from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
+    from svr.sampling.motion import load_trajectories
+
+    if args.minutes is not None and not args.minutes > 0:
+        raise CliError(f"--minutes must be > 0, got {args.minutes:g}")
+    check_run_folder(args.output_dir)
+    with option_errors(_OPTIONS):
+        training = StackPoseTrainingConfig(
+            steps=args.steps,
+            learning_rate=args.learning_rate,
+            fine_tune_steps=args.fine_tune_steps,
+            fine_tune_learning_rate=args.fine_tune_learning_rate,
+            fine_tune_seed=args.fine_tune_seed,
+            checkpoint_every=args.checkpoint_every,
+            seed=args.seed,
+        )
+    device = resolve_device(args.device)
+    brains = _training_brains(args)
+    trajectories = load_trajectories(args.motion_path) if args.motion_path else None
+    model, init = _network(args)
     threads = torch.get_num_threads()  # restored after, for a caller in this process
     if torch.device(device).type == "cpu":
         torch.set_num_threads(1)  # one process per core trains fastest (measured)
     began = time.time()
     try:
         train_stack_pose(
-            volumes,
+            brains.first,
             trajectories,
             model,
             training,
             folder=args.output_dir,
             progress=not args.quiet,
             time_limit_s=None if args.minutes is None else args.minutes * 60,
-            extra_config={
-                "data": {
-                    "volumes": [str(v) for v, _ in pairs],
-                    "hold_out_weeks": list(args.hold_out),
-                    "phantoms": [{"weeks": age, "seed": seed} for age, seed in phantoms],
-                    "anatomy_variants": args.anatomy_variants,
-                    "variants_phase": args.variants_phase,
-                    "variants_weight": args.variants_weight,
-                    "phantoms_weight": args.phantoms_weight,
-                    "motion": args.motion_path,
-                    "volume_downsample": args.volume_downsample,
-                },
-                "command": shlex.join(["svr", *sys.argv[1:]]),
-                "init_from": args.init_from,
-                "workers": args.workers,
-            },
+            extra_config=_run_config(args, brains),
             device=device,
             init=init,
             workers=args.workers,
-            fine_tune_volumes=second_phase,
+            fine_tune_volumes=brains.second,
             # Alike (None) unless asked: the same draws as before these options existed.
-            volume_weights=None if alike else volume_weights,
-            fine_tune_weights=None if alike else second_weights,
+            volume_weights=None if brains.alike else brains.first_weights,
+            fine_tune_weights=None if brains.alike else brains.second_weights,
         )
     finally:
         torch.set_num_threads(threads)

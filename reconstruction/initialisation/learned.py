@@ -1,0 +1,94 @@
+"""The ``"learned"`` start: every stack and packet placed in canonical space by the network.
+
+1. **Per-stack transforms.** Each stack's scanner -> canonical transform ``E_s`` comes from its
+   own slices and mask (:func:`~svr.reconstruction.initialisation.stack_pose.estimate_stack_pose`:
+   mask-axis hypotheses refined by the stack-pose network, chosen by its score). No template
+   stack: a fetus that turned between stacks is placed stack by stack.
+2. **Per-packet transforms** (``config.packets`` > 1). Each interleaved packet's transform from its
+   own slices (:func:`~svr.reconstruction.initialisation.stack_pose.estimate_packet_poses`), for a
+   fetus that moved within a stack, or a stack whose own transform is a wrong twin that its
+   packets are not.
+3. **Candidates and the safe choice**
+   (:func:`~svr.reconstruction.initialisation.choice.place_stacks`): each placement refined by
+   stack registration and brought into the frame the agreeing stacks share, and per stack the
+   candidate that agrees best with the other stacks, stack registration included.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import torch
+
+from svr.geometry import rotation_angle
+from svr.models.stack_pose import StackPoseNet
+from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation.choice import Start, place_stacks
+from svr.reconstruction.initialisation.stack_pose import (
+    estimate_packet_poses,
+    estimate_stack_pose,
+)
+from svr.reconstruction.slices import SliceSet, Stack
+
+__all__ = ["learned_start"]
+
+log = logging.getLogger(__name__)
+
+
+def learned_start(
+    slices: SliceSet, stacks: Sequence[Stack], model: StackPoseNet, config: ReconstructionConfig
+) -> Start:
+    """Every stack and packet placed by the stack-pose network, or stack registration, per stack.
+
+    Args:
+        slices: All slices, at their scanner poses.
+        stacks: The stacks they were cut from (same order as ``slices.stack_names``).
+        model: The stack-pose network.
+        config: Settings (``packets``, ``initialisation.restart_deg``, the template and grid).
+
+    Returns:
+        The slices at their starting canonical poses, the choice and notes per stack.
+    """
+    packets = config.packets
+    to_canonical = torch.empty(len(stacks), 4, 4, dtype=torch.float64)
+    packet_to_canonical = torch.empty(len(stacks), packets, 4, 4, dtype=torch.float64)
+    heads, scores = [], []
+    for sid, stack in enumerate(stacks):
+        mask = stack.mask.data > 0.5
+        estimate = estimate_stack_pose(
+            model, stack.image, mask, restart_deg=config.initialisation.restart_deg
+        )
+        to_canonical[sid] = estimate.to_canonical
+        scores.append(float(estimate.score))
+        head = f"{estimate.method}, score {estimate.score:.2f}"
+        log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
+        if packets > 1:
+            per_packet = estimate_packet_poses(
+                model, stack.image, mask, estimate.to_canonical, stack.k_indices.cpu() % packets
+            )
+            packet_to_canonical[sid] = estimate.to_canonical  # packets without a plane here
+            packet_to_canonical[sid, : len(per_packet.to_canonical)] = per_packet.to_canonical
+            turns = [
+                math.degrees(rotation_angle(t, estimate.to_canonical))
+                for t in per_packet.to_canonical
+            ]
+            head += "; packets " + ", ".join(f"{t:.0f} deg" for t in turns)
+            log.info(
+                "%s: packets %s from the stack's frame (own hypothesis: %s)",
+                stack.name,
+                ", ".join(f"{t:.1f}" for t in turns),
+                per_packet.own.tolist(),
+            )
+        heads.append(head)
+    # Each stack's vote for the output frame: the model's confidence in its transform.
+    votes = torch.sigmoid(torch.tensor(scores, dtype=torch.float64))
+    return place_stacks(
+        slices,
+        to_canonical,
+        packet_to_canonical if packets > 1 else None,
+        votes,
+        heads,
+        config,
+    )
