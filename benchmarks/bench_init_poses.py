@@ -226,7 +226,7 @@ def bench_case(
         # through the same learned initialisation (consensus, per-stack NCC choice) as the CNN.
         predicted = perturbed(canonical_truth, degrees, generator)
         oracle = learned_consensus(slices, array_poses(slices, predicted))
-        start, kept, _ = consensus_start(slices, oracle, config)
+        start, kept, _, *_ = consensus_start(slices, oracle, config)
         result = reconstruct(
             stacks,
             config,

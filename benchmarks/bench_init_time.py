@@ -54,7 +54,12 @@ def estimates(model: StackPoseNet, stacks: list, with_atlas: CanonicalVolume | N
     levels = None if with_atlas is None else atlas_levels(with_atlas)
     for stack in stacks:
         estimate_stack_pose(
-            model, stack.image, stack.mask.data > 0.5, atlas=with_atlas, levels=levels
+            model,
+            stack.image,
+            stack.mask.data > 0.5,
+            atlas=with_atlas,
+            levels=levels,
+            restart_deg=10.0,
         )
 
 

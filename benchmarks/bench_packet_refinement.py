@@ -181,16 +181,16 @@ def main() -> int:
         began = time.perf_counter()
         for sid, stack in enumerate(stacks):
             mask = stack.mask.data > 0.5
-            estimate = estimate_stack_pose(model, stack.image, mask, atlas=atlas)
+            estimate = estimate_stack_pose(model, stack.image, mask, atlas=atlas, restart_deg=10.0)
             members = ids == sid
-            start[members] = se3_compose(estimate.frame[None], scanner[members])
+            start[members] = se3_compose(estimate.to_canonical[None], scanner[members])
             image, fractions = coarsen_stack(stack.image, mask, model.config.in_plane_mm)
             file_k = stack.k_indices.cpu()
             slice_k = slices.slice_indices.cpu()
             for j in range(args.packets):
                 present = file_k % args.packets == j
                 frames, _ = refine_transforms(
-                    model, image, fractions, estimate.frame[None], args.iterations, present
+                    model, image, fractions, estimate.to_canonical[None], args.iterations, present
                 )
                 chosen = members & (slice_k % args.packets == j)
                 learned[chosen] = se3_compose(frames[0][None], scanner[chosen])

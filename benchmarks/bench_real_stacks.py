@@ -151,7 +151,7 @@ def measure(
         true = torch.tensor(truth[path.name], dtype=torch.float64)
         mask = stack.mask.data > 0.5
         estimate = estimate_stack_pose(net, stack.image, mask, restart_deg=0.0)
-        angle = math.degrees(rotation_angle(estimate.frame, true))
+        angle = math.degrees(rotation_angle(estimate.to_canonical, true))
         image, fractions = coarsen_stack(stack.image, mask, net.config.in_plane_mm)
         starts = torch.cat([true[None], se3_compose(twins, true.expand(3, 4, 4))])
         _, scores = refine_transforms(net, image, fractions, starts)

@@ -142,10 +142,10 @@ def main() -> int:
         start = local_start(truth_frame, gen, args.turn_deg)
         line = f"{item['name']:28s}"
         for loss, model in models.items():
-            estimate = estimate_stack_pose(model, item["image"], item["mask"])
+            estimate = estimate_stack_pose(model, item["image"], item["mask"], restart_deg=10.0)
             image, fractions = coarsen_stack(item["image"], item["mask"], model.config.in_plane_mm)
             local, _ = refine_transforms(model, image, fractions, start[None])
-            for kind, frame in (("estimate", estimate.frame), ("local", local[0])):
+            for kind, frame in (("estimate", estimate.to_canonical), ("local", local[0])):
                 pose = se3_compose(frame, frame_of)
                 errors[loss][kind].append(rotation_deg(pose, item["pose"]))
                 errors[loss][f"{kind}_mm"].append(float((pose[:3, 3] - item["pose"][:3, 3]).norm()))

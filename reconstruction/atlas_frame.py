@@ -32,7 +32,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from svr.geometry import half_turns, rotation_angle, se3_compose
+from svr.geometry import half_turns, rotation_angle
 from svr.image import Image, voxel_to_world
 from svr.reconstruction.atlas_fit import (
     KEEP_MARGIN,
@@ -42,7 +42,7 @@ from svr.reconstruction.atlas_fit import (
     preferred_atlas,
 )
 from svr.reconstruction.initialisation.stack_pose import mask_axis_hypotheses
-from svr.reconstruction.result import ReconstructionResult
+from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.slices import mask_centre
 from svr.sampling.volume import CanonicalVolume, as_atlases
 
@@ -280,6 +280,7 @@ def align_to_atlas(
     result: ReconstructionResult,
     atlas: CanonicalVolume | Sequence[CanonicalVolume],
     config: AtlasFitConfig | None = None,
+    max_turn_deg: float | None = None,
 ) -> ReconstructionResult:
     """A reconstruction relabelled in the atlas's canonical frame (see the module docstring).
 
@@ -288,11 +289,17 @@ def align_to_atlas(
         atlas: The atlas brain in canonical space, or several, the preferred first (the first
             unless another fits clearly better, :func:`best_atlas_transform`).
         config: The final fit's settings.
+        max_turn_deg: The largest turn (degrees) the fit may make of a frame that other evidence
+            already supports (a learned frame with a clear margin): a fit that turns it farther
+            went to another optimum (an atlas of another anatomy or contrast fits many frames
+            about as well) and only its centring is kept. ``None``: no limit.
 
     Returns:
         The same result with the volume's, mask's and initial volume's affines and every slice
-        pose premultiplied by the fitted transform, each atlas's NCC after its fit
-        (``atlas_ncc``) and the index of the atlas whose frame it took (``atlas_chosen``).
+        pose premultiplied by the fitted transform (:func:`~svr.reconstruction.result.relabelled`),
+        each atlas's NCC after its fit (``atlas_ncc``), the index of the atlas whose frame it took
+        (``atlas_chosen``) and the fit's margin: the NCC of the frame kept minus the best NCC of a
+        distinct frame fitted finely (``atlas_margin``; ``None`` where no distinct frame was).
     """
     volume = result.volume
     kept = ~result.excluded.to(result.slices.device)
@@ -309,17 +316,20 @@ def align_to_atlas(
         ", ".join(f"{k} {v:.3f}" for k, v in found.final.items()),
         ", ".join(f"{k} {v:.3f}" for k, v in found.scores.items()),
     )
-
-    def moved(image: Image) -> Image:
-        return Image(image.data, transform.to(image.affine) @ image.affine)
-
-    slices = result.slices
+    others = [ncc for name, ncc in found.final.items() if name != found.start]
+    margin = found.final[found.start] - max(others) if others else None
+    if max_turn_deg is not None and angle > max_turn_deg:
+        log.warning(
+            "atlas frame: the fit turned the volume's frame by %.1f deg, more than %g deg from a "
+            "frame the stacks' learned poses support: only its centring is kept",
+            angle,
+            max_turn_deg,
+        )
+        transform = torch.eye(4, dtype=transform.dtype)
+        transform[:3, 3] = -centre.to(transform)
     return dataclasses.replace(
-        result,
-        volume=moved(volume),
-        mask=moved(result.mask),
-        initial_volume=moved(result.initial_volume),
-        slices=slices.with_poses(se3_compose(transform.to(slices.poses)[None], slices.poses)),
+        relabelled(result, transform),
         atlas_ncc=choice.ncc,
         atlas_chosen=choice.chosen,
+        atlas_margin=margin,
     )

@@ -8,7 +8,12 @@ Phases (each timed and logged):
     3. rounds: slice-to-volume registration, outlier weights and super-resolution, as the
        schedule runs them (:func:`svr.reconstruction.schedule.run_rounds`);
     4. atlas frame: for a start in canonical space with atlases given, the volume brought into
-       the frame of the atlas it fits (:func:`svr.reconstruction.atlas_frame.align_to_atlas`).
+       the frame of the atlas it fits (:func:`svr.reconstruction.atlas_frame.align_to_atlas`),
+       then levelled onto the brain's own mid-sagittal plane
+       (:func:`svr.reconstruction.midplane.level_to_midplane`);
+    5. verdict: whether the volume and its frame can be trusted
+       (:func:`svr.reconstruction.verdict.assess`); a canonical frame that nothing tells apart from
+       another is not claimed: the volume is written in the scanner frame instead.
 
 :func:`reconstruct` is the entry point; :func:`reconstruct_from_poses` runs the rounds from poses
 found elsewhere (another tool's, or the truth of a simulation).
@@ -29,15 +34,20 @@ from svr.models.stack_pose import StackPoseNet
 from svr.reconstruction.atlas_frame import align_to_atlas
 from svr.reconstruction.config import LEARNED_STARTS, ReconstructionConfig
 from svr.reconstruction.initialisation import initialise
-from svr.reconstruction.result import ReconstructionResult
+from svr.reconstruction.midplane import level_to_midplane
+from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.schedule import run_rounds
 from svr.reconstruction.slices import SliceSet, Stack, extract_slices
+from svr.reconstruction.verdict import Verdict, VerdictConfig, assess
 from svr.sampling.volume import CanonicalVolume, as_atlases
 from svr.timing import PhaseTimer
 
-__all__ = ["reconstruct", "reconstruct_from_poses"]
+__all__ = ["ATLAS_MAX_TURN_DEG", "reconstruct", "reconstruct_from_poses"]
 
 log = logging.getLogger(__name__)
+
+ATLAS_MAX_TURN_DEG = 15.0
+"""The largest turn an atlas fit may make of a learned frame that has a clear margin (degrees)."""
 
 
 def reconstruct(
@@ -87,12 +97,41 @@ def reconstruct(
     with timer.phase("initialisation"):
         start = initialise(slices, stacks, config, model, atlases)
     result = run_rounds(start.slices, config, start.choice, timer, progress)
-    result = dataclasses.replace(result, initialisation_notes=start.notes)
+    result = dataclasses.replace(
+        result,
+        initialisation_notes=start.notes,
+        from_scanner=start.from_scanner,
+        frame_margin=start.frame_margin,
+    )
     if atlases:
+        # A learned frame with a clear margin is not turned far by an atlas fit (NCC with an
+        # atlas of another anatomy or contrast has near-equal optima in many frames).
+        learned = (
+            start.frame_margin is not None and start.frame_margin >= VerdictConfig().frame_margin
+        )
         with timer.phase("atlas frame"):
-            result = align_to_atlas(result, atlases)
+            result = align_to_atlas(
+                result, atlases, max_turn_deg=ATLAS_MAX_TURN_DEG if learned else None
+            )
+    if result.slices.frame == "canonical":
+        with timer.phase("mid-sagittal plane"):
+            result, _ = level_to_midplane(result)
     _report_exclusions(result)
-    return result
+    return _judged(result)
+
+
+def _judged(result: ReconstructionResult) -> ReconstructionResult:
+    """The result with its verdict; an untrusted canonical frame falls back to the scanner's."""
+    verdict = assess(result)
+    if verdict.frame == "untrusted" and result.from_scanner is not None:
+        back = torch.linalg.inv(result.from_scanner.to(torch.float64))
+        result = relabelled(result, back, "scanner")
+        result = dataclasses.replace(result, from_scanner=None)
+        reasons = (*verdict.reasons, "written in the scanner frame instead")
+        status = "failed" if assess(result).status == "failed" else "warning"
+        verdict = Verdict(status, "scanner", reasons)
+    (log.warning if verdict.status != "ok" else log.info)("verdict: %s", verdict.line())
+    return dataclasses.replace(result, verdict=verdict)
 
 
 def reconstruct_from_poses(
@@ -133,7 +172,7 @@ def reconstruct_from_poses(
     slices = slices.with_poses(poses.to(device), frame)
     result = run_rounds(slices, config, ("given",) * len(stacks), timer, progress)
     _report_exclusions(result)
-    return result
+    return _judged(result)
 
 
 def _slices(stacks: list[Stack], device: str | torch.device) -> SliceSet:

@@ -116,6 +116,12 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     lines.append(f"slices: {len(result.slices)}, excluded {excluded}")
     lines.append(f"volume: {'x'.join(map(str, result.volume.shape))} at {spacing:.2f} mm")
     lines.append(f"frame: {result.slices.frame}")
+    if result.frame_margin is not None or result.atlas_margin is not None:
+        margins = [
+            f"stack-pose {result.frame_margin:.1f}" if result.frame_margin is not None else "",
+            f"atlas {result.atlas_margin:.3f}" if result.atlas_margin is not None else "",
+        ]
+        lines.append("frame margins: " + ", ".join(m for m in margins if m))
     return "\n".join(lines)
 
 
@@ -193,6 +199,12 @@ def qa_figure(
     panels = [1.1] + ([1.1] if result.rounds else [])
     figure = Figure(figsize=(8.27, 2.6 * len(volumes) + 3.0 * len(panels)), layout="constrained")
     FigureCanvasAgg(figure)
+    if result.verdict is not None:
+        colour = {"ok": "black", "warning": "darkorange", "failed": "red"}[result.verdict.status]
+        if result.verdict.frame == "untrusted":
+            colour = "red"
+        text = textwrap.fill(f"verdict: {result.verdict.line()}", 110)
+        figure.suptitle(text, color=colour, fontsize=9, ha="left", x=0.01)
     grid = figure.add_gridspec(
         len(volumes) + len(panels), 3, height_ratios=[1.0] * len(volumes) + panels
     )

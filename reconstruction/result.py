@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 from torch import Tensor
 
+from svr.frames import Frame
+from svr.geometry import se3_compose
 from svr.image import Image
 from svr.reconstruction.convergence import RoundRecord
 from svr.reconstruction.slices import SliceSet
 
-__all__ = ["ReconstructionResult"]
+if TYPE_CHECKING:
+    from svr.reconstruction.verdict import Verdict
+
+__all__ = ["ReconstructionResult", "relabelled"]
 
 
 @dataclass(frozen=True)
@@ -37,6 +43,17 @@ class ReconstructionResult:
         atlas_ncc: With atlases: the NCC of the output with each atlas given, in order, after its
             fit (empty without an atlas).
         atlas_chosen: The index of the atlas whose frame the output is in (``None`` without).
+        from_scanner: (4, 4) float64, for a canonical output: the transform from the scanner frame
+            (the template stack's world frame, which stack registration keeps) to the output's
+            frame; ``None`` where the start gave none.
+        frame_margin: The learned start's evidence for its frame (the stack-pose network's
+            pooled logits over the runner-up frame's), or ``None``.
+        atlas_margin: The atlas fit's NCC margin of the frame kept over the best distinct
+            other, or ``None`` without an atlas.
+        midplane_tilt_deg: The tilt (degrees) by which a canonical output was levelled onto the
+            brain's own mid-sagittal plane (:mod:`svr.reconstruction.midplane`), or ``None``.
+        verdict: Whether the volume and its frame can be trusted
+            (:class:`~svr.reconstruction.verdict.Verdict`), ``None`` until assessed.
     """
 
     volume: Image
@@ -53,3 +70,43 @@ class ReconstructionResult:
     converged: bool | None = None
     atlas_ncc: tuple[float, ...] = ()
     atlas_chosen: int | None = None
+    from_scanner: Tensor | None = None
+    frame_margin: float | None = None
+    atlas_margin: float | None = None
+    midplane_tilt_deg: float | None = None
+    verdict: Verdict | None = None
+
+
+def relabelled(
+    result: ReconstructionResult, transform: Tensor, frame: Frame | None = None
+) -> ReconstructionResult:
+    """The same reconstruction in another frame: every affine and slice pose moved by ``transform``.
+
+    Nothing is resampled, so the volumes' values are unchanged.
+
+    Args:
+        result: The reconstruction.
+        transform: (4, 4) rigid transform from the result's frame to the new one (mm).
+        frame: The new frame's name (default: the result's).
+
+    Returns:
+        The result with the volume's, mask's and initial volume's affines, every slice pose and
+        ``from_scanner`` premultiplied by ``transform``.
+    """
+
+    def moved(image: Image) -> Image:
+        return Image(image.data, transform.to(image.affine) @ image.affine)
+
+    slices = result.slices
+    poses = se3_compose(transform.to(slices.poses)[None], slices.poses)
+    from_scanner = result.from_scanner
+    if from_scanner is not None:
+        from_scanner = se3_compose(transform.to(from_scanner), from_scanner)
+    return replace(
+        result,
+        volume=moved(result.volume),
+        mask=moved(result.mask),
+        initial_volume=moved(result.initial_volume),
+        slices=slices.with_poses(poses, frame),
+        from_scanner=from_scanner,
+    )

@@ -451,7 +451,7 @@ def test_learned_initialisation_keeps_good_predictions_per_slice(moving_scene):
     # within 0.04 of each other either way round, at 2 mm exact poses win by 0.14-0.19.
     config = recon_config(resolution_mm=2.0, template=0)
     exact = true_array_poses(slices, truth, stacks)
-    start, kept, _ = consensus_start(slices, learned_consensus(slices, exact), config)
+    start, kept, _, *_ = consensus_start(slices, learned_consensus(slices, exact), config)
     assert kept == ("cnn", "cnn", "cnn") and start.frame == "canonical"
     torch.testing.assert_close(start.poses, exact)
 
@@ -466,7 +466,7 @@ def test_learned_initialisation_falls_back_to_stack_registration(moving_scene):
     noisy = exact.clone()
     noisy[:, :3, :3] = exact[:, :3, :3] @ so3_exp(math.radians(40) * axes.to(F64))
     learned = learned_consensus(slices, noisy)
-    start, kept, notes = consensus_start(slices, learned, config)
+    start, kept, notes, *_ = consensus_start(slices, learned, config)
     assert kept == ("stack", "stack", "stack")
     registered, _ = stack_registration(
         slices, config.initialisation_grid_mm, config.initialisation.template
@@ -546,7 +546,7 @@ def test_learned_initialisation_falls_back_on_a_wrong_model(moving_scene):
     )
     learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
     assert float(learned.stack_support.max()) < config.initialisation.slice_min_support
-    _start, kept, notes = consensus_start(slices, learned, config)
+    _start, kept, notes, *_ = consensus_start(slices, learned, config)
     assert kept == ("stack",) * 3
     assert all(n.startswith("cnn unsure") for n in notes)
 
@@ -563,7 +563,7 @@ def test_learned_initialisation_rejects_confident_but_inconsistent_stacks(moving
     wrong[:, :3, :3] = errors[slices.stack_ids] @ exact[:, :3, :3]
     learned = learned_consensus(slices, wrong, planes=(SAGITTAL,))
     assert bool((learned.stack_support == 1).all())
-    start, kept, _notes = consensus_start(slices, learned, config)
+    start, kept, _notes, *_ = consensus_start(slices, learned, config)
     # At most one stack keeps its own frame: the others would tear the brain apart.
     assert kept.count("cnn") <= 1
     registered, _ = stack_registration(

@@ -71,7 +71,7 @@ def test_stack_pose_initialisation_keeps_good_per_stack_poses(turned_scene) -> N
     atlas, stacks, _truths = turned_scene
     slices = extract_slices(stacks)
     config = recon_config(resolution_mm=2.5)
-    start, kept, notes = atlas_start(slices, stacks, [atlas], config)
+    start, kept, notes, *_ = atlas_start(slices, stacks, [atlas], config)
     assert start.frame == "canonical"
     assert "cnn" in kept
     assert all("axes+atlas" in n for n in notes)
@@ -86,7 +86,7 @@ def test_a_wrong_model_falls_back_to_stack_registration(turned_scene) -> None:
         net.pose.linear.weight.normal_(0.0, 0.5)
         net.pose.linear.bias.copy_(torch.tensor([1.2, -0.6, 0.3, 0.5, 0.0, 0.0]))
     config = recon_config(resolution_mm=2.5)
-    start, kept, _ = learned_start(slices, stacks, net, config)
+    start, kept, _, *_ = learned_start(slices, stacks, net, config)
     assert kept == ("stack", "stack", "stack")
     assert start.frame == "canonical"
 
@@ -341,7 +341,7 @@ def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch)
     monkeypatch.setattr(learned_module, "estimate_packet_poses", oracle_packets)
     net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=8.0))
     config = recon_config(resolution_mm=2.5)
-    start, kept, notes = learned_start(slices, stacks, net, config)
+    start, kept, notes, *_ = learned_start(slices, stacks, net, config)
     assert calls == [[k % 2 for k in range(14)]] * 2
     assert kept[1] == "packets", notes
     assert "packets 0 deg, 50 deg" in notes[1]
@@ -352,7 +352,7 @@ def test_a_stack_whose_packets_turned_apart_starts_from_its_packets(monkeypatch)
     assert abs(_angle_deg(even, odd) - 50.0) < 2.0
     # With one packet per stack there is no packet candidate.
     calls.clear()
-    _, kept, _ = learned_start(slices, stacks, net, recon_config(resolution_mm=2.5, packets=1))
+    _, kept, _, *_ = learned_start(slices, stacks, net, recon_config(resolution_mm=2.5, packets=1))
     assert calls == [] and "packets" not in kept
 
 

@@ -29,10 +29,13 @@ from svr.reconstruction.slices import SliceSet
 __all__ = [
     "AGREE_DEG",
     "Start",
+    "agreed_frame",
     "agreeing_stacks",
     "choose_per_stack",
     "place_stacks",
+    "register_stacks",
     "registered_candidate",
+    "stack_moves",
 ]
 
 log = logging.getLogger(__name__)
@@ -50,11 +53,17 @@ class Start(NamedTuple):
         choice: Per stack, the start kept (``"scanner"``, ``"stack"``, ``"cnn"``, ``"packets"``).
         notes: Per stack, why (support, the NCC of each candidate), for the log and the QA page;
             empty where there was no choice.
+        from_scanner: (4, 4) float64 CPU, for a start in canonical space: the transform from the
+            scanner frame (the template stack's, which stack registration keeps) to canonical.
+        frame_margin: The learned evidence for the canonical frame (the stack-pose network's
+            pooled logits over the runner-up frame's), or ``None``.
     """
 
     slices: SliceSet
     choice: tuple[str, ...]
     notes: tuple[str, ...] = ()
+    from_scanner: Tensor | None = None
+    frame_margin: float | None = None
 
 
 def mean_ncc(per_stack: Tensor, slices: SliceSet) -> float:
@@ -164,39 +173,85 @@ def agreeing_stacks(to_canonical: Tensor, stack_ids: Tensor, weights: Tensor) ->
     return near[int(torch.argmax(votes))]
 
 
-def registered_candidate(
-    slices: SliceSet,
-    start: Tensor,
-    placed: Tensor,
-    votes: Tensor,
-    config: ReconstructionConfig,
-) -> Tensor:
-    """Stack registration from ``start``, moved into canonical space by the agreeing stacks.
-
-    Registration moves stack ``s`` by ``M_s`` in the template's frame; the result is brought into
-    canonical space by ``G``, the robust mean of ``E_i o M_s^-1`` over the slices of the stacks
-    that agree (:func:`agreeing_stacks`; ``E_i`` the slice's placed transform), so the output is
-    in atlas orientation whichever start each stack keeps, and no single stack's estimate sets it.
+def register_stacks(slices: SliceSet, start: Tensor, config: ReconstructionConfig) -> Tensor:
+    """Stack registration of ``slices`` from ``start`` (the template stack's frame).
 
     Args:
-        slices: All slices (their scanner poses are the slices' ``poses``).
-        start: (N, 4, 4) float64 CPU poses registration starts from (the placed poses, or the
-            scanner poses for plain stack registration).
-        placed: (N, 4, 4) float64 CPU each slice's placed canonical pose ``E_i o S_i``.
-        votes: (S,) each stack's weight in the choice of the agreeing group.
+        slices: All slices.
+        start: (N, 4, 4) float64 CPU poses registration starts from.
         config: Settings (the template and the initialisation grid).
 
     Returns:
-        (N, 4, 4) canonical poses, on the slices' device and dtype.
+        (N, 4, 4) float64 CPU registered poses.
     """
-    ids = slices.stack_ids.cpu()
     registered, _ = stack_registration(
         slices.with_poses(start.to(slices.poses)),
         config.initialisation_grid_mm,
         config.initialisation.template,
     )
-    registered = registered.to(torch.float64).cpu()
-    # Stack s moved by M_s: E_s o M_s^-1 = placed_i o registered_i^-1 for its slices.
+    return registered.to(torch.float64).cpu()
+
+
+def stack_moves(slices: SliceSet, start: Tensor, registered: Tensor) -> Tensor:
+    """(S, 4, 4) float64 each stack's rigid move ``M_s`` with ``registered_i = M_s o start_i``."""
+    ids = slices.stack_ids.cpu()
+    each = se3_compose(registered, se3_inverse(start))
+    identity = torch.eye(4, dtype=torch.float64)
+    return torch.stack(
+        [
+            robust_mean_pose(each[ids == s]) if bool((ids == s).any()) else identity
+            for s in range(len(slices.stack_names))
+        ]
+    )
+
+
+def registered_candidate(
+    slices: SliceSet,
+    registered: Tensor,
+    placed: Tensor,
+    votes: Tensor,
+    frame: Tensor | None = None,
+) -> Tensor:
+    """Registered poses moved into canonical space by the frame the stacks agree on.
+
+    Registration moved stack ``s`` by ``M_s`` into the template's frame; the result is brought
+    into canonical space by ``G``: the given ``frame``, or the robust mean of ``E_i o M_s^-1``
+    over the slices of the stacks that agree (:func:`agreeing_stacks`; ``E_i`` the slice's placed
+    transform), so the output is in atlas orientation whichever start each stack keeps, and no
+    single stack's estimate sets it.
+
+    Args:
+        slices: All slices.
+        registered: (N, 4, 4) float64 CPU registered poses (:func:`register_stacks`).
+        placed: (N, 4, 4) float64 CPU each slice's placed canonical pose ``E_i o S_i``.
+        votes: (S,) each stack's weight in the choice of the agreeing group.
+        frame: (4, 4) the template frame -> canonical transform, or ``None`` for the agreeing
+            stacks' one.
+
+    Returns:
+        (N, 4, 4) canonical poses, on the slices' device and dtype.
+    """
+    if frame is None:
+        frame = agreed_frame(slices, registered, placed, votes)
+    return se3_compose(frame.to(registered)[None], registered).to(slices.poses)
+
+
+def agreed_frame(slices: SliceSet, registered: Tensor, placed: Tensor, votes: Tensor) -> Tensor:
+    """The template frame -> canonical transform that the agreeing stacks give.
+
+    The robust mean of ``E_i o M_s^-1`` (``placed_i o registered_i^-1``) over the slices of the
+    stacks in the largest agreeing group (:func:`agreeing_stacks`).
+
+    Args:
+        slices: All slices.
+        registered: (N, 4, 4) float64 CPU registered poses.
+        placed: (N, 4, 4) float64 CPU each slice's placed canonical pose.
+        votes: (S,) each stack's weight in the choice of the group.
+
+    Returns:
+        (4, 4) float64 transform.
+    """
+    ids = slices.stack_ids.cpu()
     each = se3_compose(placed, se3_inverse(registered))
     group = agreeing_stacks(each, ids, votes)
     if not bool(group.all()):
@@ -206,8 +261,7 @@ def registered_candidate(
             AGREE_DEG,
             ", ".join(name for s, name in enumerate(slices.stack_names) if group[s]),
         )
-    to_canonical = robust_mean_pose(each[group[ids]])
-    return se3_compose(to_canonical[None], registered).to(slices.poses)
+    return robust_mean_pose(each[group[ids]])
 
 
 def place_stacks(
@@ -217,6 +271,8 @@ def place_stacks(
     votes: Tensor,
     heads: Sequence[str],
     config: ReconstructionConfig,
+    registered: Tensor | None = None,
+    frame: Tensor | None = None,
 ) -> Start:
     """Stacks (and packets) placed by their own transforms, each refined by stack registration.
 
@@ -225,7 +281,8 @@ def place_stacks(
     where the fetus turned between stacks, so that the same-subject registration only refines how
     the stacks sit together; ``"packets"`` (with ``packet_to_canonical``), the same from each
     slice placed by its packet's transform; ``"stack"``, stack registration from the scanner
-    poses. Then the safe choice per stack (:func:`choose_per_stack`).
+    poses, brought into canonical space by ``frame`` where given. Then the safe choice per stack
+    (:func:`choose_per_stack`).
 
     Args:
         slices: All slices, at their scanner poses.
@@ -235,6 +292,11 @@ def place_stacks(
         votes: (S,) each stack's weight in the choice of the output frame's agreeing group.
         heads: Per stack, what its estimate says of itself (for the notes).
         config: Settings.
+        registered: (N, 4, 4) stack registration from the scanner poses, if already computed.
+        frame: (4, 4) the registration's template frame -> canonical transform of the
+            ``"stack"`` candidate
+            (:func:`~svr.reconstruction.initialisation.stack_pose.joint_frame`), or ``None`` for the
+            agreeing stacks' one.
 
     Returns:
         The slices at their starting canonical poses, the choice and notes per stack.
@@ -242,12 +304,19 @@ def place_stacks(
     scanner = slices.poses.to(torch.float64).cpu()
     ids = slices.stack_ids.cpu()
     placed = se3_compose(to_canonical[ids], scanner)
-    candidates = {"cnn": registered_candidate(slices, placed, placed, votes, config)}
+    from_placed = register_stacks(slices, placed, config)
+    candidates = {"cnn": registered_candidate(slices, from_placed, placed, votes)}
     if packet_to_canonical is not None:
         count = packet_to_canonical.shape[1]
         packet = slices.slice_indices.cpu() % count
         by_packet = se3_compose(packet_to_canonical[ids, packet], scanner)
-        candidates["packets"] = registered_candidate(slices, by_packet, by_packet, votes, config)
-    candidates["stack"] = registered_candidate(slices, scanner, placed, votes, config)
+        from_packets = register_stacks(slices, by_packet, config)
+        candidates["packets"] = registered_candidate(slices, from_packets, by_packet, votes)
+    if registered is None:
+        registered = register_stacks(slices, scanner, config)
+    if frame is None:
+        frame = agreed_frame(slices, registered, placed, votes)
+    candidates["stack"] = registered_candidate(slices, registered, placed, votes, frame)
     trusted = torch.ones(len(slices.stack_names), dtype=torch.bool, device=slices.device)
-    return choose_per_stack(slices, candidates, trusted, heads, config)
+    start = choose_per_stack(slices, candidates, trusted, heads, config)
+    return start._replace(from_scanner=frame.to(torch.float64).cpu())

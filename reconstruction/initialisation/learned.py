@@ -8,10 +8,16 @@
    own slices (:func:`~svr.reconstruction.initialisation.stack_pose.estimate_packet_poses`), for a
    fetus that moved within a stack, or a stack whose own transform is a wrong twin that its
    packets are not.
-3. **Candidates and the safe choice**
+3. **One frame for the registered stacks** (:func:`joint_frame`): stack registration from the
+   scanner poses puts the stacks together; each stack's transform and its front-back twins are
+   scored by the network on every stack at once, and the best, refined, is the frame of the
+   registered stacks. A stack whose own transform is a twin of that frame takes the frame's
+   (a brain unlike the training atlas's can make the network prefer a stack's twin, and one
+   stack's evidence is weaker than all of them together).
+4. **Candidates and the safe choice**
    (:func:`~svr.reconstruction.initialisation.choice.place_stacks`): each placement refined by
-   stack registration and brought into the frame the agreeing stacks share, and per stack the
-   candidate that agrees best with the other stacks, stack registration included.
+   stack registration and brought into canonical space, and per stack the candidate that agrees
+   best with the other stacks, stack registration included.
 """
 
 from __future__ import annotations
@@ -21,14 +27,22 @@ import math
 from collections.abc import Sequence
 
 import torch
+from torch import Tensor
 
-from svr.geometry import rotation_angle
+from svr.geometry import half_turns, rotation_angle, se3_compose
 from svr.models.stack_pose import StackPoseNet
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.initialisation.choice import Start, place_stacks
+from svr.reconstruction.initialisation.choice import (
+    AGREE_DEG,
+    Start,
+    place_stacks,
+    register_stacks,
+    stack_moves,
+)
 from svr.reconstruction.initialisation.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
+    joint_frame,
 )
 from svr.reconstruction.slices import SliceSet, Stack
 
@@ -82,13 +96,49 @@ def learned_start(
                 per_packet.own.tolist(),
             )
         heads.append(head)
+    scanner = slices.poses.to(torch.float64).cpu()
+    registered = register_stacks(slices, scanner, config)
+    moves = stack_moves(slices, scanner, registered)
+    images = [(stack.image, stack.mask.data > 0.5) for stack in stacks]
+    joint = joint_frame(model, images, to_canonical, moves)
+    log.info(
+        "the registered stacks' frame: pooled score %.1f, margin %.1f over any other frame",
+        joint.score,
+        joint.margin,
+    )
+    expected = se3_compose(joint.to_canonical.expand_as(moves), moves)
+    for sid, stack in enumerate(stacks):
+        turned = _twin_towards(to_canonical[sid], expected[sid])
+        if turned is not None:
+            log.info("%s: its own transform is a twin of the stacks' frame: turned", stack.name)
+            heads[sid] += "; turned to the stacks' frame"
+            to_canonical[sid] = se3_compose(turned, to_canonical[sid])
+            if packets > 1:
+                packet_to_canonical[sid] = se3_compose(turned, packet_to_canonical[sid])
     # Each stack's vote for the output frame: the model's confidence in its transform.
     votes = torch.sigmoid(torch.tensor(scores, dtype=torch.float64))
-    return place_stacks(
+    start = place_stacks(
         slices,
         to_canonical,
         packet_to_canonical if packets > 1 else None,
         votes,
         heads,
         config,
+        registered=registered,
+        frame=joint.to_canonical,
     )
+    return start._replace(frame_margin=joint.margin)
+
+
+def _twin_towards(own: Tensor, expected: Tensor) -> Tensor | None:
+    """The half turn (4, 4) that brings ``own`` within :data:`AGREE_DEG` of ``expected``.
+
+    ``None`` where ``own`` is already within it, or no half turn brings it there (a stack that
+    registration could not put with the others, for one).
+    """
+    if math.degrees(rotation_angle(own, expected)) <= AGREE_DEG:
+        return None
+    for turn in half_turns():
+        if math.degrees(rotation_angle(se3_compose(turn, own), expected)) <= AGREE_DEG:
+            return turn
+    return None

@@ -504,7 +504,8 @@ def consensus_start(
         f"support {100 * float(support[sid]):.0f}%, {int(flipped[sid])} flipped"
         for sid in range(len(slices.stack_names))
     ]
-    return choose_per_stack(slices, candidates, trusted, heads, config)
+    start = choose_per_stack(slices, candidates, trusted, heads, config)
+    return start._replace(from_scanner=frame.to(torch.float64).cpu())
 
 
 def slice_model_start(

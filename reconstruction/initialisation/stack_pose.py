@@ -19,12 +19,13 @@ to canonical mm, and the stack pose ``P = E o F`` maps the stack frame ``F`` to 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from svr.geometry import rotation_angle, se3_compose, so3_exp
+from svr.geometry import half_turns, rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, voxel_to_world
 from svr.models.stack_pose import StackPoseNet
@@ -38,10 +39,12 @@ from svr.sampling.volume import CanonicalVolume
 from svr.validation import check_number
 
 __all__ = [
+    "JointFrame",
     "PacketPoseEstimate",
     "StackPoseEstimate",
     "estimate_packet_poses",
     "estimate_stack_pose",
+    "joint_frame",
     "mask_axis_hypotheses",
     "refine_transforms",
     "restart_transforms",
@@ -359,3 +362,74 @@ def estimate_packet_poses(
     if apart > max_apart_deg:
         return PacketPoseEstimate(stack_transforms, stack_scores, torch.zeros_like(own))
     return PacketPoseEstimate(best_transforms, best_scores, own)
+
+
+class JointFrame(NamedTuple):
+    """The canonical frame of several registered stacks of one fetus, by their pooled scores.
+
+    Attributes:
+        to_canonical: (4, 4) float64 transform from the registration's (template) frame to
+            canonical mm: stack ``s`` placed by ``to_canonical o M_s``.
+        score: The network's logits at the chosen hypothesis, summed over the stacks.
+        margin: That sum minus the best sum of a hypothesis more than ``distinct_deg`` away (a
+            twin or another frame); small or negative: the stacks do not tell the frames apart.
+    """
+
+    to_canonical: Tensor
+    score: float
+    margin: float
+
+
+@torch.no_grad()
+def joint_frame(
+    model: StackPoseNet,
+    stacks: Sequence[tuple[Image, Tensor]],
+    to_canonical: Tensor,
+    moves: Tensor,
+    iterations: int = 3,
+    distinct_deg: float = 45.0,
+) -> JointFrame:
+    """One canonical frame for stacks that registration put together, from all of them at once.
+
+    A stack alone can score its front-back twin above the right frame (a brain unlike the
+    training atlas's, real contrast); stacks registered to one another share one frame, so each
+    hypothesis is scored on every stack and the scores are summed. The hypotheses are each stack's
+    own transform ``E_s o M_s^-1`` and its three half turns about the canonical axes; the winner
+    is refined on every stack (``iterations`` steps of the network from ``G o M_s``) and the robust
+    mean of the frames they imply is returned.
+
+    Args:
+        model: The stack-pose network.
+        stacks: Per stack, its image and brain mask (bool or fractions) in its scanner frame.
+        to_canonical: (S, 4, 4) each stack's own estimate ``E_s`` (scanner mm -> canonical mm).
+        moves: (S, 4, 4) each stack's registration ``M_s`` (scanner mm -> the template frame).
+        iterations: Refinement steps of the winner on each stack.
+        distinct_deg: Hypotheses farther apart than this (degrees) are other frames (margin).
+
+    Returns:
+        The frame, its pooled score and its margin.
+    """
+    model.eval()
+    coarse = [coarsen_stack(image, mask, model.config.in_plane_mm) for image, mask in stacks]
+    moves = moves.to(torch.float64).cpu()
+    own = se3_compose(to_canonical.to(torch.float64).cpu(), se3_inverse(moves))  # (S, 4, 4)
+    turns = torch.cat([torch.eye(4, dtype=torch.float64)[None], half_turns()])
+    hypotheses = se3_compose(turns[None], own[:, None]).reshape(-1, 4, 4)
+    scores = torch.zeros(len(hypotheses), dtype=torch.float64)
+    for (image, fractions), move in zip(coarse, moves, strict=True):
+        placed = se3_compose(hypotheses, move.expand_as(hypotheses))
+        scores += refine_transforms(model, image, fractions, placed, iterations=0)[1].double()
+    best = int(torch.argmax(scores))
+    frame = hypotheses[best]
+    far = rotation_angle(hypotheses, frame.expand_as(hypotheses)) > math.radians(distinct_deg)
+    runner_up = float(scores[far].max()) if bool(far.any()) else -math.inf
+    implied = []
+    for (image, fractions), move in zip(coarse, moves, strict=True):
+        start = se3_compose(frame, move)[None]
+        refined, _ = refine_transforms(model, image, fractions, start, iterations)
+        implied.append(se3_compose(refined[0], se3_inverse(move)))
+    return JointFrame(
+        robust_mean_pose(torch.stack(implied)),
+        float(scores[best]),
+        float(scores[best]) - runner_up,
+    )

@@ -449,6 +449,8 @@ def read_sidecars(
 _COLUMNS = (
     "participant_id",
     "session_id",
+    "verdict",
+    "frame_trust",
     "stacks",
     "slices",
     "slices_excluded",
@@ -465,9 +467,12 @@ _COLUMNS = (
 def _row(sidecar: dict[str, Any]) -> dict[str, str]:
     svr = sidecar["svr"]
     kept = svr.get("initialisation", {})
+    verdict = svr.get("verdict") or {}
     return {
         "participant_id": f"sub-{svr['subject']}",
         "session_id": f"ses-{svr['session']}" if svr.get("session") else "n/a",
+        "verdict": str(verdict.get("status", "n/a")),
+        "frame_trust": str(verdict.get("frame", "n/a")),
         "stacks": str(len(svr.get("inputs", []))),
         "slices": str(svr.get("slices", "n/a")),
         "slices_excluded": str(svr.get("slices_excluded", "n/a")),
@@ -522,7 +527,7 @@ def group_report(
             sidecar_path.with_name(sidecar_path.name.replace("_T2w.json", "_qa.png")).as_posix()
         )
         warnings = sidecar["svr"].get("warnings", [])
-        flag = " (warnings)" if warnings else ""
+        flag = " (FAILED)" if row["verdict"] == "failed" else " (warnings)" if warnings else ""
         index.append(f"<li><a href='#{anchor}'>{title}</a>{flag}</li>")
         notes = (
             "<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>"
@@ -539,6 +544,7 @@ def group_report(
             "</section>"
         )
     flagged = sum(1 for s in sidecars if s["svr"].get("warnings"))
+    failed = sum(1 for row in rows if row["verdict"] == "failed")
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>fetal-svr: {_count(len(sidecars), "participant")}</title>
@@ -552,7 +558,8 @@ th {{ text-align: left; padding-right: 1em; font-weight: normal; color: #555; }}
 .warn li {{ color: #a40; }} .ok {{ color: #070; }}
 </style></head><body>
 <h1>fetal-svr reconstructions</h1>
-<p>{_count(len(sidecars), "participant")}, {flagged} with warnings; the table:
+<p>{_count(len(sidecars), "participant")}, <b>{failed} failed</b> (no usable volume: see each
+verdict), {flagged} with warnings; the table:
 <a href="{GROUP_TSV}">{GROUP_TSV}</a>. Each figure is the participant's QA page (orthogonal
 views of the initial and final volume, each slice's agreement with the volume, the rounds); click
 it to enlarge.</p>

@@ -69,6 +69,8 @@ class ParticipantSummary:
         error: The one-line error, or ``None`` when it succeeded.
         slices: Slices reconstructed.
         excluded: Slices left out.
+        verdict: The reconstruction's verdict line, or ``None`` (an error, or none assessed).
+        failed: Whether the verdict is that no usable volume came out.
     """
 
     label: str
@@ -76,6 +78,8 @@ class ParticipantSummary:
     error: str | None = None
     slices: int = 0
     excluded: int = 0
+    verdict: str | None = None
+    failed: bool = False
 
 
 class _Warnings(logging.Handler):
@@ -125,6 +129,8 @@ def run_participant(work: ParticipantJob) -> ParticipantSummary:
         time.perf_counter() - began,
         slices=len(result.slices),
         excluded=int(result.excluded.sum()),
+        verdict=None if result.verdict is None else result.verdict.line(),
+        failed=result.verdict is not None and result.verdict.status == "failed",
     )
 
 
@@ -174,6 +180,18 @@ def _sidecar(
             "slices_excluded": int(result.excluded.sum()),
             "excluded_slices": excluded,
             "frame": slices.frame,
+            "verdict": None
+            if result.verdict is None
+            else {
+                "status": result.verdict.status,
+                "frame": result.verdict.frame,
+                "reasons": list(result.verdict.reasons),
+                "line": result.verdict.line(),
+            },
+            "from_scanner": None if result.from_scanner is None else result.from_scanner.tolist(),
+            "frame_margin": result.frame_margin,
+            "atlas_margin": result.atlas_margin,
+            "midplane_tilt_deg": result.midplane_tilt_deg,
             "atlas_ncc": list(result.atlas_ncc),
             "atlas_chosen": result.atlas_chosen,
             "rounds": len(result.rounds),

@@ -200,10 +200,16 @@ def run(args: argparse.Namespace) -> int:
     )
     summaries = _run_all(work, jobs)
     failed = [s for s in summaries if s.error is not None]
+    unusable = [s for s in summaries if s.failed]
     done = len(summaries) - len(failed)
     print(
         f"{done} of {len(summaries)} participants reconstructed in {output}"
-        + (f"; failed: {', '.join(s.label for s in failed)}" if failed else "")
+        + (f"; errors: {', '.join(s.label for s in failed)}" if failed else "")
+        + (
+            f"; failed verdict (no usable volume): {', '.join(s.label for s in unusable)}"
+            if unusable
+            else ""
+        )
     )
     return 1 if failed else 0
 
@@ -270,11 +276,12 @@ def _run_all(work: list[ParticipantJob], jobs: int) -> list[ParticipantSummary]:
 def _report(summary: ParticipantSummary) -> ParticipantSummary:
     if summary.error is None:
         log.info(
-            "%s: done in %.0f s (%d slices, %d excluded)",
+            "%s: done in %.0f s (%d slices, %d excluded); verdict: %s",
             summary.label,
             summary.seconds,
             summary.slices,
             summary.excluded,
+            summary.verdict,
         )
     else:
         print(f"svr bids: {summary.label}: error: {summary.error}", file=sys.stderr)

@@ -149,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
         written = _write_outputs(args, job, result)
     if args.output_log is not None:
         text = captured.getvalue() + _summary(args, job, result)
+        if result.verdict is not None:  # the log's last line
+            text += f"verdict: {result.verdict.line()}\n"
         atomic_write_text(args.output_log, text, args.overwrite)
         written.append(args.output_log)
     excluded = int(result.excluded.sum())
@@ -156,6 +158,8 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {', '.join(written)}: {len(result.slices)} slices from {len(stacks)} stacks, "
         f"{excluded} excluded, {result.slices.frame} frame"
     )
+    if result.verdict is not None:
+        print(f"verdict: {result.verdict.line()}")
     return 0
 
 
