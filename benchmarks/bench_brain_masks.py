@@ -337,7 +337,7 @@ def part_recon(args: argparse.Namespace, report: dict) -> list[str]:
     if len(found) < 2:
         lines.append("Fewer than 2 stacks with an automatic mask: no reconstruction compared.")
         return lines
-    config = ReconstructionConfig(registration="stack")
+    config = ReconstructionConfig.preset("stack")
     names = [str(p) for p, *_ in found]
     results = {}
     mask_sets = [
@@ -436,7 +436,7 @@ def part_consistency(args: argparse.Namespace, report: dict) -> list[str]:
     ]
     names = [p.name for p, _ in pairs]
     stacks = prepare_stacks(images, [load_nifti(m) for _, m in pairs], 3.0, names=names)
-    result = reconstruct(stacks, ReconstructionConfig(registration="stack"), progress=False)
+    result = reconstruct(stacks, ReconstructionConfig.preset("stack"), progress=False)
     kept = result.slices.subset(~result.excluded)
     votes = leave_one_out_votes(images, manual, kept, [3.0] * len(images))
     masker = load_brain_masker(args.mask_model)

@@ -107,13 +107,17 @@ def load_case_stacks(case: Path) -> list:
 
 
 def reconstruct_default(stacks: list, registration: str, model=None):
-    """``reconstruct`` with the default settings; ``model`` is passed for ``"cnn"`` only."""
+    """``reconstruct`` with the defaults of ``--registration``; ``model`` is used for ``"cnn"``."""
+    from svr.models.stack_pose import StackPoseNet
     from svr.reconstruction.config import ReconstructionConfig
     from svr.reconstruction.pipeline import reconstruct
 
+    kind = {"none": "scanner", "stack": "stack", "atlas": "atlas"}.get(registration)
+    if kind is None:
+        kind = "learned" if isinstance(model, StackPoseNet) else "learned-slices"
     return reconstruct(
         stacks,
-        ReconstructionConfig(registration=registration),
+        ReconstructionConfig.preset(kind),
         model=model if registration == "cnn" else None,
         progress=False,
     )
@@ -279,3 +283,47 @@ def output_frame_error(case: Path, transforms: Path) -> tuple[float, float]:
     mean = true_frame_correction(case, transforms)
     turn = math.degrees(rotation_angle(mean, torch.eye(4, dtype=mean.dtype)))
     return turn, float(mean[:3, 3].norm())
+
+
+def slice_pose_errors(case: Path, transforms: Path) -> dict[str, float]:
+    """Every slice's pose error against the case's truth, after one rigid offset of the frame.
+
+    The table's poses are moved by the robust mean of ``T_i o P_i^-1`` (``T_i`` the slice's true
+    pose in the table's frame: the atlas frame for a canonical table, the ground truth's world
+    frame for a scanner one; ``P_i`` its pose in the table), so that what is left is each slice's
+    own error, not the frame's.
+
+    Returns:
+        ``median_deg``, ``p90_deg``, ``within_5`` and ``within_10`` (percent of slices within 5 and
+        10 degrees) and ``median_mm`` (slice centres).
+    """
+    from svr.geometry import rotation_angle, se3_compose, se3_inverse, vector_to_se3
+    from svr.geometry.averaging import robust_mean_pose
+    from svr.pose_io import read_pose_table
+
+    truth = json.loads((case / "truth_slices.json").read_text(encoding="utf-8"))["stacks"]
+    by_name = {Path(s["file"]).name: s["slices"] for s in truth}
+    table = read_pose_table(transforms)
+    frame = "scanner" if table.frame == "scanner" else "atlas"
+    per_file = {
+        name: true_slice_poses(by_name[Path(name).name], frame)
+        for name in dict.fromkeys(table.files)
+    }
+    true = torch.stack(
+        [
+            per_file[f][int(k)]
+            for f, k in zip(table.files, table.slice_indices.tolist(), strict=True)
+        ]
+    )
+    estimate = vector_to_se3(table.poses.double())
+    offset = robust_mean_pose(se3_compose(true, se3_inverse(estimate)))
+    aligned = se3_compose(offset[None], estimate)
+    angle = torch.rad2deg(rotation_angle(aligned, true))
+    distance = (aligned[:, :3, 3] - true[:, :3, 3]).norm(dim=1)
+    return {
+        "median_deg": float(angle.median()),
+        "p90_deg": float(angle.quantile(0.9)),
+        "within_5": 100.0 * float((angle <= 5).double().mean()),
+        "within_10": 100.0 * float((angle <= 10).double().mean()),
+        "median_mm": float(distance.median()),
+    }

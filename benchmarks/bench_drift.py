@@ -79,7 +79,7 @@ def run(
     slices: SliceSet, truth: torch.Tensor, rounds: int, band: tuple[float, float]
 ) -> list[dict[str, float]]:
     """Rounds of (one-by-one SVR, outlier weights, super-resolution) from the true poses."""
-    config = ReconstructionConfig(schedule="fixed")
+    config = ReconstructionConfig.preset("stack", "fixed")
     poses = array_poses(slices, truth).to(slices.poses)
     model = acquisition_model(slices, output_grid(slices, config.grid.resolution_mm), band)
     points, b_points = model.points(poses), model.background_points(poses)

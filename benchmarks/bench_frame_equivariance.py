@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from svr.image import Image
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.outputs import write_volume
-from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.pipeline import reconstruct_from_poses
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import extract_slices
 
@@ -83,7 +83,7 @@ def main() -> int:
     turn = Rotation.from_rotvec(axis / np.linalg.norm(axis) * math.radians(args.degrees))
     G = torch.from_numpy(rigid(turn.as_matrix(), (3.0, -2.0, 5.0)))
     stacks = load_case_stacks(case)
-    config = ReconstructionConfig(schedule=args.schedule)
+    config = ReconstructionConfig.preset("stack", args.schedule)
     slices = extract_slices(stacks)
     registered, _ = stack_registration(
         slices, config.initialisation_grid_mm, config.initialisation.template
@@ -95,7 +95,7 @@ def main() -> int:
             (f"turned by {args.degrees:g} deg (relabelled back)", G.to(registered) @ registered,
              "canonical"),
         ):  # fmt: skip
-            result = reconstruct(stacks, config, initial_poses=poses, frame=frame, progress=False)
+            result = reconstruct_from_poses(stacks, poses, frame, config, progress=False)
             volume = result.volume
             if frame == "canonical":
                 volume = Image(volume.data, torch.linalg.inv(G).to(volume.affine) @ volume.affine)

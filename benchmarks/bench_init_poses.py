@@ -51,7 +51,7 @@ from svr.reconstruction.initialisation.slice_model import (
     learned_consensus,
     slice_predictions,
 )
-from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.pipeline import reconstruct_from_poses
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.slices import SliceSet, Stack, array_poses, extract_slices, plane_poses
@@ -227,14 +227,7 @@ def bench_case(
         predicted = perturbed(canonical_truth, degrees, generator)
         oracle = learned_consensus(slices, array_poses(slices, predicted))
         start, kept, _, *_ = consensus_start(slices, oracle, config)
-        result = reconstruct(
-            stacks,
-            config,
-            initial_poses=start.poses,
-            frame="canonical",
-            initialisation=kept,
-            progress=False,
-        )
+        result = reconstruct_from_poses(stacks, start.poses, "canonical", config, progress=False)
         quality = score(result, out / f"{case.name}-oracle-{degrees:g}.nii.gz", case, scorer)
         label = f"oracle model, {degrees:g} deg / {degrees * ORACLE_MM_PER_DEG:g} mm per slice"
         rows.append(

@@ -81,7 +81,7 @@ def main() -> int:
         stacks = load_case_stacks(case)
         slices = extract_slices(stacks)
         atlas = load_canonical_volume(*neighbour_atlas(case_age(case)))
-        config = ReconstructionConfig(registration="cnn")
+        config = ReconstructionConfig.preset("learned")
         registration = timed(
             args.repeats, stack_registration, slices, config.initialisation_grid_mm
         )

@@ -54,7 +54,7 @@ from svr.image import save_nifti
 from svr.models.stack_pose import load_stack_pose_model
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose, refine_transforms
-from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.pipeline import reconstruct_from_poses
 from svr.reconstruction.slices import SliceSet, array_poses, extract_slices
 from svr.sampling.blocks import coarsen_stack
 from svr.sampling.volume import load_canonical_volume
@@ -214,12 +214,8 @@ def main() -> int:
             starts += oracles
         for label, poses in starts:
             began = time.perf_counter()
-            result = reconstruct(
-                stacks,
-                ReconstructionConfig(),
-                initial_poses=poses,
-                frame="canonical",
-                progress=False,
+            result = reconstruct_from_poses(
+                stacks, poses, "canonical", ReconstructionConfig(), progress=False
             )
             seconds = time.perf_counter() - began
             path = args.out / f"{case.name}-{'-'.join(label.split()[-2:])}.nii.gz"

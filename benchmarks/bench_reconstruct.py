@@ -48,6 +48,7 @@ from bench_common import (
     run_scorer,
     scanner_frame_copy,
     simulate_cases,
+    slice_pose_errors,
 )
 
 from svr.reconstruction.config import SCHEDULES
@@ -182,6 +183,12 @@ def rounds_run(log: Path) -> str:
     return "?"
 
 
+def verdict_line(log: Path) -> str:
+    """The verdict of a ``--output-log`` (its last line), ``""`` if it has none."""
+    lines = log.read_text(encoding="utf-8").splitlines()
+    return lines[-1].removeprefix("verdict: ") if lines and lines[-1].startswith("verdict") else ""
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="*", default=["sb28-moderate", "sb24-large"])
@@ -282,15 +289,20 @@ def main() -> int:
                 scanner_score = run_scorer(args.scorer, copy, folder)
             phases = phase_times(Path(f"{stem}.log"))
             rounds = rounds_run(Path(f"{stem}.log"))
+            slices = None
+            if (folder / "truth_slices.json").exists():
+                slices = slice_pose_errors(folder, Path(f"{stem}.csv"))
             rows.append(
                 {"case": case, "method": method, "registration": registration, "masks": kind,
                  "schedule": schedule, "score": score, "scanner_frame_score": scanner_score,
                  "frame_error": frame_error, "kept": kept_per_stack(Path(f"{stem}.log")),
+                 "slice_errors": slices, "verdict": verdict_line(Path(f"{stem}.log")),
                  "wall_s": wall, "cpu_s": cpu,
                  "peak_mb": rss, "phases_s": phases, "rounds": rounds}
             )  # fmt: skip
             print(f"{case} {method}: {score} wall {wall:.1f} s, CPU {cpu:.1f} s, "
-                  f"peak {rss:.0f} MB; rounds {rounds}; phases {phases}", flush=True)  # fmt: skip
+                  f"peak {rss:.0f} MB; rounds {rounds}; slices {slices}; phases {phases}",
+                  flush=True)  # fmt: skip
 
     say("| case | method | PSNR (dB) | SSIM | NCC | wall (s) | CPU (s) | peak (MB) | rounds |")
     say("|---|---|---:|---:|---:|---:|---:|---:|---|")
@@ -306,6 +318,19 @@ def main() -> int:
                 say(f"| {folder.name} | {peer} (peer_results.md) | {p['psnr']:.2f} | "
                     f"{p['ssim']:.3f} | {p['ncc']:.3f} | — | "
                     f"{p.get('cpu_s', float('nan')):.0f} | — | |")  # fmt: skip
+    say()
+    say("Per-slice pose errors after reconstruction (one rigid offset of the frame removed), and")
+    say("the verdict:")
+    say()
+    say(
+        "| case | method | median (deg) | 90th pct (deg) | within 5 deg | within 10 deg | verdict |"
+    )
+    say("|---|---|---:|---:|---:|---:|---|")
+    for row in rows:
+        e = row["slice_errors"]
+        if e is not None:
+            say(f"| {row['case']} | {row['method']} | {e['median_deg']:.2f} | {e['p90_deg']:.1f} "
+                f"| {e['within_5']:.0f}% | {e['within_10']:.0f}% | {row['verdict']} |")  # fmt: skip
     ratios = []
     for row in rows:
         for peer in PEER_NAMES:

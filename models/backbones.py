@@ -51,6 +51,7 @@ class BackboneConfig:
         depth: Number of downsampling stages, >= 1.
         blocks: Residual blocks (ResNet) or inception modules (Inception) per stage, >= 1.
         dropout: Dropout probability on the pooled features, in ``[0, 1)``.
+        in_channels: Image channels of the input, >= 1 (1: a slice alone).
 
     Raises:
         ConfigFieldError: Naming the field, for a value of the wrong type or out of range.
@@ -61,9 +62,11 @@ class BackboneConfig:
     depth: int = 4
     blocks: int = 2
     dropout: float = 0.0
+    in_channels: int = 1
 
     def __post_init__(self) -> None:
         owner = "BackboneConfig"
+        check_int(owner, "in_channels", self.in_channels, minimum=1)
         check_choice(owner, "name", self.name, BACKBONE_NAMES)
         check_int(owner, "width", self.width, minimum=MIN_WIDTH)
         check_int(owner, "depth", self.depth, minimum=1)
@@ -170,7 +173,7 @@ class Backbone(nn.Module):
         super().__init__()
         self.config = config
         self.out_features = config.out_features
-        self.stem = _conv_bn_relu(1, config.width, 7, stride=2)
+        self.stem = _conv_bn_relu(config.in_channels, config.width, 7, stride=2)
         stages = []
         in_channels = config.width
         for i in range(config.depth):
@@ -210,7 +213,7 @@ class Backbone(nn.Module):
         """Features of slices.
 
         Args:
-            slices: (B, 1, H, W) float images.
+            slices: (B, C, H, W) float images, ``C = config.in_channels``.
 
         Returns:
             (B, out_features) features.
@@ -226,6 +229,6 @@ def build_backbone(config: BackboneConfig) -> Backbone:
         config: The architecture.
 
     Returns:
-        A module mapping (B, 1, H, W) slices to (B, ``out_features``) features.
+        A module mapping (B, ``in_channels``, H, W) images to (B, ``out_features``) features.
     """
     return Backbone(config)

@@ -8,8 +8,9 @@ existing output untouched) and refuses to replace an existing output unless ``ov
   per slice in the slice set's order: the stack file as given, the slice's k index in that file,
   the pose of the file's k-plane (origin at the plane centre, :func:`plane_poses`) as 6-vector
   and matrix, and the frame; for a :class:`ReconstructionResult` also the columns ``ncc`` (the
-  slice's NCC with its simulation from the volume), ``weight`` (EM slice inlier probability) and
-  ``excluded`` (left out of the volume).
+  slice's NCC with its simulation from the volume), ``weight`` (EM slice inlier probability),
+  ``excluded`` (left out of the volume) and ``moved_deg`` (how far the slice turned away from its
+  stack's rigid pose, :func:`~svr.reconstruction.slices.moved_from_stack`).
 * :func:`write_slices_folder`: ``0.nii.gz, 1.nii.gz, ...`` (one slice ``(H, W, 1)`` each, posed
   by its affine) and ``mask_0.nii.gz, ...``, the slice-folder format of NeSVoR that
   :func:`svr.models.predict.load_slice_folder` reads. File ``n`` is row ``n`` of the transforms
@@ -28,7 +29,7 @@ from svr.files import atomic_directory
 from svr.image import Image, save_nifti
 from svr.pose_io import matrices_to_table, write_pose_table
 from svr.reconstruction.result import ReconstructionResult
-from svr.reconstruction.slices import SliceSet, plane_poses
+from svr.reconstruction.slices import SliceSet, moved_from_stack, plane_poses
 
 __all__ = ["slice_affines", "write_slices_folder", "write_transforms", "write_volume"]
 
@@ -78,6 +79,7 @@ def write_transforms(
             "ncc": result_or_slices.slice_ncc.double().tolist(),
             "weight": result_or_slices.slice_weights.double().tolist(),
             "excluded": result_or_slices.excluded.bool().tolist(),
+            "moved_deg": moved_from_stack(result_or_slices.slices).tolist(),
         }
     else:
         slices, extra = result_or_slices, {}

@@ -37,7 +37,7 @@ from svr.reconstruction.initialisation import initialise
 from svr.reconstruction.midplane import level_to_midplane
 from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.schedule import run_rounds
-from svr.reconstruction.slices import SliceSet, Stack, extract_slices
+from svr.reconstruction.slices import SliceSet, Stack, extract_slices, moved_from_stack
 from svr.reconstruction.verdict import Verdict, VerdictConfig, assess
 from svr.sampling.volume import CanonicalVolume, as_atlases
 from svr.timing import PhaseTimer
@@ -183,7 +183,18 @@ def _slices(stacks: list[Stack], device: str | torch.device) -> SliceSet:
 
 def _report_exclusions(result: ReconstructionResult) -> None:
     slices, excluded = result.slices, result.excluded.to(result.slices.device)
+    moved = moved_from_stack(slices)
     for sid, name in enumerate(slices.stack_names):
+        mine = moved[slices.stack_ids.cpu() == sid]
+        if len(mine):
+            log.info(
+                "%s: slices moved from the stack's rigid pose by %.1f deg (median), %.1f (max); "
+                "%d beyond 10 deg",
+                name,
+                float(mine.median()),
+                float(mine.max()),
+                int((mine > 10).sum()),
+            )
         members = slices.stack_ids == sid
         total = int(members.sum())
         out = int((excluded & members).sum())

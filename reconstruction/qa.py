@@ -37,6 +37,7 @@ from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, resample_to_grid
 from svr.reconstruction.convergence import verdict
 from svr.reconstruction.result import ReconstructionResult
+from svr.reconstruction.slices import moved_from_stack
 
 __all__ = ["FIGURE_SUFFIXES", "axis_aligned", "masks_figure", "qa_figure"]
 
@@ -102,12 +103,18 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
     lines = [*notes, "time per phase (s)"]
     lines += [f"  {name}: {seconds:.1f}" for name, seconds in timings.items()]
     lines.append(f"  total: {sum(timings.values()):.1f}")
-    lines.append("initialisation per stack")
+    lines.append("initialisation per stack; slices moved from it (median / max deg)")
     notes = result.initialisation_notes or ("",) * len(result.initialisation)
-    for name, init, note in zip(
-        result.slices.stack_names, result.initialisation, notes, strict=True
+    moved = moved_from_stack(result.slices)
+    ids = result.slices.stack_ids.cpu()
+    for sid, (name, init, note) in enumerate(
+        zip(result.slices.stack_names, result.initialisation, notes, strict=True)
     ):
-        lines.append(f"  {Path(name).name}: {init}")
+        mine = moved[ids == sid]
+        spread = (
+            f"; moved {float(mine.median()):.0f} / {float(mine.max()):.0f}" if len(mine) else ""
+        )
+        lines.append(f"  {Path(name).name}: {init}{spread}")
         # Long notes (the learned starts' scores) wrap under their stack: one long line
         # squeezed the figure's panels.
         lines += textwrap.wrap(note, NOTE_WIDTH, initial_indent="    ", subsequent_indent="    ")

@@ -163,14 +163,17 @@ def recapture(
     start_poses: Tensor,
     candidates: Tensor,
     config: ReconstructionConfig,
+    trajectory: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """A wider search for slices that still fit badly: their packet neighbours' motion as starts.
 
-    Each slice in ``candidates`` is registered alone from its current pose and from the poses its
+    Each slice in ``candidates`` is registered alone from its current pose, from the poses its
     temporal neighbours' motion gives it (the corrections that moved the previous and next slice
-    of its packet since ``start_poses``, applied to it). It takes the result that matches its
-    simulation from ``volume`` best (NCC over its brain pixels), if that beats its current pose by
-    ``RECAPTURE_MARGIN``.
+    of its packet since ``start_poses``, applied to it) and, with ``trajectory``, from the pose
+    its packet's motion trajectory gives it at its time (fitted to the other slices:
+    :func:`svr.reconstruction.trajectory.fit_slice_trajectory`). It takes the result that matches
+    its simulation from ``volume`` best (NCC over its brain pixels), if that beats its current
+    pose by ``RECAPTURE_MARGIN``.
 
     Args:
         acquisition: The acquisition model.
@@ -179,6 +182,7 @@ def recapture(
         start_poses: (N, 4, 4) the poses the rounds started from (for the neighbours' motion).
         candidates: (N,) bool, the slices to search for.
         config: Settings (``packets`` and the schedule's registration levels and steps).
+        trajectory: (N, 4, 4) each slice's pose on its packet's trajectory, or ``None``.
 
     Returns:
         (N, 4, 4) float64 poses (changed only where a search found a better fit) and (N,) bool,
@@ -198,6 +202,8 @@ def recapture(
         own = [poses[i]]
         for j in neighbour[i]:
             own.append(motion[j] @ start_poses[i].to(poses))
+        if trajectory is not None:
+            own.append(trajectory[i].to(poses))
         starts += own
         owners += [i] * len(own)
     owner = torch.tensor(owners, device=device)

@@ -34,6 +34,7 @@ from svr.reconstruction.rounds import (
 )
 from svr.reconstruction.slices import SliceSet
 from svr.reconstruction.superres import output_grid
+from svr.reconstruction.trajectory import fit_slice_trajectory
 from svr.timing import PhaseTimer
 
 __all__ = ["QUIET_ROUNDS", "run_rounds"]
@@ -227,6 +228,12 @@ def _recapture_round(
     if not bool(low.any()):
         return
     with timer.phase("recapture"):
+        # The slices that fit badly are left out of the fit: their packet's other slices say
+        # where the motion put them.
+        known = ~low.to(state.poses.device)
+        along = fit_slice_trajectory(
+            acquisition.slices.with_poses(state.poses), config.packets, known=known
+        )
         new_poses, recaptured = recapture(
             acquisition,
             state.volume,
@@ -234,6 +241,7 @@ def _recapture_round(
             activity.start,
             low.to(state.poses.device),
             config,
+            trajectory=along.poses,
         )
         activity.tries += low.long()
         state.poses = new_poses

@@ -26,6 +26,7 @@ __all__ = [
     "extract_slices",
     "mask_centre",
     "mask_points",
+    "moved_from_stack",
     "plane_poses",
 ]
 
@@ -328,3 +329,33 @@ def extract_slices(stacks: list[Stack]) -> SliceSet:
         scanner_poses=poses.clone(),
         stack_names=tuple(stack.name for stack in stacks),
     )
+
+
+def moved_from_stack(slices: SliceSet) -> Tensor:
+    """(N,) each slice's turn (degrees) away from its stack's rigid pose: how far it moved alone.
+
+    Each slice implies a transform of its stack, ``P_i o S_i^-1`` (its pose times its scanner
+    pose's inverse); the stack's rigid pose is the robust mean of its slices' transforms
+    (:func:`svr.geometry.averaging.robust_mean_pose`), and a slice's value is the angle between
+    its own transform and that mean. Zero for every slice of a stack that moved as one body.
+
+    Args:
+        slices: The slices at their poses.
+
+    Returns:
+        (N,) float64 angles in degrees, on the CPU.
+    """
+    from svr.geometry import rotation_angle, se3_compose, se3_inverse
+    from svr.geometry.averaging import robust_mean_pose
+
+    implied = se3_compose(
+        slices.poses.to(torch.float64).cpu(), se3_inverse(slices.scanner_poses.double().cpu())
+    )
+    ids = slices.stack_ids.cpu()
+    out = torch.zeros(len(slices), dtype=torch.float64)
+    for sid in range(len(slices.stack_names)):
+        mine = ids == sid
+        if bool(mine.any()):
+            mean = robust_mean_pose(implied[mine])
+            out[mine] = torch.rad2deg(rotation_angle(implied[mine], mean.expand_as(implied[mine])))
+    return out

@@ -505,3 +505,27 @@ def test_recapture_brings_back_a_slice_turned_far_off():
     # Nothing to search for: nothing changes.
     same, none = recapture(model, volume, off, truth, torch.zeros_like(candidates), config)
     assert torch.equal(same, off.to(same)) and not bool(none.any())
+
+
+def test_recapture_starts_a_slice_from_its_packets_trajectory():
+    """A slice turned far off while its packet stayed: the trajectory of the others puts it back."""
+    from svr.reconstruction.trajectory import fit_slice_trajectory
+
+    stacks = tiny_case(0.0, 0.0)
+    slices = extract_slices(stacks)
+    grid = output_grid(slices, 2.0)
+    model = acquisition_model(slices, grid)
+    truth = slices.poses.clone()
+    volume = initial_volume(model, model.points(truth))
+    config = recon_config(**FAST)
+    big = int(slices.masks.flatten(1).sum(1).argmax())
+    off = truth.clone()
+    turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(25.0), 0.0]).as_matrix())
+    off[big, :3, :3] = truth[big, :3, :3] @ turn
+    candidates = torch.zeros(len(slices), dtype=torch.bool)
+    candidates[big] = True
+    along = fit_slice_trajectory(slices.with_poses(off), config.packets, known=~candidates)
+    assert float(pose_change(truth[big : big + 1], along.poses[big : big + 1])[0]) < 1.0
+    found, changed = recapture(model, volume, off, off, candidates, config, trajectory=along.poses)
+    assert changed.tolist() == candidates.tolist()
+    assert float(pose_change(truth[big : big + 1], found[big : big + 1])[0]) < 3.0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from svr.image import Image, stack_slice_poses
 from svr.reconstruction.slices import (
@@ -12,6 +13,7 @@ from svr.reconstruction.slices import (
     array_poses,
     extract_slices,
     mask_centre,
+    moved_from_stack,
     plane_poses,
 )
 
@@ -141,3 +143,20 @@ def test_mask_centre_is_the_mask_voxels_centroid_weighted_by_voxel_volume(stacks
         mask_centre(slices, torch.zeros(len(slices), dtype=torch.bool))
     with pytest.raises(ValueError, match=r"'keep' must have shape \(4,\)"):
         mask_centre(slices, torch.ones(3, dtype=torch.bool))
+
+
+def test_moved_from_stack_is_zero_for_a_rigid_stack_and_the_turn_of_a_slice_that_moved_alone():
+    stack = make_stack("a.nii.gz", (6, 6, 7), list(range(7)), (0, 0), 0, (6, 6), AFFINE_A)
+    slices = extract_slices([stack])
+    rigid = torch.eye(4, dtype=F64)
+    rigid[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.4, -0.3, 1.1]).as_matrix())
+    rigid[:3, 3] = torch.tensor([3.0, -2.0, 7.0], dtype=F64)
+    poses = rigid @ slices.poses.double()
+    assert moved_from_stack(slices.with_poses(poses, "canonical")).abs().max() < 1e-6
+    # One slice turns 12 degrees more (about its own centre): only it moved, by 12 degrees.
+    turn = torch.eye(4, dtype=F64)
+    turn[:3, :3] = torch.from_numpy(Rotation.from_euler("y", 12, degrees=True).as_matrix())
+    poses[3] = poses[3] @ turn
+    moved = moved_from_stack(slices.with_poses(poses, "canonical"))
+    assert moved[3].item() == pytest.approx(12.0, abs=1e-6)
+    assert torch.cat([moved[:3], moved[4:]]).abs().max() < 1e-6
