@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
 
 from torch import Tensor
 
@@ -13,10 +12,29 @@ from svr.image import Image
 from svr.reconstruction.convergence import RoundRecord
 from svr.reconstruction.slices import SliceSet
 
-if TYPE_CHECKING:
-    from svr.reconstruction.verdict import Verdict
+__all__ = ["ReconstructionResult", "Verdict", "relabelled"]
 
-__all__ = ["ReconstructionResult", "relabelled"]
+
+@dataclass(frozen=True)
+class Verdict:
+    """What :func:`svr.reconstruction.verdict.assess` found.
+
+    Attributes:
+        status: ``"ok"``, ``"warning"`` (something to look at) or ``"failed"`` (no usable volume).
+        frame: ``"scanner"``, or for a canonical output ``"trusted"``, ``"uncertain"`` or
+            ``"untrusted"``.
+        reasons: Why, one phrase each (empty for ``"ok"`` and a trusted or scanner frame).
+    """
+
+    status: str
+    frame: str
+    reasons: tuple[str, ...] = ()
+
+    def line(self) -> str:
+        """One line for a log, a QA page or a table, e.g. ``"failed: not converged; ..."``."""
+        frame = "scanner frame" if self.frame == "scanner" else f"canonical frame {self.frame}"
+        head = f"{self.status}, {frame}"
+        return head + (": " + "; ".join(self.reasons) if self.reasons else "")
 
 
 @dataclass(frozen=True)
@@ -53,7 +71,7 @@ class ReconstructionResult:
         midplane_tilt_deg: The tilt (degrees) by which a canonical output was levelled onto the
             brain's own mid-sagittal plane (:mod:`svr.reconstruction.midplane`), or ``None``.
         verdict: Whether the volume and its frame can be trusted
-            (:class:`~svr.reconstruction.verdict.Verdict`), ``None`` until assessed.
+            (:class:`Verdict`), ``None`` until assessed.
     """
 
     volume: Image

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from svr.reconstruction.result import ReconstructionResult
+from svr.reconstruction.result import ReconstructionResult, Verdict
 from svr.validation import check_fraction, check_number
 
 __all__ = ["Verdict", "VerdictConfig", "assess"]
@@ -63,28 +63,6 @@ class VerdictConfig:
         check_fraction(owner, "max_excluded", self.max_excluded)
         check_number(owner, "frame_margin", self.frame_margin, ge=0)
         check_number(owner, "atlas_margin", self.atlas_margin, ge=0)
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """What :func:`assess` found.
-
-    Attributes:
-        status: ``"ok"``, ``"warning"`` (something to look at) or ``"failed"`` (no usable volume).
-        frame: ``"scanner"``, or for a canonical output ``"trusted"``, ``"uncertain"`` or
-            ``"untrusted"``.
-        reasons: Why, one phrase each (empty for ``"ok"`` and a trusted or scanner frame).
-    """
-
-    status: str
-    frame: str
-    reasons: tuple[str, ...] = ()
-
-    def line(self) -> str:
-        """One line for a log, a QA page or a table, e.g. ``"failed: not converged; ..."``."""
-        frame = "scanner frame" if self.frame == "scanner" else f"canonical frame {self.frame}"
-        head = f"{self.status}, {frame}"
-        return head + (": " + "; ".join(self.reasons) if self.reasons else "")
 
 
 def _volume_reasons(result: ReconstructionResult, config: VerdictConfig) -> tuple[list[str], bool]:
