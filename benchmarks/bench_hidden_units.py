@@ -4,7 +4,7 @@ The stack-pose network's heads share one hidden layer (``StackPoseNet.fc``: 128 
 16, a ReLU). A unit that outputs zero for every input gets no gradient and never fires again; when
 all do, the network's outputs no longer depend on the block, and training stalls with the pose
 loss of the zero residual (about 0.25) and the score loss of the base rate (about 0.65). This
-simulates training blocks (``svr.models.stack_pose_train.simulate_batch``: the training stacks and
+simulates training blocks (``svr.models.stack_pose_batches.simulate_batch``: the training stacks and
 their starts, GA 26 of the atlas, real motion) and reports, per model, the share of hidden units
 that fire (output > 0) for at least one of them, and how much the outputs vary over the blocks.
 
@@ -31,7 +31,8 @@ MOTION = SHARED / "data" / "motion" / "svort_fetal_motion_trajectories.npz"
 def measure(model_path: str, volume, trajectories, batches: int) -> dict[str, float]:
     """The share of hidden units that fire, and the outputs' spread, over simulated blocks."""
     from svr.models.stack_pose import load_stack_pose_model
-    from svr.models.stack_pose_train import StackPoseTrainingConfig, simulate_batch
+    from svr.models.stack_pose_batches import simulate_batch
+    from svr.models.stack_pose_train import StackPoseTrainingConfig
 
     net = load_stack_pose_model(model_path)
     generator = torch.Generator().manual_seed(5)

@@ -63,6 +63,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import sys
 import time
 from collections.abc import Sequence
@@ -130,6 +131,19 @@ def spread_deg(slice_poses: torch.Tensor, stack, pose: torch.Tensor) -> float:
     """Median angle (degrees) between the stack poses implied by each slice and the stack pose."""
     return median_angle_deg(implied_stack_poses(slice_poses, stack), pose)
 
+
+METHODS = (
+    "axes+oracle",
+    "axes+atlas",
+    "axes+atlas+fit",
+    "learned",
+    "learned, no restarts",
+    "learned+atlas",
+    "learned+atlas+fit",
+    "learned+packets",
+    "learned+atlas slices",
+)
+"""Every estimate the bench can measure (``--methods``; all by default)."""
 
 CHOOSABLE = (
     "axes+atlas",
@@ -250,174 +264,176 @@ def summarise(rows: list[dict], method: str) -> dict:
     }
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", required=True, help="checkpoint or model folder")
-    parser.add_argument("--atlas", type=Path, default=ATLAS)
-    parser.add_argument("--motion", type=Path, default=MOTION)
-    parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
-    parser.add_argument("--ages", type=float, nargs="*", default=[24.0, 28.0, 32.0])
-    parser.add_argument("--phantom-ages", type=float, nargs="*", default=[28.0])
-    parser.add_argument("--bench", nargs="*", default=["sb24-large", "sb28-moderate"])
-    parser.add_argument("--cases-per-age", type=int, default=4)
-    parser.add_argument("--stacks-per-case", type=int, default=3)
-    parser.add_argument("--atlas-age-offset", type=float, default=1.0)
-    parser.add_argument("--iterations", type=int, default=3)
-    parser.add_argument("--k", type=int, nargs="*", default=[])
-    parser.add_argument("--k-start-deg", type=float, default=20.0)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--results", type=Path, default=None)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    model = load_stack_pose_model(args.model)
-    trajectories = load_trajectories(args.motion)
-    stacks = held_out_stacks(args, trajectories) + bench_stacks(args)
-    atlases: dict[tuple[Path, Path], CanonicalVolume] = {}
+def _progress_line(name: str, row: dict, methods: Sequence[str]) -> str:
+    """The line printed per stack: every estimate's error (the full line with every method)."""
+    if set(methods) != set(METHODS):
+        errors = "  ".join(f"{m} {row[m]['rot_deg']:6.1f}" for m in methods)
+        return f"{name:28s} {errors}  ({row.get('seconds', float('nan')):.2f} s)"
+    fitted = row["learned+atlas slices"]
+    return (
+        f"{name:28s} oracle {row['axes+oracle']['rot_deg']:6.1f}  atlas "
+        f"{row['axes+atlas']['rot_deg']:6.1f}  fit {row['axes+atlas+fit']['rot_deg']:6.1f} "
+        f"{row['axes+atlas+fit']['centre_mm']:5.1f} mm  "
+        f"learned {row['learned']['rot_deg']:6.1f} deg "
+        f"(no restarts {row['learned, no restarts']['rot_deg']:6.1f}) "
+        f"{row['learned']['centre_mm']:5.1f} mm  learned+atlas "
+        f"{row['learned+atlas']['rot_deg']:6.1f}  "
+        f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
+        f"learned+packets {row['learned+packets']['rot_deg']:6.1f}  "
+        f"learned+atlas slices {fitted['rot_deg']:6.1f} "
+        f"(NCC {fitted['ncc']:.2f}{', kept' if fitted['kept'] else ''})  "
+        f"({row['seconds']:.2f} s, classical {row['classical_seconds']:.2f} s)"
+    )
 
-    def atlas_for(age: float) -> CanonicalVolume:
-        paths = neighbour_atlas(age, args.atlas_age_offset, args.atlas)
-        if paths not in atlases:
-            atlases[paths] = load_canonical_volume(*paths)
-        return atlases[paths]
 
-    rows = []
-    for item in stacks:
-        image, mask, truth = item["image"], item["mask"], item["pose"]
-        frame_of = stack_frame(image)
-        row = {
-            "name": item["name"],
-            "group": item["group"],
-            "spread_deg": spread_deg(item["slice_poses"], image, truth),
+def _packet_rows(item: dict, packets, packet_of, learned_pose, frame_of) -> list[dict]:
+    """Each packet's errors against its own true pose (its slices' robust mean).
+
+    By its own estimate and by the stack's: where the fetus moved within the stack, a packet's
+    pose is defined where the stack's is not.
+    """
+    image = item["image"]
+    implied = implied_stack_poses(item["slice_poses"], image)
+    out = []
+    for p in range(int(packet_of.max()) + 1):
+        own = implied[packet_of == p]
+        packet_truth = stack_pose_from_slices(item["slice_poses"], image, packet_of == p)
+        out.append(
+            {
+                "rot_deg": rotation_deg(
+                    se3_compose(packets.to_canonical[p], frame_of), packet_truth
+                ),
+                "stack_rot_deg": rotation_deg(learned_pose, packet_truth),
+                "spread_deg": median_angle_deg(own, packet_truth),
+            }
+        )
+    return out
+
+
+def measure_stack(item: dict, model, args, atlas_for) -> dict:
+    """One stack's row: each estimate of ``args.methods`` against the truth (and timings)."""
+    methods = set(args.methods)
+    image, mask, truth = item["image"], item["mask"], item["pose"]
+    frame_of = stack_frame(image)
+    row = {
+        "name": item["name"],
+        "group": item["group"],
+        "spread_deg": spread_deg(item["slice_poses"], image, truth),
+    }
+
+    def record(method: str, frame: torch.Tensor) -> None:
+        if method not in methods:
+            return
+        pose = se3_compose(frame, frame_of)
+        row[method] = {
+            "rot_deg": rotation_deg(pose, truth),
+            "centre_mm": float((pose[:3, 3] - truth[:3, 3]).norm()),
         }
 
-        def record(
-            method: str,
-            frame: torch.Tensor,
-            row: dict = row,
-            frame_of: torch.Tensor = frame_of,
-            truth: torch.Tensor = truth,
-        ) -> None:
-            pose = se3_compose(frame, frame_of)
-            row[method] = {
-                "rot_deg": rotation_deg(pose, truth),
-                "centre_mm": float((pose[:3, 3] - truth[:3, 3]).norm()),
-            }
-
-        coarse, fractions = coarsen_stack(image, mask, model.config.in_plane_mm)
-        idx = torch.nonzero(fractions > 0.5).to(torch.float64)
-        starts = mask_axis_hypotheses(voxel_to_world(coarse.affine, idx))
-        errors = [rotation_deg(se3_compose(f, frame_of), truth) for f in starts]
-        record("axes+oracle", starts[int(np.argmin(errors))])
-        atlas = atlas_for(item["age"])
-        record(
-            "axes+atlas",
-            starts[int(torch.argmax(atlas_agreement(coarse, fractions, starts, atlas)))],
-        )
+    coarse, fractions = coarsen_stack(image, mask, model.config.in_plane_mm)
+    idx = torch.nonzero(fractions > 0.5).to(torch.float64)
+    starts = mask_axis_hypotheses(voxel_to_world(coarse.affine, idx))
+    errors = [rotation_deg(se3_compose(f, frame_of), truth) for f in starts]
+    record("axes+oracle", starts[int(np.argmin(errors))])
+    needs_atlas = {"axes+atlas", "axes+atlas+fit", "learned+atlas", "learned+atlas+fit"}
+    atlas = atlas_for(item["age"]) if methods & (needs_atlas | {"learned+atlas slices"}) else None
+    if "axes+atlas" in methods:
+        agreement = atlas_agreement(coarse, fractions, starts, atlas)
+        record("axes+atlas", starts[int(torch.argmax(agreement))])
+    if "axes+atlas+fit" in methods:
         began = time.perf_counter()
         classical = estimate_stack_pose(None, image, mask, atlas=atlas)
         row["classical_seconds"] = time.perf_counter() - began
-        record("axes+atlas+fit", classical.frame)
-        began = time.perf_counter()
-        estimate = estimate_stack_pose(model, image, mask, args.iterations)
-        row["seconds"] = time.perf_counter() - began
-        record("learned", estimate.frame)
-        learned_pose = se3_compose(estimate.frame, frame_of)
+        record("axes+atlas+fit", classical.to_canonical)
+    if not methods & {m for m in METHODS if m.startswith("learned")}:
+        return row
+    began = time.perf_counter()
+    estimate = estimate_stack_pose(model, image, mask, args.iterations, restart_deg=10.0)
+    row["seconds"] = time.perf_counter() - began
+    record("learned", estimate.to_canonical)
+    learned_pose = se3_compose(estimate.to_canonical, frame_of)
+    if "learned" in methods:
         row["learned"]["twin_deg"] = nearest_twin_deg(learned_pose, truth)
-        # Without the restarts the estimate is the best-scored refined hypothesis.
-        record("learned, no restarts", estimate.hypotheses[int(torch.argmax(estimate.scores))])
+    # Without the restarts the estimate is the best-scored refined hypothesis.
+    record("learned, no restarts", estimate.hypotheses[int(torch.argmax(estimate.scores))])
+    if "learned+packets" in methods:
         packet_of = packet_index(item["acquisition"])
-        packets = estimate_packet_poses(model, image, mask, estimate.frame, packet_of)
-        record("learned+packets", robust_mean_pose(packets.frames[packet_of]))
-        # Each packet against its own true pose (its slices' robust mean), by its own estimate
-        # and by the stack's: where the fetus moved within the stack, a packet's pose is defined
-        # where the stack's is not.
-        implied = implied_stack_poses(item["slice_poses"], image)
-        row["packets"] = []
-        for p in range(int(packet_of.max()) + 1):
-            own = implied[packet_of == p]
-            packet_truth = stack_pose_from_slices(item["slice_poses"], image, packet_of == p)
-            row["packets"].append(
-                {
-                    "rot_deg": rotation_deg(se3_compose(packets.frames[p], frame_of), packet_truth),
-                    "stack_rot_deg": rotation_deg(learned_pose, packet_truth),
-                    "spread_deg": median_angle_deg(own, packet_truth),
-                }
-            )
+        packets = estimate_packet_poses(model, image, mask, estimate.to_canonical, packet_of)
+        record("learned+packets", robust_mean_pose(packets.to_canonical[packet_of]))
+        row["packets"] = _packet_rows(item, packets, packet_of, learned_pose, frame_of)
+    if "learned+atlas" in methods:
         refined_agreement = atlas_agreement(coarse, fractions, estimate.hypotheses, atlas)
         record("learned+atlas", estimate.hypotheses[int(torch.argmax(refined_agreement))])
-        both = estimate_stack_pose(model, image, mask, args.iterations, atlas=atlas)
-        record("learned+atlas+fit", both.frame)
-        began = time.perf_counter()
-        fitted = fit_slices_to_atlas(image, mask, estimate.frame, atlas)
-        row["atlas_slices_seconds"] = time.perf_counter() - began
-        record("learned+atlas slices", fitted.frame)
-        row["learned+atlas slices"].update(ncc=fitted.ncc, kept=fitted.kept)
-        rows.append(row)
-        print(
-            f"{item['name']:28s} oracle {row['axes+oracle']['rot_deg']:6.1f}  atlas "
-            f"{row['axes+atlas']['rot_deg']:6.1f}  fit {row['axes+atlas+fit']['rot_deg']:6.1f} "
-            f"{row['axes+atlas+fit']['centre_mm']:5.1f} mm  "
-            f"learned {row['learned']['rot_deg']:6.1f} deg "
-            f"(no restarts {row['learned, no restarts']['rot_deg']:6.1f}) "
-            f"{row['learned']['centre_mm']:5.1f} mm  learned+atlas "
-            f"{row['learned+atlas']['rot_deg']:6.1f}  "
-            f"learned+atlas+fit {row['learned+atlas+fit']['rot_deg']:6.1f}  "
-            f"learned+packets {row['learned+packets']['rot_deg']:6.1f}  "
-            f"learned+atlas slices {row['learned+atlas slices']['rot_deg']:6.1f} "
-            f"(NCC {fitted.ncc:.2f}{', kept' if fitted.kept else ''})  "
-            f"({row['seconds']:.2f} s, classical {row['classical_seconds']:.2f} s)",
-            flush=True,
+    if "learned+atlas+fit" in methods:
+        both = estimate_stack_pose(
+            model, image, mask, args.iterations, atlas=atlas, restart_deg=10.0
         )
+        record("learned+atlas+fit", both.to_canonical)
+    if "learned+atlas slices" in methods:
+        began = time.perf_counter()
+        fitted = fit_slices_to_atlas(image, mask, estimate.to_canonical, atlas)
+        row["atlas_slices_seconds"] = time.perf_counter() - began
+        record("learned+atlas slices", fitted.to_canonical)
+        row["learned+atlas slices"].update(ncc=fitted.ncc, kept=fitted.kept)
+    return row
 
-    k_rows = []
-    if args.k:
-        gen = torch.Generator().manual_seed(args.seed)
-        for item in stacks:
-            if not item["group"].startswith("held-out"):
-                continue
-            image, fractions = coarsen_stack(item["image"], item["mask"], model.config.in_plane_mm)
-            count = image.shape[2]
-            frame_true = se3_compose(item["pose"], se3_inverse(stack_frame(item["image"])))
-            axis = torch.nn.functional.normalize(
-                torch.randn(3, generator=gen, dtype=torch.float64), dim=0
-            )
-            start = torch.eye(4, dtype=torch.float64)
-            start[:3, :3] = so3_exp(axis * math.radians(args.k_start_deg))
-            start[:3, 3] = (
-                torch.nn.functional.normalize(
-                    torch.randn(3, generator=gen, dtype=torch.float64), dim=0
-                )
-                * 5.0
-            )
-            start = se3_compose(start, frame_true)
-            subsets = {}
-            for k in args.k:
-                if k < count:
-                    present = torch.zeros(count, dtype=torch.bool)
-                    first = (count - k) // 2
-                    present[first : first + k] = True
-                    subsets[str(k)] = present
-            order = torch.argsort(item["acquisition"])
-            breaks = torch.nonzero(order[1:] < order[:-1]).flatten() + 1
-            packet = torch.zeros(count, dtype=torch.bool)
-            packet[order[: int(breaks[0]) if len(breaks) else count]] = True
-            subsets["packet"] = packet
-            subsets["all"] = torch.ones(count, dtype=torch.bool)
-            for label, present in subsets.items():
-                frames, _ = refine_transforms(
-                    model, image, fractions, start[None], args.iterations, present
-                )
-                pose = se3_compose(frames[0], stack_frame(item["image"]))
-                k_rows.append(
-                    {
-                        "k": label,
-                        "rot_deg": rotation_deg(pose, item["pose"]),
-                        "centre_mm": float((pose[:3, 3] - item["pose"][:3, 3]).norm()),
-                    }
-                )
 
-    methods = ["axes+oracle", *CHOOSABLE]
+def k_accuracy(stacks: list[dict], model, args) -> list[dict]:
+    """``--k``: accuracy of blocks of k neighbouring central slices, one packet and all slices.
+
+    Each is refined from the truth turned by ``--k-start-deg`` and shifted 5 mm, per held-out
+    stack.
+    """
+    k_rows: list[dict] = []
+    gen = torch.Generator().manual_seed(args.seed)
+    for item in stacks:
+        if not item["group"].startswith("held-out"):
+            continue
+        image, fractions = coarsen_stack(item["image"], item["mask"], model.config.in_plane_mm)
+        count = image.shape[2]
+        frame_true = se3_compose(item["pose"], se3_inverse(stack_frame(item["image"])))
+        axis = torch.nn.functional.normalize(
+            torch.randn(3, generator=gen, dtype=torch.float64), dim=0
+        )
+        start = torch.eye(4, dtype=torch.float64)
+        start[:3, :3] = so3_exp(axis * math.radians(args.k_start_deg))
+        start[:3, 3] = (
+            torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0)
+            * 5.0
+        )
+        start = se3_compose(start, frame_true)
+        subsets = {}
+        for k in args.k:
+            if k < count:
+                present = torch.zeros(count, dtype=torch.bool)
+                first = (count - k) // 2
+                present[first : first + k] = True
+                subsets[str(k)] = present
+        order = torch.argsort(item["acquisition"])
+        breaks = torch.nonzero(order[1:] < order[:-1]).flatten() + 1
+        packet = torch.zeros(count, dtype=torch.bool)
+        packet[order[: int(breaks[0]) if len(breaks) else count]] = True
+        subsets["packet"] = packet
+        subsets["all"] = torch.ones(count, dtype=torch.bool)
+        for label, present in subsets.items():
+            frames, _ = refine_transforms(
+                model, image, fractions, start[None], args.iterations, present
+            )
+            pose = se3_compose(frames[0], stack_frame(item["image"]))
+            k_rows.append(
+                {
+                    "k": label,
+                    "rot_deg": rotation_deg(pose, item["pose"]),
+                    "centre_mm": float((pose[:3, 3] - item["pose"][:3, 3]).norm()),
+                }
+            )
+    return k_rows
+
+
+def report(rows: list[dict], args) -> tuple[list[str], dict]:
+    """The results' lines (the table and the notes on what was measured) and the summary."""
+    methods = [m for m in ["axes+oracle", *CHOOSABLE] if m in args.methods]
+    choosable = [m for m in CHOOSABLE if m in args.methods]
     groups = sorted({r["group"] for r in rows})
     lines = [
         "| stacks | method | n | median (deg) | p90 (deg) | within 10 deg | within 30 deg "
@@ -446,6 +462,19 @@ def main() -> int:
             f"{int((spread > SPREAD_LIMIT_DEG).sum())} of {len(spread)} stacks above "
             f"{SPREAD_LIMIT_DEG:g} deg"
         )
+    if "learned" in args.methods:
+        lines += _misses(rows, groups)
+    if choosable:
+        lines += _best_of(rows, groups, choosable)
+    if "learned+packets" in args.methods:
+        lines += _packets(rows, groups)
+    lines += _times(rows, groups, args.threads)
+    return lines, summary
+
+
+def _misses(rows: list[dict], groups: list[str]) -> list[str]:
+    """The lines on the misses of ``learned``, per group."""
+    lines = []
     lines.append("")
     lines.append(
         "Misses of `learned` (over 10 deg): by 10-30 deg / more, how many of each in stacks whose "
@@ -464,20 +493,32 @@ def main() -> int:
             f"- {group}: {len(near) + len(gross)} of {len(members)}; {len(near)} by 10-30 deg "
             f"({moved[0]} spread), {len(gross)} more ({moved[1]} spread; twins {twins or '-'})"
         )
+    return lines
+
+
+def _best_of(rows: list[dict], groups: list[str], choosable: list[str]) -> list[str]:
+    """The lines on the best of the estimates per stack (chosen by the truth), per group."""
+    lines = []
     lines.append("")
     lines.append(
         "The best of the estimates per stack, chosen by the truth (the most that a rule choosing "
-        f"among {', '.join(f'`{m}`' for m in CHOOSABLE)} could place within 10 deg):"
+        f"among {', '.join(f'`{m}`' for m in choosable)} could place within 10 deg):"
     )
     lines.append("")
     for group in groups:
         members = [r for r in rows if r["group"] == group]
-        best = best_of_within(members, CHOOSABLE)
-        alone = best_of_within(members, ["learned"])
+        best = best_of_within(members, choosable)
+        alone = best_of_within(members, ["learned"]) if "learned" in choosable else "-"
         lines.append(
             f"- {group}: {100 * best / len(members):.1f} % ({best} of {len(members)}; "
             f"`learned` alone {alone})"
         )
+    return lines
+
+
+def _packets(rows: list[dict], groups: list[str]) -> list[str]:
+    """The lines on the interleaved packets, per group."""
+    lines = []
     lines.append("")
     lines.append(
         "Interleaved packets against their own true poses, each by its own estimate (the "
@@ -502,17 +543,31 @@ def main() -> int:
                     f"{100 * by_stack:.0f} % ({len(packets)})"
                 )
         lines.append(f"- {group}: " + "; ".join(parts))
-    seconds = np.array([r["seconds"] for r in rows])
-    classical = np.array([r["classical_seconds"] for r in rows])
-    slice_fit = np.array([r["atlas_slices_seconds"] for r in rows])
-    lines.append("")
-    lines.append(
-        f"Time per stack ({args.threads} threads): learned estimate median "
-        f"{np.median(seconds):.2f} s (max {seconds.max():.2f} s); axes + atlas choice + fit "
-        f"median {np.median(classical):.2f} s "
-        f"(max {classical.max():.2f} s); the slices' atlas fit after the learned estimate "
-        f"median {np.median(slice_fit):.2f} s (max {slice_fit.max():.2f} s)."
-    )
+    return lines
+
+
+def _times(rows: list[dict], groups: list[str], threads: int) -> list[str]:
+    """The lines on the time per stack and the slices' atlas fits kept (what was measured)."""
+
+    def median_max(key: str) -> str:
+        values = np.array([r[key] for r in rows])
+        return f"median {np.median(values):.2f} s (max {values.max():.2f} s)"
+
+    parts = []
+    if "seconds" in rows[0]:
+        parts.append(f"learned estimate {median_max('seconds')}")
+    if "classical_seconds" in rows[0]:
+        parts.append(f"axes + atlas choice + fit {median_max('classical_seconds')}")
+    if "atlas_slices_seconds" in rows[0]:
+        parts.append(
+            f"the slices' atlas fit after the learned estimate {median_max('atlas_slices_seconds')}"
+        )
+    lines = []
+    if parts:
+        lines.append("")
+        lines.append(f"Time per stack ({threads} threads): " + "; ".join(parts) + ".")
+    if "learned+atlas slices" not in rows[0]:
+        return lines
     lines.append("")
     lines.append(
         "`learned+atlas slices` kept the slices' atlas fit (their mean NCC with the atlas "
@@ -524,6 +579,57 @@ def main() -> int:
         )
         + "."
     )
+    return lines
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True, help="checkpoint or model folder")
+    parser.add_argument("--atlas", type=Path, default=ATLAS)
+    parser.add_argument("--motion", type=Path, default=MOTION)
+    parser.add_argument("--data", type=Path, default=SHARED / "data" / "bench")
+    parser.add_argument("--ages", type=float, nargs="*", default=[24.0, 28.0, 32.0])
+    parser.add_argument("--phantom-ages", type=float, nargs="*", default=[28.0])
+    parser.add_argument("--bench", nargs="*", default=["sb24-large", "sb28-moderate"])
+    parser.add_argument("--cases-per-age", type=int, default=4)
+    parser.add_argument("--stacks-per-case", type=int, default=3)
+    parser.add_argument("--atlas-age-offset", type=float, default=1.0)
+    parser.add_argument("--iterations", type=int, default=3)
+    parser.add_argument("--k", type=int, nargs="*", default=[])
+    parser.add_argument("--k-start-deg", type=float, default=20.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--results", type=Path, default=None)
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=METHODS,
+        default=list(METHODS),
+        metavar="METHOD",
+        help="the estimates to measure (default: all; e.g. 'learned' 'learned, no restarts' "
+        "for the model alone, seconds per stack)",
+    )
+    args = parser.parse_args()
+    args.methods = [m for m in METHODS if m in args.methods]
+    torch.set_num_threads(args.threads)
+    model = load_stack_pose_model(args.model)
+    trajectories = load_trajectories(args.motion)
+    stacks = held_out_stacks(args, trajectories) + bench_stacks(args)
+    atlases: dict[tuple[Path, Path], CanonicalVolume] = {}
+
+    def atlas_for(age: float) -> CanonicalVolume:
+        paths = neighbour_atlas(age, args.atlas_age_offset, args.atlas)
+        if paths not in atlases:
+            atlases[paths] = load_canonical_volume(*paths)
+        return atlases[paths]
+
+    rows = []
+    for item in stacks:
+        rows.append(measure_stack(item, model, args, atlas_for))
+        print(_progress_line(item["name"], rows[-1], args.methods), flush=True)
+
+    k_rows = k_accuracy(stacks, model, args) if args.k else []
+    lines, summary = report(rows, args)
     if k_rows:
         lines += [
             "",
@@ -548,7 +654,7 @@ def main() -> int:
     print(text)
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
-        command = "python benchmarks/bench_learned_stack_poses.py " + " ".join(sys.argv[1:])
+        command = "python benchmarks/bench_learned_stack_poses.py " + shlex.join(sys.argv[1:])
         args.results.write_text(
             f"# Learned stack poses\n\nCommand: `{command}`\n\nModel: `{args.model}`\n\n{text}\n",
             encoding="utf-8",

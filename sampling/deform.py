@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.nn import functional
 
 from svr.geometry import hat
-from svr.image import Image, voxel_to_world
+from svr.image import Image, sample_channels, voxel_centres, voxel_to_world, world_to_grid
 from svr.validation import is_finite_number, is_integer
 
 DEFAULT_CONTROL_POINTS = 5
@@ -102,3 +103,30 @@ def random_displacement(
     positions = control_point_positions(image, c).reshape(-1, 3)
     field = remove_rigid_part(raw.to(positions.device), positions)
     return field.T.reshape(3, c, c, c).contiguous()
+
+
+def warp_channels(
+    data: Tensor, affine: Tensor, displacement_mm: Tensor, mode: str = "bilinear"
+) -> Tensor:
+    """Channels on one grid deformed by a displacement field: ``J(x) = I(x + d(x))``.
+
+    Args:
+        data: (C, I, J, K) channels (floating point).
+        affine: (4, 4) voxel -> world affine of their grid.
+        displacement_mm: (3, c, c, c) world-frame displacements in mm on a control grid over the
+            voxel grid corner to corner (:func:`random_displacement` of an image on this grid).
+        mode: ``"bilinear"`` (trilinear) or ``"nearest"``.
+
+    Returns:
+        (C, I, J, K) deformed channels in ``data``'s dtype; 0 where ``x + d(x)`` leaves the grid.
+    """
+    grid = Image(data[0], affine)
+    field = functional.interpolate(
+        displacement_mm[None].to(torch.float64),
+        size=tuple(data.shape[1:]),
+        mode="trilinear",
+        align_corners=True,
+    )[0]
+    points = voxel_centres(grid) + field.movedim(0, -1).to(data.device)
+    to_grid = world_to_grid(grid).to(points.device)
+    return sample_channels(data, points @ to_grid[:, :3].T + to_grid[:, 3], mode)

@@ -8,6 +8,10 @@ its centre, as in the paper.
 Intensity rule: voxels outside the mask are set to 0 and the rest are divided by the
 ``percentile``-th percentile (default 99) of the intensities inside the mask, so that the brain's
 bright end is ~1 whatever the scanner's scale; values are not clipped.
+
+A volume may carry its tissue labels (an atlas folder's ``parcellation.nii.gz``,
+:data:`ATLAS_LABELS`), on its grid and 0 outside the mask: what label-map synthesis
+(:mod:`svr.sampling.synthesis`) draws new intensities from.
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ from torch import Tensor
 from svr.image import DEFAULT_PERCENTILE, Image, ImageError, load_nifti, voxel_to_world
 from svr.validation import is_integer
 
+ATLAS_LABELS = "parcellation.nii.gz"
+"""The tissue label map beside an atlas folder's ``srr.nii.gz`` (1 white matter, 2 ventricles,
+3 cerebellum, 4 extra-axial CSF, 5 cortical grey matter, 6 deep grey matter, 7 brainstem, 8
+corpus callosum in the Fidon 2021, CRL 2017 and Wu 2021 atlases as laid out here)."""
+
 
 @dataclass(frozen=True)
 class CanonicalVolume:
@@ -36,12 +45,15 @@ class CanonicalVolume:
         centre_mm: (3,) float64 mask centroid in the source volume's world frame (mm); the
             canonical frame is the source frame translated by ``-centre_mm``.
         intensity_scale: The percentile value the intensities were divided by.
+        labels: (I, J, K) int16 tissue labels on the same grid (0 outside the mask), or
+            ``None`` (no label map).
     """
 
     image: Image
     mask: Tensor
     centre_mm: Tensor
     intensity_scale: float
+    labels: Tensor | None = None
 
     @property
     def source_affine(self) -> Tensor:
@@ -57,6 +69,7 @@ class CanonicalVolume:
             self.mask.to(device),
             self.centre_mm.to(device),
             self.intensity_scale,
+            None if self.labels is None else self.labels.to(device),
         )
 
 
@@ -95,8 +108,30 @@ def as_atlases(
     return atlases
 
 
+def _label_map(labels: Image, volume: Image, brain: Tensor, name: str) -> Tensor:
+    """``labels`` as int16 on ``volume``'s grid, 0 outside ``brain``; ValueError naming ``name``."""
+    if labels.shape != volume.shape or not torch.allclose(
+        labels.affine.to(volume.affine), volume.affine, atol=1e-4, rtol=0
+    ):
+        raise ValueError(
+            f"{name}: labels and volume grids differ (shapes {labels.shape} and "
+            f"{volume.shape}, or their affines)"
+        )
+    values = labels.data.to(torch.float64)
+    rounded = values.round()
+    if not bool(torch.isfinite(values).all()) or not torch.allclose(values, rounded, atol=1e-3):
+        raise ValueError(f"{name}: the labels are not integers")
+    if bool((rounded < 0).any()) or bool((rounded > torch.iinfo(torch.int16).max).any()):
+        raise ValueError(f"{name}: the labels must be in [0, 32767]")
+    return torch.where(brain, rounded, torch.zeros_like(rounded)).to(torch.int16)
+
+
 def canonicalize(
-    volume: Image, mask: Image, percentile: float = DEFAULT_PERCENTILE, name: str = "volume"
+    volume: Image,
+    mask: Image,
+    percentile: float = DEFAULT_PERCENTILE,
+    name: str = "volume",
+    labels: Image | None = None,
 ) -> CanonicalVolume:
     """Mask, centre and normalise a volume.
 
@@ -105,13 +140,15 @@ def canonicalize(
         mask: Brain mask on the same grid (voxels > 0.5 are brain).
         percentile: In-mask intensity percentile mapped to 1, in (0, 100].
         name: How to name the inputs in error messages (e.g. the file names).
+        labels: Tissue labels on the same grid (integers >= 0), kept as the volume's
+            ``labels`` (0 outside the mask); ``None`` for none.
 
     Returns:
         The canonical volume, float32, on the inputs' device.
 
     Raises:
-        ValueError: For grid mismatch, an empty mask, non-finite voxels, a bad percentile or a
-            mask whose intensities are all zero.
+        ValueError: For grid mismatch, an empty mask, non-finite voxels, a bad percentile, a
+            mask whose intensities are all zero, or labels that are not integers in [0, 32767].
     """
     if not 0 < percentile <= 100:
         raise ValueError(f"canonicalize(): 'percentile' must be in (0, 100], got {percentile}")
@@ -139,33 +176,53 @@ def canonicalize(
     canonical_affine = affine.clone()
     canonical_affine[:3, 3] -= centre
     data = torch.where(brain, volume.data / scale, torch.zeros_like(volume.data)).float()
-    return CanonicalVolume(Image(data, canonical_affine), brain, centre, scale)
+    tissue = None if labels is None else _label_map(labels, volume, brain, name)
+    return CanonicalVolume(Image(data, canonical_affine), brain, centre, scale, tissue)
 
 
 def load_canonical_volume(
     volume_path: str | os.PathLike[str],
     mask_path: str | os.PathLike[str],
     percentile: float = DEFAULT_PERCENTILE,
+    labels_path: str | os.PathLike[str] | None = None,
 ) -> CanonicalVolume:
-    """Load a NIfTI brain volume and its mask into canonical space.
+    """Load a NIfTI brain volume and its mask (and tissue labels) into canonical space.
 
     Args:
         volume_path: The intensity volume (e.g. an atlas ``srr.nii.gz``).
         mask_path: Its brain mask (same grid).
         percentile: In-mask intensity percentile mapped to 1.
+        labels_path: Its tissue label map (same grid; e.g. :func:`atlas_labels_path`), or
+            ``None`` for a volume without labels.
 
     Returns:
         The canonical volume (CPU, float32).
 
     Raises:
         ImageError: Naming the file and the problem (missing, unreadable, not 3D, NaN/Inf, grid
-            mismatch, empty mask).
+            mismatch, empty mask, labels that are not integers).
     """
     volume, mask = load_nifti(volume_path), load_nifti(mask_path)
+    labels = None if labels_path is None else load_nifti(labels_path)
+    name = f"{volume_path} (mask {mask_path}" + (
+        ")" if labels_path is None else f", labels {labels_path})"
+    )
     try:
-        return canonicalize(volume, mask, percentile, name=f"{volume_path} (mask {mask_path})")
+        return canonicalize(volume, mask, percentile, name=name, labels=labels)
     except ValueError as err:
         raise ImageError(str(err)) from err
+
+
+def atlas_labels_path(volume_path: str | os.PathLike[str]) -> Path:
+    """The tissue label map of an atlas folder's volume: :data:`ATLAS_LABELS` beside it.
+
+    Raises:
+        VolumeSourceError: If the file does not exist.
+    """
+    path = Path(volume_path).parent / ATLAS_LABELS
+    if not path.exists():
+        raise VolumeSourceError(f"{path} is missing (the tissue labels)")
+    return path
 
 
 class VolumeSourceError(ValueError):
@@ -278,6 +335,7 @@ def load_volumes(
     pairs: Sequence[tuple[str | os.PathLike[str], str | os.PathLike[str]]] = (),
     phantom_ages: Sequence[float] = (28.0,),
     percentile: float = DEFAULT_PERCENTILE,
+    labels: bool = False,
 ) -> tuple[list[CanonicalVolume], list[str]]:
     """Canonical volumes from ``(volume, mask)`` NIfTI pairs, else the built-in phantom.
 
@@ -286,6 +344,8 @@ def load_volumes(
             procedural phantom per age in ``phantom_ages`` (:mod:`svr.sampling.phantom`).
         phantom_ages: Gestational ages (weeks) of the phantoms, used only without ``pairs``.
         percentile: In-mask intensity percentile mapped to 1.
+        labels: Also load each pair's tissue labels (:func:`atlas_labels_path`: atlas folders
+            only); the phantoms have none.
 
     Returns:
         The volumes (CPU, float32) and a name for each: the volume's path, or ``"phantom GA
@@ -293,9 +353,13 @@ def load_volumes(
 
     Raises:
         ImageError: For an unusable file (the message names it).
+        VolumeSourceError: If ``labels`` and a pair's label map is missing.
     """
     if pairs:
-        volumes = [load_canonical_volume(v, m, percentile) for v, m in pairs]
+        volumes = [
+            load_canonical_volume(v, m, percentile, atlas_labels_path(v) if labels else None)
+            for v, m in pairs
+        ]
         return volumes, [str(v) for v, _ in pairs]
     from svr.sampling.phantom import gestational_age_config, make_phantom
 
@@ -310,8 +374,9 @@ def downsample_volume(volume: CanonicalVolume, factor: int) -> CanonicalVolume:
     """Average a canonical volume over ``factor``-cubed voxel blocks (a coarser copy, same frame).
 
     The canonical frame is kept: the new voxel centres are the means of the blocks' centres, so
-    world positions are unchanged. The mask is the blocks' majority. Meant for simulating coarse
-    training data quickly (sampling a volume 8 times smaller is about 8 times faster).
+    world positions are unchanged. The mask is the blocks' majority; a block inside it takes the
+    most frequent of its non-zero labels. Meant for simulating coarse training data quickly
+    (sampling a volume 8 times smaller is about 8 times faster).
 
     Args:
         volume: The volume.
@@ -331,9 +396,32 @@ def downsample_volume(volume: CanonicalVolume, factor: int) -> CanonicalVolume:
     affine = volume.image.affine.to(torch.float64).clone()
     affine[:3, 3] += (factor - 1) / 2 * affine[:3, :3].sum(1)
     affine[:3, :3] *= factor
+    mask = pooled[1] > 0.5
+    labels = None if volume.labels is None else _majority_labels(volume.labels, mask, factor)
     return CanonicalVolume(
         Image(pooled[0].contiguous(), affine),
-        pooled[1] > 0.5,
+        mask,
         volume.centre_mm,
         volume.intensity_scale,
+        labels,
     )
+
+
+def _majority_labels(labels: Tensor, mask: Tensor, factor: int) -> Tensor:
+    """The most frequent non-zero label of each ``factor``-cubed block (0 outside ``mask``)."""
+    best = torch.zeros(mask.shape, dtype=torch.float32)
+    out = torch.zeros(mask.shape, dtype=labels.dtype)
+    for value in torch.unique(labels).tolist():
+        if value == 0:
+            continue
+        share = torch.nn.functional.avg_pool3d(
+            (labels == value).float()[None, None],
+            factor,
+            stride=factor,
+            ceil_mode=True,
+            count_include_pad=False,
+        )[0, 0]
+        more = share > best
+        best = torch.where(more, share, best)
+        out = torch.where(more, torch.tensor(value, dtype=labels.dtype), out)
+    return torch.where(mask, out, torch.zeros_like(out))

@@ -20,6 +20,7 @@ LIGHT_MODULES = (
     "sample",
     "segment_stack",
     "simulate",
+    "stack_pose_brains",
     "train",
     "train_brain_mask",
     "train_stack_pose",
@@ -74,8 +75,10 @@ def test_the_help_defaults_are_the_library_defaults():
     from svr.models.stack_pose_train import StackPoseTrainingConfig
     from svr.sampling.mirror_planes import SYMMETRY_MODES, SYMMETRY_THRESHOLD
     from svr.sampling.simulate import SimulationConfig
+    from svr.sampling.synthesis import SYNTHESIS_MODES
 
     assert tuple(SE3_ROTATIONS) == defaults.SE3_ROTATIONS
+    assert tuple(SYNTHESIS_MODES) == defaults.SYNTHESIS_MODES
     assert tuple(SYMMETRY_MODES) == defaults.SYMMETRY_MODES
     assert defaults.SYMMETRY_THRESHOLD == SYMMETRY_THRESHOLD
     for literal, config in (

@@ -23,14 +23,9 @@ from svr.models.stack_pose import (
     StackPoseOutput,
     load_stack_pose_model,
 )
-from svr.models.stack_pose_train import (
-    StackPoseTrainingConfig,
-    draw_samples,
-    simulate_batch,
-    stack_pose_loss,
-    step_seed,
-    train_stack_pose,
-)
+from svr.models.stack_pose_batches import draw_samples, simulate_batch, step_seed
+from svr.models.stack_pose_loss import stack_pose_loss
+from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
 from svr.reconstruction.initialisation.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
@@ -375,7 +370,7 @@ def test_a_tiny_model_learns_and_resumes(tmp_path) -> None:
 def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_path) -> None:
     """--workers N: the step's seed fixes its stacks, so N = 1 and N = 2 agree, and a run stopped
     after one step and resumed ends as the run straight through; N = 0 is the single stream."""
-    from svr.models.stack_pose_train import _StepBatches
+    from svr.models.stack_pose_batches import StepBatches
 
     model_config, training = _tiny_training()
     training = dataclasses.replace(training, steps=3, checkpoint_every=3)
@@ -393,7 +388,7 @@ def test_worker_processes_train_the_same_network_for_any_count_and_resume(tmp_pa
     assert not same(run(0), one)
     # Each step's batch is the in-process simulation from the step's seed.
     phases = (([volume], None), ([volume], None))
-    dataset = _StepBatches(phases, training.steps, None, model_config, training)
+    dataset = StepBatches(phases, training.steps, None, model_config, training)
     for step in (0, 2):
         generator = torch.Generator().manual_seed(step_seed(training.seed, step))
         expected = simulate_batch([volume], None, model_config, training, generator)
@@ -887,7 +882,7 @@ def test_the_shipped_model_loads_and_estimates() -> None:
 
 
 def test_training_phantoms_never_use_the_benchmarks_phantom() -> None:
-    from svr.cli.train_stack_pose import phantom_sources
+    from svr.cli.stack_pose_brains import phantom_sources
 
     assert phantom_sources(0) == []
     for count in (1, 2, 5):
@@ -965,6 +960,7 @@ def test_the_learning_rate_restarts_for_the_second_phase() -> None:
 
 
 def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> None:
+    import svr.models.stack_pose_batches as batches
     import svr.models.stack_pose_train as module
 
     model_config, training = _tiny_training()
@@ -993,6 +989,7 @@ def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> Non
         return schedule(optimiser, steps, **kwargs)
 
     monkeypatch.setattr(module, "simulate_batch", counting)
+    monkeypatch.setattr(batches, "simulate_batch", counting)
     monkeypatch.setattr(module, "cosine_schedule", recording)
     train_stack_pose([volume], None, model_config, training, fine_tune_volumes=[phantom])
     assert seen == [1, 1, 1, 2, 2]
@@ -1004,14 +1001,14 @@ def test_the_fine_tune_brains_join_for_the_second_phase_only(monkeypatch) -> Non
     assert seen == [2] * 5 and restarts[-1][1]["restart_at"] is None
     # Worker processes see the same phases.
     phases = (([volume], None), ([volume, phantom], None))
-    dataset = module._StepBatches(phases, 3, None, model_config, training)
+    dataset = batches.StepBatches(phases, 3, None, model_config, training)
     seen.clear()
     dataset[2], dataset[3]
     assert seen == [1, 2]
 
 
 def test_brains_are_drawn_by_their_weights(monkeypatch) -> None:
-    import svr.models.stack_pose_train as module
+    import svr.models.stack_pose_batches as module
 
     model_config, training = _tiny_training()
     volumes = [_volume(), _volume()]
@@ -1204,9 +1201,9 @@ def test_a_second_phase_run_as_a_new_run_is_the_two_command_recipe(tmp_path) -> 
     )
     assert same(one, values(two))
     # Worker processes: the second phase's steps are seeded as the second run's 0, 1, ...
-    from svr.models.stack_pose_train import _StepBatches
+    from svr.models.stack_pose_batches import StepBatches
 
-    dataset = _StepBatches(
+    dataset = StepBatches(
         (([volume], None), ([volume, phantom], None)), 3, None, model_config, one_run
     )
     for step, seed, index, brains in ((1, 0, 1, [volume]), (4, 7, 1, [volume, phantom])):
@@ -1232,3 +1229,126 @@ def test_a_second_phase_run_as_a_new_run_is_the_two_command_recipe(tmp_path) -> 
     assert same(values(resumed), one)
     with pytest.raises(ValueError, match="'fine_tune_seed'"):
         StackPoseTrainingConfig(fine_tune_seed=1.5)  # type: ignore[arg-type]
+
+
+def _labelled_volume(semi_axes=(30.0, 40.0, 24.0)):
+    """The test brain with three nested tissue labels (for synthesis)."""
+    image, mask = ellipsoid_brain(48, 2.0, semi_axes, seed=1, origin_mm=(-47.0, -47.0, -47.0))
+    grid = (torch.from_numpy(np.indices((48, 48, 48))).double() - 23.5) * 2.0
+    radius = sum((g / a) ** 2 for g, a in zip(grid, semi_axes, strict=True)).sqrt()
+    labels = 1.0 + (radius > 0.5).double() + (radius > 0.8).double()
+    from svr.image import Image
+
+    return canonicalize(image, mask, labels=Image(labels.float(), image.affine))
+
+
+def test_synthetic_brains_train_deterministically_and_resume(tmp_path) -> None:
+    """With synthesis a share of the stacks comes from synthetic copies of the labelled brains:
+    the run is a function of its seed, resumes exactly and differs from the run without."""
+    from svr.models.stack_pose_batches import training_brain
+    from svr.sampling.synthesis import SynthesisConfig
+
+    model_config, training = _tiny_training()
+    plain = dataclasses.replace(training, steps=3, checkpoint_every=3)
+    synthetic = dataclasses.replace(
+        plain, synthesis=SynthesisConfig(mode="labels"), synthesis_fraction=1.0
+    )
+    volume = _labelled_volume()
+
+    def values(config, **kwargs) -> list[torch.Tensor]:
+        net = train_stack_pose([volume], None, model_config, config, **kwargs)
+        return list(net.state_dict().values())
+
+    def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+        return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+    one = values(synthetic)
+    assert same(values(synthetic), one)
+    assert not same(values(plain), one)
+    # Without synthesis nothing more is drawn: the labels change nothing.
+    unlabelled = dataclasses.replace(volume, labels=None)
+    assert same(
+        list(train_stack_pose([unlabelled], None, model_config, plain).state_dict().values()),
+        values(plain),
+    )
+    # Stopped after the first step and resumed: the run straight through.
+    resumable = dataclasses.replace(synthetic, checkpoint_every=1)
+    values(resumable, folder=tmp_path / "run", time_limit_s=0.0)
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["step_000000001"]
+    assert same(values(resumable, folder=tmp_path / "run"), one)
+    # Which brain a stack comes from: a synthetic copy (same mask and labels, another image),
+    # the brain itself without labels or without synthesis (and then nothing is drawn).
+    generator = torch.Generator().manual_seed(3)
+    copy = training_brain(volume, synthetic, generator)
+    assert copy is not volume and copy.mask is volume.mask and copy.labels is volume.labels
+    assert not torch.equal(copy.image.data, volume.image.data)
+    assert training_brain(unlabelled, synthetic, generator) is unlabelled
+    state = generator.get_state()
+    assert training_brain(volume, plain, generator) is volume
+    assert torch.equal(generator.get_state(), state)
+    none = dataclasses.replace(synthetic, synthesis_fraction=0.0)
+    assert training_brain(volume, none, generator) is volume
+    for name, value in (("synthesis", "labels"), ("synthesis_fraction", 1.5)):
+        with pytest.raises(ValueError, match=f"'{name}'"):
+            StackPoseTrainingConfig(**{name: value})
+
+
+def test_the_training_command_takes_several_atlas_folders_and_synthesis(tmp_path, capsys) -> None:
+    from svr.cli import main
+    from svr.image import Image, load_nifti, save_nifti
+    from svr.models.checkpoint import latest_checkpoint, load_checkpoint
+    from svr.models.stack_pose import load_stack_pose_model
+    from svr.sampling.synthesis import SynthesisConfig
+    from svr.sampling.volume import load_canonical_volume
+
+    first = _one_age_atlas(tmp_path)
+    second = tmp_path / "other" / "GA31"
+    shutil.copytree(first, second)
+    shutil.copytree(first, tmp_path / "other" / "GA24")
+    command = [
+        "train-stack-pose", "--atlas-dir", str(tmp_path / "atlas"), str(tmp_path / "other"),
+        "--hold-out", "24", "--output-dir", str(tmp_path / "run"), "--steps", "2",
+        "--fine-tune-steps", "0", "--width", "4", "--phantoms", "0", "--volume-downsample", "1",
+        "--quiet", "--synthesis", "labels", "--synthesis-fraction", "1",
+    ]  # fmt: skip
+    # Without the tissue labels: one line naming the missing file.
+    assert main(command) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--synthesis:" in err and "parcellation.nii.gz" in err
+    for folder in (first, second, tmp_path / "other" / "GA24"):
+        mask = load_nifti(folder / "mask.nii.gz")
+        labels = Image((mask.data > 0.5).float() * 2, mask.affine)
+        save_nifti(labels, folder / "parcellation.nii.gz")
+    assert main(command) == 0
+    config = load_checkpoint(latest_checkpoint(tmp_path / "run")).config
+    assert config["data"]["atlas_dirs"] == [str(tmp_path / "atlas"), str(tmp_path / "other")]
+    assert config["data"]["volumes"] == [str(first / "srr.nii.gz"), str(second / "srr.nii.gz")]
+    assert config["data"]["synthesis"] == "labels"
+    assert config["train"]["synthesis"]["mode"] == "labels"
+    assert config["train"]["synthesis_fraction"] == 1.0
+    # The command trains what the library does on both folders' brains (GA 24 held out).
+    brains = [
+        load_canonical_volume(
+            f / "srr.nii.gz", f / "mask.nii.gz", labels_path=f / "parcellation.nii.gz"
+        )
+        for f in (first, second)
+    ]
+    training = StackPoseTrainingConfig(
+        steps=2,
+        fine_tune_steps=0,
+        synthesis=SynthesisConfig(mode="labels"),
+        synthesis_fraction=1.0,
+    )
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        library = train_stack_pose(brains, None, StackPoseConfig(width=4), training)
+    finally:
+        torch.set_num_threads(threads)
+    trained = load_stack_pose_model(tmp_path / "run").state_dict().values()
+    for a, b in zip(trained, library.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    code = main([*command[:-4], "--synthesis", "labels", "--synthesis-fraction", "2",
+                 "--output-dir", str(tmp_path / "bad")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1 and "--synthesis-fraction" in err

@@ -47,8 +47,12 @@ STACK_POSE_TRAINING: dict[str, Any] = {
     "fine_tune_learning_rate": 3e-4,
     "fine_tune_seed": 2,
     "checkpoint_every": 250,
+    "synthesis_fraction": 0.5,
 }
 """Defaults of :class:`svr.models.stack_pose_train.StackPoseTrainingConfig` fields."""
+
+SYNTHESIS_MODES: tuple[str, ...] = ("labels", "mixed")
+"""``--synthesis`` choices besides ``none`` (:data:`svr.sampling.synthesis.SYNTHESIS_MODES`)."""
 
 BRAIN_MASK_TRAINING: dict[str, Any] = {"cases": 100, "steps": 4000, "intensity_curves": 0.0}
 """Defaults of :class:`svr.masking.train.BrainMaskTrainingConfig` fields."""

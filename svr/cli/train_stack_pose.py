@@ -7,8 +7,6 @@ import logging
 import shlex
 import sys
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from svr.cli.common import (
@@ -24,13 +22,13 @@ from svr.cli.common import (
     registered_loss,
     resolve_device,
 )
-from svr.cli.defaults import STACK_POSE_MODEL, STACK_POSE_TRAINING
+from svr.cli.defaults import STACK_POSE_MODEL, STACK_POSE_TRAINING, SYNTHESIS_MODES
 
 if TYPE_CHECKING:
     from torch import Tensor
 
+    from svr.cli.stack_pose_brains import TrainingBrains
     from svr.models.stack_pose import StackPoseConfig
-    from svr.sampling.volume import CanonicalVolume
 
 DESCRIPTION = """\
 Train the stack-pose network (svr.models.stack_pose): each step simulates stacks from the
@@ -48,13 +46,19 @@ about the number of free cores). --fine-tune-seed runs the second phase as a sep
 fine-tuning run of the first phase's weights would be: the shipped model's two runs as one
 command (see docs/training.md).
 --anatomy-variants adds label-edited variants of each atlas brain (smaller ventricles, a larger
-cerebellum, re-drawn contrast) for scans of fetuses unlike the spina bifida atlas's. Use the
+cerebellum, re-drawn contrast) for scans of fetuses unlike the spina bifida atlas's.
+--synthesis labels (or mixed) simulates a share of the stacks (--synthesis-fraction) from a
+synthetic copy of their brain: its tissue labels (parcellation.nii.gz) painted with a random
+contrast, texture, bias field, blur and noise (or, mixed, its own image remapped per label), so
+that the network learns the brain's shape rather than one atlas family's contrast. Use the
 result with `svr reconstruct --registration cnn --model OUTPUT_DIR`, and check its output frame
 on a real scan before trusting it.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
-srr.nii.gz and mask.nii.gz) or any folder laid out alike. Motion: the fetal head-motion
-trajectories that SVoRT published (svort_fetal_motion_trajectories.npz).
+srr.nii.gz and mask.nii.gz) or any folder laid out alike; give several folders to --atlas-dir to
+train on several atlas families at once (their volumes must be aligned in one canonical frame;
+--hold-out leaves those ages out of each). Motion: the fetal head-motion trajectories that SVoRT
+published (svort_fetal_motion_trajectories.npz).
 
 --loss picks the pose output and its loss (the SE(3) geodesic loss, or the PoseNet, Anchor
 Points and 6D baselines, for comparisons). --init-from starts a new run from trained weights
@@ -64,6 +68,8 @@ the checkpoint's.
 examples:
   svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
       --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose
+  svr train-stack-pose --atlas-dir atlas/ crl/ --hold-out 24 28 32 --synthesis labels \\
+      --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose-synth
   svr train-stack-pose --atlas-dir atlas/ --hold-out 24 28 32 \\
       --motion-path svort_fetal_motion_trajectories.npz --output-dir runs/stack-pose-ft \\
       --init-from runs/stack-pose --steps 10000 --fine-tune-steps 0 --learning-rate 3e-4 \\
@@ -92,14 +98,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def _add_brain_options(p: argparse.ArgumentParser) -> None:
     """The training brains: atlas ages, phantoms, anatomy variants, motion."""
     p.add_argument(
-        "--atlas-dir", required=True, help="folder of GA*/srr.nii.gz + GA*/mask.nii.gz volumes"
+        "--atlas-dir",
+        required=True,
+        nargs="+",
+        metavar="DIR",
+        help="folder(s) of GA*/srr.nii.gz + GA*/mask.nii.gz volumes (several: atlas families "
+        "aligned in one canonical frame)",
     )
     p.add_argument(
         "--hold-out",
         type=float,
         nargs="*",
         default=[],
-        help="gestational ages (weeks) to leave out",
+        help="gestational ages (weeks) to leave out (of every --atlas-dir)",
     )
     p.add_argument(
         "--motion-path",
@@ -144,6 +155,22 @@ def _add_brain_options(p: argparse.ArgumentParser) -> None:
         default=1.0,
         help="how often each phantom is drawn for a training stack, relative to an atlas brain "
         "(default: %(default)s, every brain alike)",
+    )
+    p.add_argument(
+        "--synthesis",
+        choices=("none", *SYNTHESIS_MODES),
+        default="none",
+        help="synthetic copies of the atlas brains (svr.sampling.synthesis; needs each GA "
+        "folder's parcellation.nii.gz): labels (the tissue labels painted with a random "
+        "contrast, texture, bias, blur and noise) or mixed (the brain's own image remapped by a "
+        "random curve per label); none for the atlas images only",
+    )
+    p.add_argument(
+        "--synthesis-fraction",
+        type=float,
+        default=STACK_POSE_TRAINING["synthesis_fraction"],
+        help="with --synthesis, the chance that a training stack's atlas brain is a synthetic "
+        "copy (the phantoms never are)",
     )
     p.add_argument(
         "--volume-downsample",
@@ -265,124 +292,10 @@ _OPTIONS = {
     "fine_tune_seed": "--fine-tune-seed",
     "checkpoint_every": "--checkpoint-every",
     "seed": "--seed",
+    "synthesis_fraction": "--synthesis-fraction",
 }
 """The option behind each StackPoseConfig and StackPoseTrainingConfig field it sets
 (:func:`~svr.cli.common.option_errors`)."""
-
-
-def phantom_sources(count: int) -> list[tuple[float, int]]:
-    """The (gestational age in weeks, seed) of ``--phantoms``' training phantoms.
-
-    Seeds 1..count (seed 0 is the benchmarks' test phantom); ages spread evenly over 22-36 weeks.
-
-    Args:
-        count: How many, >= 0.
-
-    Returns:
-        ``count`` pairs.
-    """
-    if count == 1:
-        return [(29.0, 1)]
-    return [(22.0 + 14.0 * i / (count - 1), i + 1) for i in range(count)]
-
-
-def _anatomy_variants(
-    pairs: list[tuple[Path, Path]], count: int, downsample: int
-) -> list[CanonicalVolume]:
-    """``count`` label-edited variants of each (volume, mask) atlas pair, canonical and coarsened.
-
-    Variant ``n`` of the ``i``-th pair has seed ``1000 i + n``. Raises :class:`CliError` naming
-    a missing or unusable ``parcellation.nii.gz``.
-    """
-    from svr.image import Image, load_nifti
-    from svr.sampling.anatomy import anatomy_variant
-    from svr.sampling.volume import canonicalize, downsample_volume
-
-    variants = []
-    for index, (volume_path, mask_path) in enumerate(pairs):
-        labels_path = volume_path.parent / "parcellation.nii.gz"
-        if not labels_path.exists():
-            raise CliError(f"--anatomy-variants: {labels_path} is missing (the tissue labels)")
-        source, labels = load_nifti(volume_path), load_nifti(labels_path).data.round()
-        brain = load_nifti(mask_path).data > 0.5
-        for number in range(count):
-            try:
-                image = anatomy_variant(source, brain, labels, seed=index * 1000 + number)
-            except ValueError as err:
-                raise CliError(f"--anatomy-variants: {labels_path}: {err}") from err
-            mask = Image(brain.float(), source.affine)
-            variants.append(
-                downsample_volume(canonicalize(image, mask, name=str(volume_path)), downsample)
-            )
-    return variants
-
-
-@dataclass
-class _TrainingBrains:
-    """The brains the command trains on, as :func:`train_stack_pose` takes them.
-
-    Attributes:
-        pairs: The training atlas ages' (volume, mask) files.
-        first: The brains of every step (atlas ages, and variants with --variants-phase all).
-        second: The brains that join for the second phase (variants with --variants-phase
-            second, then the phantoms).
-        first_weights: A draw weight per brain of ``first``.
-        second_weights: A draw weight per brain of ``second``.
-        phantoms: The phantoms' (weeks, seed).
-        alike: Whether every brain is drawn alike (no weights given).
-    """
-
-    pairs: list[tuple[Path, Path]]
-    first: list[CanonicalVolume]
-    second: list[CanonicalVolume]
-    first_weights: list[float]
-    second_weights: list[float]
-    phantoms: list[tuple[float, int]]
-    alike: bool
-
-
-def _training_brains(args: argparse.Namespace) -> _TrainingBrains:
-    """Load the atlas ages, make the anatomy variants and phantoms, and weigh them."""
-    from svr.sampling.phantom import gestational_age_config, make_phantom
-    from svr.sampling.volume import (
-        VolumeSourceError,
-        atlas_volume_paths,
-        canonicalize,
-        downsample_volume,
-        load_canonical_volume,
-    )
-
-    try:
-        pairs = atlas_volume_paths(args.atlas_dir, hold_out=args.hold_out)
-    except VolumeSourceError as err:
-        raise CliError(f"--atlas-dir: {err}") from err
-    volumes = [
-        downsample_volume(load_canonical_volume(v, m), args.volume_downsample) for v, m in pairs
-    ]
-    variants = (
-        _anatomy_variants(pairs, args.anatomy_variants, args.volume_downsample)
-        if args.anatomy_variants
-        else []
-    )
-    if args.variants_phase == "all":
-        volumes += variants
-    phantoms = phantom_sources(args.phantoms)
-    # The second phase's brains (every step's with --fine-tune-steps 0): the phantoms, and the
-    # variants where --variants-phase second.
-    second_phase = list(variants) if args.variants_phase == "second" else []
-    volume_weights = [1.0] * len(volumes)
-    if args.variants_phase == "all":
-        volume_weights[len(volumes) - len(variants) :] = [args.variants_weight] * len(variants)
-    second_weights = [args.variants_weight] * len(second_phase) + [args.phantoms_weight] * len(
-        phantoms
-    )
-    for age, seed in phantoms:
-        image, mask = make_phantom(gestational_age_config(age, seed=seed))
-        second_phase.append(downsample_volume(canonicalize(image, mask), args.volume_downsample))
-    alike = args.variants_weight == 1.0 and args.phantoms_weight == 1.0
-    return _TrainingBrains(
-        pairs, volumes, second_phase, volume_weights, second_weights, phantoms, alike
-    )
 
 
 def _network(args: argparse.Namespace) -> tuple[StackPoseConfig, dict[str, Tensor] | None]:
@@ -425,12 +338,14 @@ def _network(args: argparse.Namespace) -> tuple[StackPoseConfig, dict[str, Tenso
     return model, start.state_dict()
 
 
-def _run_config(args: argparse.Namespace, brains: _TrainingBrains) -> dict[str, Any]:
+def _run_config(args: argparse.Namespace, brains: TrainingBrains) -> dict[str, Any]:
     """What the checkpoints record about the run beyond the network and the training."""
     return {
         "data": {
+            "atlas_dirs": list(args.atlas_dir),
             "volumes": [str(v) for v, _ in brains.pairs],
             "hold_out_weeks": list(args.hold_out),
+            "synthesis": args.synthesis,
             "phantoms": [{"weeks": age, "seed": seed} for age, seed in brains.phantoms],
             "anatomy_variants": args.anatomy_variants,
             "variants_phase": args.variants_phase,
@@ -449,8 +364,10 @@ def run(args: argparse.Namespace) -> int:
     """Run ``svr train-stack-pose``."""
     import torch
 
+    from svr.cli.stack_pose_brains import training_brains
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
     from svr.sampling.motion import load_trajectories
+    from svr.sampling.synthesis import SynthesisConfig
 
     if args.minutes is not None and not args.minutes > 0:
         raise CliError(f"--minutes must be > 0, got {args.minutes:g}")
@@ -464,9 +381,11 @@ def run(args: argparse.Namespace) -> int:
             fine_tune_seed=args.fine_tune_seed,
             checkpoint_every=args.checkpoint_every,
             seed=args.seed,
+            synthesis=None if args.synthesis == "none" else SynthesisConfig(mode=args.synthesis),
+            synthesis_fraction=args.synthesis_fraction,
         )
     device = resolve_device(args.device)
-    brains = _training_brains(args)
+    brains = training_brains(args)
     trajectories = load_trajectories(args.motion_path) if args.motion_path else None
     model, init = _network(args)
     threads = torch.get_num_threads()  # restored after, for a caller in this process
