@@ -15,6 +15,7 @@ from typing import NamedTuple, TypeVar
 import torch
 from torch import Tensor
 
+from svr.geometry import so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.reconstruction.acquisition import Acquisition, packet_neighbours, slice_groups
 from svr.reconstruction.config import ReconstructionConfig
@@ -39,6 +40,7 @@ __all__ = [
     "FinalVolume",
     "OutlierWeights",
     "anchored",
+    "coarse_turns",
     "finalise",
     "initial_volume",
     "per_round",
@@ -46,12 +48,49 @@ __all__ = [
     "reject_outliers",
     "super_resolve",
     "svr_pass",
+    "volume_without",
 ]
 
 _T = TypeVar("_T")
 
 # recapture(): the NCC a wider search must gain over the current pose.
 RECAPTURE_MARGIN = 0.01
+
+# recapture(): the coarse search's turns of the head (degrees), each about 13 axes both ways, and
+# how many of its best-fitting turns per slice go on to registration.
+COARSE_TURNS_DEG = (30.0, 60.0)
+COARSE_KEPT = 2
+
+
+def _axes() -> Tensor:
+    """(26, 3) unit axes: the 13 axes of a cube (faces, edges, corners), both ways."""
+    ones = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1)]
+    ones += [(0, 1, 1), (0, 1, -1), (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)]
+    axes = torch.tensor(ones, dtype=torch.float64)
+    axes = axes / axes.norm(dim=1, keepdim=True)
+    return torch.cat([axes, -axes])
+
+
+def coarse_turns(poses: Tensor, centre: Tensor, turns_deg: tuple[float, ...]) -> Tensor:
+    """(N, T, 4, 4) each pose with the head turned about ``centre`` by each coarse rotation.
+
+    Args:
+        poses: (N, 4, 4) slice poses (slice-plane mm -> frame mm).
+        centre: (3,) the centre of the head's turns, frame mm (e.g. the brain's centre).
+        turns_deg: Rotation angles (degrees), each about 26 directions (:func:`_axes`).
+
+    Returns:
+        (N, 26 x len(turns_deg), 4, 4) float64 ``G_t @ P_n`` with ``G_t`` the rotation about
+        ``centre``.
+    """
+    angles = torch.deg2rad(torch.tensor(turns_deg, dtype=torch.float64))
+    vectors = torch.cat([_axes() * angle for angle in angles])
+    turn = torch.eye(4, dtype=torch.float64).repeat(len(vectors), 1, 1)
+    rotation = so3_exp(vectors)
+    c = centre.to(torch.float64).cpu()
+    turn[:, :3, :3] = rotation
+    turn[:, :3, 3] = c - rotation @ c
+    return turn.to(poses.device)[None] @ poses.to(torch.float64)[:, None]
 
 
 def per_round(values: tuple[_T, ...], round_index: int) -> _T:
@@ -73,6 +112,28 @@ def initial_volume(acquisition: Acquisition, points: Tensor) -> Tensor:
     return scattered_data_approximation(
         acquisition.projector, points, observed, torch.ones_like(observed)
     )
+
+
+def volume_without(acquisition: Acquisition, points: Tensor, left_out: Tensor) -> Tensor:
+    """The scattered-data volume of every slice but ``left_out``: a reference they did not shape.
+
+    A slice registered against a volume it helped make is pulled towards where it already is;
+    where a run of slices sits wrong together (a packet's end, turned with the head), the volume
+    there is theirs and every search from it agrees with them. Without them, the other stacks'
+    slices say what is there.
+
+    Args:
+        acquisition: The acquisition model.
+        points: (K, P, 3) grid points of the slices' current poses.
+        left_out: (N,) bool, the slices to leave out.
+
+    Returns:
+        (I, J, K) volume on ``acquisition.grid``, 0 where no kept slice reaches.
+    """
+    projector = acquisition.projector
+    weights = (~left_out.to(projector.slice_of.device))[projector.slice_of].to(points.dtype)
+    observed = acquisition.observed
+    return scattered_data_approximation(projector, points, observed, weights.to(observed))
 
 
 def svr_pass(
@@ -169,15 +230,18 @@ def recapture(
 
     Each slice in ``candidates`` is registered alone from its current pose, from the poses its
     temporal neighbours' motion gives it (the corrections that moved the previous and next slice
-    of its packet since ``start_poses``, applied to it) and, with ``trajectory``, from the pose
+    of its packet since ``start_poses``, applied to it), with ``trajectory`` from the pose
     its packet's motion trajectory gives it at its time (fitted to the other slices:
-    :func:`svr.reconstruction.trajectory.fit_slice_trajectory`). It takes the result that matches
+    :func:`svr.reconstruction.trajectory.fit_slice_trajectory`), and from the coarse turns of the
+    head about that pose that fit it best (:func:`coarse_turns`: 30 and 60 degrees about 13 axes
+    both ways, scored by NCC before any registration). It takes the result that matches
     its simulation from ``volume`` best (NCC over its brain pixels), if that beats its current
     pose by ``RECAPTURE_MARGIN``.
 
     Args:
         acquisition: The acquisition model.
-        volume: (I, J, K) volume on ``acquisition.grid``.
+        volume: (I, J, K) the reference to match on ``acquisition.grid``: best one the searched
+            slices did not shape (:func:`volume_without`).
         poses: (N, 4, 4) current poses.
         start_poses: (N, 4, 4) the poses the rounds started from (for the neighbours' motion).
         candidates: (N,) bool, the slices to search for.
@@ -198,12 +262,14 @@ def recapture(
     starts, owners = [], []
     neighbour = packet_neighbours(slices, config.packets)
     motion = poses @ torch.linalg.inv(start_poses.to(poses))
-    for i in index.tolist():
+    coarse = _coarse_starts(acquisition, volume, poses, index, trajectory)
+    for n, i in enumerate(index.tolist()):
         own = [poses[i]]
         for j in neighbour[i]:
             own.append(motion[j] @ start_poses[i].to(poses))
         if trajectory is not None:
             own.append(trajectory[i].to(poses))
+        own += list(coarse[n])
         starts += own
         owners += [i] * len(own)
     owner = torch.tensor(owners, device=device)
@@ -233,6 +299,35 @@ def recapture(
             poses[i] = found[best]
             changed[i] = True
     return poses, changed
+
+
+def _coarse_starts(
+    acquisition: Acquisition,
+    volume: Tensor,
+    poses: Tensor,
+    index: Tensor,
+    trajectory: Tensor | None,
+) -> Tensor:
+    """(len(index), COARSE_KEPT, 4, 4) the best-fitting coarse turns of the head per slice.
+
+    Each slice in ``index`` is simulated from ``volume`` with the head turned about the brain's
+    centre (the mean of all slices' centres) by every :func:`coarse_turns` rotation of its
+    trajectory pose (its current pose without one); the ``COARSE_KEPT`` turns whose simulation
+    matches the slice best (NCC over its brain pixels) are returned, to be registered.
+    """
+    slices = acquisition.slices
+    around = (trajectory if trajectory is not None else poses)[index].to(poses)
+    centre = poses[:, :3, 3].mean(dim=0)
+    turned = coarse_turns(around, centre, COARSE_TURNS_DEG)
+    count = turned.shape[1]
+    owner = index.repeat_interleave(count)
+    subset = slices.subset(owner)
+    projector = SliceProjector(acquisition.grid, subset, psf_samples=SVR_PSF_SAMPLES)
+    flat = turned.reshape(-1, 4, 4)
+    observed = projector.gather(subset.images)
+    ncc = slice_ncc(projector, projector.forward(volume, projector.grid_points(flat)), observed)
+    best = ncc.reshape(len(index), count).topk(min(COARSE_KEPT, count), dim=1).indices
+    return torch.gather(turned, 1, best[..., None, None].expand(-1, -1, 4, 4))
 
 
 class OutlierWeights(NamedTuple):

@@ -31,6 +31,7 @@ from svr.reconstruction.rounds import (
     reject_outliers,
     super_resolve,
     svr_pass,
+    volume_without,
 )
 from svr.reconstruction.slices import SliceSet
 from svr.reconstruction.superres import output_grid
@@ -234,9 +235,11 @@ def _recapture_round(
         along = fit_slice_trajectory(
             acquisition.slices.with_poses(state.poses), config.packets, known=known
         )
+        # ... and out of the reference: the volume there is theirs where they sit wrong together.
+        reference = volume_without(acquisition, state.points, low.to(state.poses.device))
         new_poses, recaptured = recapture(
             acquisition,
-            state.volume,
+            reference,
             state.poses,
             activity.start,
             low.to(state.poses.device),

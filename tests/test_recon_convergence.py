@@ -29,6 +29,7 @@ from svr.reconstruction.rounds import (
     reject_outliers,
     super_resolve,
     svr_pass,
+    volume_without,
 )
 from svr.reconstruction.slices import extract_slices
 from svr.reconstruction.stacks import prepare_stacks
@@ -476,15 +477,18 @@ def test_the_band_changes_neither_the_grid_nor_the_first_volume_where_it_is_not(
 # --- the wider search --------------------------------------------------------------------------
 
 
-def test_recapture_brings_back_a_slice_turned_far_off():
-    stacks = tiny_case(0.0, 0.0)
-    slices = extract_slices(stacks)
-    grid = output_grid(slices, 2.0)
-    model = acquisition_model(slices, grid)
+def _recapture_case():
+    """The tiny case's slices, their model, true poses, the volume at them, the largest slice."""
+    slices = extract_slices(tiny_case(0.0, 0.0))
+    model = acquisition_model(slices, output_grid(slices, 2.0))
     truth = slices.poses.clone()
     volume = initial_volume(model, model.points(truth))
+    return slices, model, truth, volume, int(slices.masks.flatten(1).sum(1).argmax())
+
+
+def test_recapture_brings_back_a_slice_turned_far_off():
+    slices, model, truth, volume, big = _recapture_case()
     config = recon_config(**FAST)
-    big = int(slices.masks.flatten(1).sum(1).argmax())
     off = truth.clone()
     turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(9.0), 0.0]).as_matrix())
     off[big, :3, :3] = truth[big, :3, :3] @ turn
@@ -511,14 +515,8 @@ def test_recapture_starts_a_slice_from_its_packets_trajectory():
     """A slice turned far off while its packet stayed: the trajectory of the others puts it back."""
     from svr.reconstruction.trajectory import fit_slice_trajectory
 
-    stacks = tiny_case(0.0, 0.0)
-    slices = extract_slices(stacks)
-    grid = output_grid(slices, 2.0)
-    model = acquisition_model(slices, grid)
-    truth = slices.poses.clone()
-    volume = initial_volume(model, model.points(truth))
+    slices, model, truth, volume, big = _recapture_case()
     config = recon_config(**FAST)
-    big = int(slices.masks.flatten(1).sum(1).argmax())
     off = truth.clone()
     turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(25.0), 0.0]).as_matrix())
     off[big, :3, :3] = truth[big, :3, :3] @ turn
@@ -529,3 +527,77 @@ def test_recapture_starts_a_slice_from_its_packets_trajectory():
     found, changed = recapture(model, volume, off, off, candidates, config, trajectory=along.poses)
     assert changed.tolist() == candidates.tolist()
     assert float(pose_change(truth[big : big + 1], found[big : big + 1])[0]) < 3.0
+
+
+def test_coarse_turns_rotate_the_head_about_its_centre():
+    from svr.reconstruction.rounds import coarse_turns
+
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.2, -0.4, 0.1]).as_matrix())
+    pose[:3, 3] = torch.tensor([12.0, -3.0, 5.0], dtype=torch.float64)
+    centre = torch.tensor([1.0, 2.0, -4.0], dtype=torch.float64)
+    turned = coarse_turns(pose[None], centre, (30.0, 60.0))[0]
+    assert turned.shape == (52, 4, 4)
+    turns = turned @ torch.linalg.inv(pose)
+    angles = Rotation.from_matrix(turns[:, :3, :3].numpy()).magnitude()
+    assert sorted(set(np.round(np.degrees(angles), 6))) == [30.0, 60.0]
+    # Rotations about the centre: it stays where it is; every turn is a different one.
+    moved = turns[:, :3, :3] @ centre + turns[:, :3, 3]
+    assert torch.allclose(moved, centre.expand_as(moved), atol=1e-9)
+    vectors = Rotation.from_matrix(turns[:, :3, :3].numpy()).as_rotvec()
+    assert len(np.unique(np.round(vectors, 6), axis=0)) == 52
+
+
+def test_recapture_turns_back_a_slice_whose_whole_packet_went_wrong():
+    """A slice turned with the head by 55 deg, its neighbours no help: coarse search finds it."""
+    slices, model, truth, volume, big = _recapture_case()
+    config = recon_config(**FAST)
+    centre = truth[:, :3, 3].mean(dim=0)
+    head = torch.eye(4, dtype=torch.float64)
+    head[:3, :3] = torch.from_numpy(
+        Rotation.from_rotvec(np.radians(55) * np.array([0.98, 0.2, 0])).as_matrix()
+    )
+    head[:3, 3] = centre - head[:3, :3] @ centre
+    off = truth.clone()
+    off[big] = head @ truth[big]
+    candidates = torch.zeros(len(slices), dtype=torch.bool)
+    candidates[big] = True
+    found, changed = recapture(model, volume, off, off, candidates, config)
+    assert changed.tolist() == candidates.tolist()
+    assert float(pose_change(truth[big : big + 1], found[big : big + 1])[0]) < 5.0
+
+
+def test_the_volume_without_some_slices_owes_them_nothing():
+    from dataclasses import replace
+
+    slices = extract_slices(tiny_case(0.0, 0.0))
+    grid = output_grid(slices, 2.0)
+    model = acquisition_model(slices, grid)
+    points = model.points(slices.poses)
+    nobody = torch.zeros(len(slices), dtype=torch.bool)
+    assert torch.equal(volume_without(model, points, nobody), initial_volume(model, points))
+    big = int(slices.masks.flatten(1).sum(1).argmax())
+    left_out = nobody.clone()
+    left_out[big] = True
+    without = volume_without(model, points, left_out)
+    assert not torch.allclose(without, initial_volume(model, points))
+    # Whatever the left-out slice shows, the volume without it is the same.
+    images = slices.images.clone()
+    images[big] = images[big].flip(0) * 3
+    other = acquisition_model(replace(slices, images=images), grid)
+    assert torch.allclose(volume_without(other, other.points(slices.poses), left_out), without)
+
+
+def test_recapture_keeps_a_slice_in_place_against_a_wrong_trajectory():
+    """A deliberately wrong start (the trajectory 40 deg off) is not kept over a right pose."""
+    slices, model, truth, volume, big = _recapture_case()
+    wrong = truth.clone()
+    turn = torch.from_numpy(Rotation.from_rotvec([math.radians(40.0), 0.0, 0.0]).as_matrix())
+    wrong[big, :3, :3] = truth[big, :3, :3] @ turn
+    candidates = torch.zeros(len(slices), dtype=torch.bool)
+    candidates[big] = True
+    found, changed = recapture(
+        model, volume, truth, truth, candidates, recon_config(**FAST), trajectory=wrong
+    )
+    assert not bool(changed.any())
+    assert torch.equal(found, truth.to(found))
