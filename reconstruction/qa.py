@@ -91,7 +91,7 @@ _PLANES = ("sagittal", "coronal", "axial")
 def _column_title(frame: str, axis: int, mm: float) -> str:
     """A column's title: the plane, in the frame it is in (canonical planes are anatomical)."""
     where = f"{frame} {_AXES[axis]} = {mm:.1f} mm"
-    return f"{_PLANES[axis]} ({where})" if frame == "canonical" else where
+    return f"{_PLANES[axis]}\n({where})" if frame == "canonical" else where
 
 
 NOTE_WIDTH = 44

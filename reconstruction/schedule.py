@@ -20,6 +20,7 @@ from tqdm import tqdm
 from svr.reconstruction.acquisition import Acquisition, acquisition_model
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary
+from svr.reconstruction.recapture import recapture
 from svr.reconstruction.registration import slice_ncc
 from svr.reconstruction.result import ReconstructionResult
 from svr.reconstruction.rounds import (
@@ -27,7 +28,6 @@ from svr.reconstruction.rounds import (
     finalise,
     initial_volume,
     per_round,
-    recapture,
     reject_outliers,
     super_resolve,
     svr_pass,
@@ -367,7 +367,7 @@ def _adaptive_rounds(
     Round 0 reconstructs the volume at the initial poses. Each following round registers the
     slices (in groups of temporal neighbours first, then one by one; a slice that moved less than
     half the thresholds in ``QUIET_ROUNDS`` registered rounds in a row sits out the next round,
-    and slices that fit badly get a wider search: :func:`~svr.reconstruction.rounds.recapture`),
+    and slices that fit badly get a wider search: :func:`~svr.reconstruction.recapture.recapture`),
     then updates the outlier weights and the volume. The rounds stop once at most
     ``config.schedule.converged_fraction`` of the registrable slices moved more than the
     thresholds, or one round before the cap ``config.schedule.rounds``. The final round registers

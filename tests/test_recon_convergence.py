@@ -21,11 +21,11 @@ from scipy.spatial.transform import Rotation
 from svr.reconstruction.acquisition import acquisition_model, background_pixels
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary, verdict
 from svr.reconstruction.pipeline import reconstruct
+from svr.reconstruction.recapture import recapture
 from svr.reconstruction.registration import slice_ncc
 from svr.reconstruction.robust import robust_weights
 from svr.reconstruction.rounds import (
     initial_volume,
-    recapture,
     reject_outliers,
     super_resolve,
     svr_pass,
@@ -530,7 +530,7 @@ def test_recapture_starts_a_slice_from_its_packets_trajectory():
 
 
 def test_coarse_turns_rotate_the_head_about_its_centre():
-    from svr.reconstruction.rounds import coarse_turns
+    from svr.reconstruction.recapture import coarse_turns
 
     pose = torch.eye(4, dtype=torch.float64)
     pose[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.2, -0.4, 0.1]).as_matrix())
