@@ -145,16 +145,7 @@ METHODS = (
 )
 """Every estimate the bench can measure (``--methods``; all by default)."""
 
-CHOOSABLE = (
-    "axes+atlas",
-    "axes+atlas+fit",
-    "learned",
-    "learned, no restarts",
-    "learned+atlas",
-    "learned+atlas+fit",
-    "learned+packets",
-    "learned+atlas slices",
-)
+CHOOSABLE = tuple(method for method in METHODS if method != "axes+oracle")
 """The estimates a rule could choose among per stack (``axes+oracle`` is chosen by the truth)."""
 
 

@@ -486,14 +486,20 @@ def _recapture_case():
     return slices, model, truth, volume, int(slices.masks.flatten(1).sum(1).argmax())
 
 
+def _turned_off(truth, index, rotvec):
+    """``truth`` with slice ``index`` turned in its own frame by ``rotvec`` (radians); the mask."""
+    off = truth.clone()
+    turn = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix())
+    off[index, :3, :3] = truth[index, :3, :3] @ turn
+    candidates = torch.zeros(len(truth), dtype=torch.bool)
+    candidates[index] = True
+    return off, candidates
+
+
 def test_recapture_brings_back_a_slice_turned_far_off():
     slices, model, truth, volume, big = _recapture_case()
     config = recon_config(**FAST)
-    off = truth.clone()
-    turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(9.0), 0.0]).as_matrix())
-    off[big, :3, :3] = truth[big, :3, :3] @ turn
-    candidates = torch.zeros(len(slices), dtype=torch.bool)
-    candidates[big] = True
+    off, candidates = _turned_off(truth, big, [0.0, math.radians(9.0), 0.0])
     # The neighbours did not move since the start: their motion puts the slice back.
     found, changed = recapture(model, volume, off, truth, candidates, config)
     assert changed.tolist() == candidates.tolist()
@@ -517,11 +523,7 @@ def test_recapture_starts_a_slice_from_its_packets_trajectory():
 
     slices, model, truth, volume, big = _recapture_case()
     config = recon_config(**FAST)
-    off = truth.clone()
-    turn = torch.from_numpy(Rotation.from_rotvec([0.0, math.radians(25.0), 0.0]).as_matrix())
-    off[big, :3, :3] = truth[big, :3, :3] @ turn
-    candidates = torch.zeros(len(slices), dtype=torch.bool)
-    candidates[big] = True
+    off, candidates = _turned_off(truth, big, [0.0, math.radians(25.0), 0.0])
     along = fit_slice_trajectory(slices.with_poses(off), config.packets, known=~candidates)
     assert float(pose_change(truth[big : big + 1], along.poses[big : big + 1])[0]) < 1.0
     found, changed = recapture(model, volume, off, off, candidates, config, trajectory=along.poses)
@@ -590,12 +592,8 @@ def test_the_volume_without_some_slices_owes_them_nothing():
 
 def test_recapture_keeps_a_slice_in_place_against_a_wrong_trajectory():
     """A deliberately wrong start (the trajectory 40 deg off) is not kept over a right pose."""
-    slices, model, truth, volume, big = _recapture_case()
-    wrong = truth.clone()
-    turn = torch.from_numpy(Rotation.from_rotvec([math.radians(40.0), 0.0, 0.0]).as_matrix())
-    wrong[big, :3, :3] = truth[big, :3, :3] @ turn
-    candidates = torch.zeros(len(slices), dtype=torch.bool)
-    candidates[big] = True
+    _, model, truth, volume, big = _recapture_case()
+    wrong, candidates = _turned_off(truth, big, [math.radians(40.0), 0.0, 0.0])
     found, changed = recapture(
         model, volume, truth, truth, candidates, recon_config(**FAST), trajectory=wrong
     )
