@@ -28,19 +28,27 @@ from torch import Tensor
 from svr.files import atomic_directory
 from svr.image import Image, save_nifti
 from svr.pose_io import matrices_to_table, write_pose_table
-from svr.reconstruction.result import ReconstructionResult
+from svr.reconstruction.result import ReconstructionResult, Verdict
 from svr.reconstruction.slices import SliceSet, moved_from_stack, plane_poses
+from svr.stamp import verdict_stamp
 
 __all__ = ["slice_affines", "write_slices_folder", "write_transforms", "write_volume"]
 
 
-def write_volume(image: Image, path: str | os.PathLike[str], overwrite: bool = False) -> Path:
+def write_volume(
+    image: Image,
+    path: str | os.PathLike[str],
+    overwrite: bool = False,
+    verdict: Verdict | None = None,
+) -> Path:
     """Write a volume as float32 NIfTI (sform and qform set to its affine), atomically.
 
     Args:
         image: The volume (any device, any floating dtype).
         path: A ``.nii`` or ``.nii.gz`` file name.
         overwrite: Whether an existing file may be replaced.
+        verdict: The reconstruction's verdict, stamped in the header's ``descrip``
+            (:mod:`svr.stamp`) for the steps after it; ``None`` for none.
 
     Returns:
         The written path.
@@ -50,7 +58,8 @@ def write_volume(image: Image, path: str | os.PathLike[str], overwrite: bool = F
         OutputExistsError: If the file exists and ``overwrite`` is false.
         FileNotFoundError: If the folder does not exist.
     """
-    return save_nifti(image.to("cpu", torch.float32), path, overwrite)
+    stamp = "" if verdict is None else verdict_stamp(verdict.status, verdict.frame)
+    return save_nifti(image.to("cpu", torch.float32), path, overwrite, stamp)
 
 
 def write_transforms(

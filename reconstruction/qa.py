@@ -29,6 +29,7 @@ from typing import cast
 import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 from matplotlib.gridspec import SubplotSpec
 from torch import Tensor
@@ -45,8 +46,8 @@ FIGURE_SUFFIXES = (".png", ".pdf")
 _AXES = ("x", "y", "z")
 
 
-def axis_aligned(image: Image, mask: Tensor) -> Image:
-    """An image resampled (trilinear) onto a grid aligned with the world axes around a mask.
+def axis_aligned(image: Image, mask: Tensor, mode: str = "bilinear") -> Image:
+    """An image resampled onto a grid aligned with the world axes around a mask.
 
     The grid has the image's finest spacing.
 
@@ -54,6 +55,7 @@ def axis_aligned(image: Image, mask: Tensor) -> Image:
         image: (I, J, K) volume, its affine any rotation (voxel -> world mm).
         mask: (I, J, K) bool mask on its grid; the grid covers its voxels' world bounding box
             (the whole image where it is empty), with one voxel of margin.
+        mode: ``"bilinear"`` (trilinear) or ``"nearest"`` (label maps).
 
     Returns:
         The float32 image on the new grid (affine: the spacing on the diagonal, no rotation).
@@ -73,7 +75,7 @@ def axis_aligned(image: Image, mask: Tensor) -> Image:
     grid[:3, :3] *= spacing
     grid[:3, 3] = low + spacing / 2
     like = Image(torch.zeros(shape, dtype=torch.float32), grid.to(image.affine.device))
-    return resample_to_grid(image, like)
+    return resample_to_grid(image, like, mode)
 
 
 def orthogonal_planes(volume: np.ndarray, centre: tuple[int, int, int]) -> list[np.ndarray]:
@@ -164,6 +166,8 @@ def qa_figure(
     reference: Image | None = None,
     overwrite: bool = False,
     notes: Sequence[str] = (),
+    labels: Image | None = None,
+    label_colours: Sequence[str] = (),
 ) -> Path:
     """Draw the quality page of a reconstruction (see the module docstring), atomically.
 
@@ -174,6 +178,9 @@ def qa_figure(
             resampled onto the result's grid; ``None`` for none.
         overwrite: Whether an existing file may be replaced.
         notes: Lines printed first in the text panel (e.g. where the brain masks came from).
+        labels: Tissue labels on the final volume's grid (``svr segment-volume``), drawn over
+            the final volume in a row of their own; ``None`` for none.
+        label_colours: The colour (``#rrggbb``) of label 1, 2, ...
 
     Returns:
         The written path.
@@ -194,6 +201,12 @@ def qa_figure(
         brain = result.mask.data > 0.5
         volumes = {name: axis_aligned(image, brain) for name, image in volumes.items()}
         mask_image = axis_aligned(result.mask, brain)
+        if labels is not None:
+            labels = axis_aligned(labels, brain, mode="nearest")
+    label_data = None
+    if labels is not None:
+        label_data = labels.data.detach().cpu().float().numpy().round().astype(np.int64)
+        volumes["tissue labels"] = volumes["final"]
     mask = mask_image.data.detach().cpu() > 0.5
     if bool(mask.any()):
         where = torch.nonzero(mask).double().mean(dim=0)
@@ -219,9 +232,25 @@ def qa_figure(
         data = image.data.detach().cpu().float().numpy()
         inside = data[mask.numpy()] if bool(mask.any()) else data.ravel()
         vmax = float(np.percentile(inside, 99.5)) if inside.size else 1.0
+        overlays = (
+            orthogonal_planes(label_data, centre)
+            if name == "tissue labels" and label_data is not None
+            else None
+        )
         for col, plane in enumerate(orthogonal_planes(data, centre)):
             ax = figure.add_subplot(grid[row, col])
             ax.imshow(plane, cmap="gray", origin="lower", vmin=0.0, vmax=vmax or 1.0)
+            if overlays is not None:
+                colours = ListedColormap(["#000000", *label_colours])
+                ax.imshow(
+                    np.ma.masked_equal(overlays[col], 0),
+                    cmap=colours,
+                    origin="lower",
+                    vmin=0,
+                    vmax=len(label_colours),
+                    alpha=0.45,
+                    interpolation="nearest",
+                )
             ax.set_xticks([])
             ax.set_yticks([])
             if col == 0:

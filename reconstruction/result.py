@@ -11,6 +11,7 @@ from svr.geometry import se3_compose
 from svr.image import Image
 from svr.reconstruction.convergence import RoundRecord
 from svr.reconstruction.slices import SliceSet
+from svr.stamp import VerdictStamp
 
 __all__ = ["ReconstructionResult", "Verdict", "relabelled"]
 
@@ -32,8 +33,7 @@ class Verdict:
 
     def line(self) -> str:
         """One line for a log, a QA page or a table, e.g. ``"failed: not converged; ..."``."""
-        frame = "scanner frame" if self.frame == "scanner" else f"canonical frame {self.frame}"
-        head = f"{self.status}, {frame}"
+        head = VerdictStamp(self.status, self.frame).line()
         return head + (": " + "; ".join(self.reasons) if self.reasons else "")
 
 

@@ -295,7 +295,10 @@ def atlas_volume_paths(
 
 
 def atlas_paths_near(
-    folder: str | os.PathLike[str], weeks: float, window: float = 1.0
+    folder: str | os.PathLike[str],
+    weeks: float,
+    window: float = 1.0,
+    hold_out: Sequence[float] = (),
 ) -> list[tuple[Path, Path]]:
     """The ``(srr.nii.gz, mask.nii.gz)`` pairs of an atlas folder near a gestational age.
 
@@ -307,6 +310,7 @@ def atlas_paths_near(
         folder: The atlas folder (the layout of :func:`atlas_volume_paths`).
         weeks: The fetus's gestational age (weeks, > 0).
         window: How far (weeks, >= 0) an atlas's age may be from ``weeks``.
+        hold_out: Gestational ages (weeks) to leave out (an evaluation's own ages).
 
     Returns:
         The pairs, nearest age first (equally near: by subfolder name).
@@ -320,7 +324,7 @@ def atlas_paths_near(
     if not (math.isfinite(window) and window >= 0):
         raise ValueError(f"atlas_paths_near(): 'window' must be >= 0 weeks, got {window}")
     root = Path(folder)
-    found = _atlas_entries(root)
+    found = [entry for entry in _atlas_entries(root) if entry[0] not in hold_out]
     if not found:
         raise VolumeSourceError(f"no GA*/srr.nii.gz volumes left in {root}")
     near = [entry for entry in found if abs(entry[0] - weeks) <= window]

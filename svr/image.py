@@ -175,13 +175,17 @@ def load_nifti(path: str | os.PathLike[str], dtype: torch.dtype = torch.float32)
     return Image(torch.from_numpy(array).to(dtype), torch.from_numpy(affine))
 
 
-def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = False) -> Path:
+def save_nifti(
+    image: Image, path: str | os.PathLike[str], overwrite: bool = False, description: str = ""
+) -> Path:
     """Write an image as float32 NIfTI with sform and qform set to its affine, atomically.
 
     Args:
         image: The image (any device).
         path: A ``.nii`` or ``.nii.gz`` file name.
         overwrite: Whether an existing file may be replaced.
+        description: The header's ``descrip`` text (at most 80 ASCII characters; e.g.
+            :func:`svr.stamp.verdict_stamp`).
 
     Returns:
         The written path.
@@ -197,6 +201,12 @@ def save_nifti(image: Image, path: str | os.PathLike[str], overwrite: bool = Fal
     nii = nib.Nifti1Image(image.data.detach().cpu().numpy().astype(np.float32), affine)
     nii.set_sform(affine, code=1)
     nii.set_qform(affine, code=1)
+    if description:
+        if len(description) > 80 or not description.isascii():
+            raise ValueError(
+                f"{p}: a NIfTI description holds 80 ASCII characters, got {description!r}"
+            )
+        nii.header["descrip"] = description.encode("ascii")
     return _save_atomically(nii, p)
 
 
@@ -206,11 +216,9 @@ def save_mask_like(
     path: str | os.PathLike[str],
     overwrite: bool = False,
 ) -> Path:
-    """Write a uint8 mask on a NIfTI file's grid with that file's header, atomically.
+    """Write a uint8 mask (1 inside, 0 outside) on a NIfTI file's grid with its header, atomically.
 
-    The reference's header is copied, so the mask's sform and qform (matrices and codes), voxel
-    sizes and units equal the reference's exactly (a trailing 4th dimension of size 1 is dropped,
-    as :func:`load_nifti` drops it); the data type becomes uint8 without scaling.
+    As :func:`save_labels_like`, with every nonzero value written as 1.
 
     Args:
         mask: (I, J, K) mask (nonzero = inside) on the reference's grid.
@@ -222,10 +230,50 @@ def save_mask_like(
         The written path.
 
     Raises:
-        ImageError: If the name does not end in .nii or .nii.gz, the reference cannot be read,
-            or the mask's shape is not the reference's (3D part).
+        ImageError: As :func:`save_labels_like`.
         OutputExistsError: If the file exists and ``overwrite`` is false.
     """
+    data = np.asarray(mask.detach().cpu().numpy() if isinstance(mask, Tensor) else mask)
+    return _save_uint8_like(data != 0, reference, path, overwrite, "mask")
+
+
+def save_labels_like(
+    labels: Tensor | np.ndarray,
+    reference: str | os.PathLike[str],
+    path: str | os.PathLike[str],
+    overwrite: bool = False,
+) -> Path:
+    """Write a uint8 label map on a NIfTI file's grid with that file's header, atomically.
+
+    The reference's header is copied, so the map's sform and qform (matrices and codes), voxel
+    sizes and units equal the reference's exactly (a trailing 4th dimension of size 1 is dropped,
+    as :func:`load_nifti` drops it); the data type becomes uint8 without scaling.
+
+    Args:
+        labels: (I, J, K) integer labels in 0..255 on the reference's grid.
+        reference: The NIfTI file whose grid and header the map takes (e.g. the volume).
+        path: A ``.nii`` or ``.nii.gz`` file name.
+        overwrite: Whether an existing file may be replaced.
+
+    Returns:
+        The written path.
+
+    Raises:
+        ImageError: If the name does not end in .nii or .nii.gz, the reference cannot be read,
+            the map's shape is not the reference's (3D part) or a label is outside 0..255.
+        OutputExistsError: If the file exists and ``overwrite`` is false.
+    """
+    return _save_uint8_like(labels, reference, path, overwrite, "label map")
+
+
+def _save_uint8_like(
+    labels: Tensor | np.ndarray,
+    reference: str | os.PathLike[str],
+    path: str | os.PathLike[str],
+    overwrite: bool,
+    what: str,
+) -> Path:
+    """:func:`save_labels_like`, its errors naming the data ``what``."""
     p = check_output_path(path, overwrite)
     if not str(p).endswith(NIFTI_SUFFIXES):
         raise _fail(p, "output must end in .nii or .nii.gz")
@@ -235,16 +283,18 @@ def save_mask_like(
             source = cast("nib.Nifti1Image", nib.load(str(ref)))  # NIfTI-1 or -2
     except (OSError, ValueError, nib.filebasedimages.ImageFileError) as err:
         raise _fail(ref, f"cannot read as NIfTI ({' '.join(str(err).split())})") from err
-    data = np.asarray(mask.detach().cpu().numpy() if isinstance(mask, Tensor) else mask)
+    data = np.asarray(labels.detach().cpu().numpy() if isinstance(labels, Tensor) else labels)
     shape = tuple(source.shape[:3])
     if data.shape != shape:
-        raise _fail(p, f"mask shape {data.shape} is not the grid of {ref} {shape}")
+        raise _fail(p, f"{what} shape {data.shape} is not the grid of {ref} {shape}")
+    if data.size and (data.min() < 0 or data.max() > 255):
+        raise _fail(p, f"labels must be in 0..255, got {data.min()}..{data.max()}")
     header = source.header.copy()
     header.set_data_dtype(np.uint8)
     header.set_slope_inter(1.0, 0.0)
     # Without an affine, nibabel keeps the copied header's sform and qform fields as stored
     # (nothing is recomputed from a matrix, so quaternions and offsets stay bit for bit).
-    return _save_atomically(nib.Nifti1Image((data != 0).astype(np.uint8), None, header), p)
+    return _save_atomically(nib.Nifti1Image(data.astype(np.uint8), None, header), p)
 
 
 def _save_atomically(image: nib.Nifti1Image, path: Path) -> Path:

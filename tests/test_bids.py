@@ -11,17 +11,17 @@ from pathlib import Path
 
 import pytest
 import torch
+from scipy import ndimage
 
 import svr.cli
 from svr.apps.bids import (
-    GROUP_HTML,
-    GROUP_TSV,
     BidsError,
     Participant,
     find_participants,
     participant_age,
     participant_outputs,
 )
+from svr.apps.bids_group import GROUP_HTML, GROUP_TISSUE_PNG, GROUP_TSV
 from svr.image import load_nifti, save_nifti
 from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case
@@ -431,3 +431,66 @@ def test_the_provenance_names_the_model_by_its_weights_hash():
 
     expected = file_sha256(stack_pose_model_path() / "model.safetensors")
     assert model_digest("stack-pose") == expected and len(expected) == 64
+
+
+def test_tissue_labels_are_derivatives_and_the_group_tabulates_them(dataset, tmp_path, capsys):
+    """--tissue-labels: each participant's labels, numbers and report; the group's cohort table."""
+    bids_dir, masks_dir = dataset
+    study = tmp_path / "study"
+    shutil.copytree(bids_dir, study)
+    (study / "participants.tsv").write_text("participant_id\tga\nsub-01\t20\nsub-02\t21\n")
+    # An atlas folder of the subjects' own phantom brain at three ages, its labels cut from its
+    # intensities (the bright core "ventricles", the rest "white matter", the rim "cortex").
+    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    inside = mask.data > 0.5
+    labels = torch.zeros(volume.shape)
+    labels[inside] = 1.0
+    labels[inside & (volume.data > volume.data[inside].quantile(0.8))] = 2.0
+    rim = inside & ~torch.from_numpy(ndimage.binary_erosion(inside.numpy(), iterations=2))
+    labels[rim] = 5.0
+    atlas = tmp_path / "atlas"
+    for age in (19, 20, 21):
+        (atlas / f"GA{age}_phantom").mkdir(parents=True)
+        save_nifti(volume, atlas / f"GA{age}_phantom" / "srr.nii.gz")
+        save_nifti(mask, atlas / f"GA{age}_phantom" / "mask.nii.gz")
+        save_nifti(
+            type(volume)(labels, volume.affine), atlas / f"GA{age}_phantom" / "parcellation.nii.gz"
+        )
+    out = tmp_path / "out"
+    cnn = ["--registration", "cnn", "--atlas-dir", str(atlas), "--age-column", "ga"]
+    code, _ = _main([
+        "bids", str(study), str(out), "participant", "--participant-label", "01",
+        "--masks-dir", str(masks_dir), *FAST, *cnn, "--tissue-labels"])  # fmt: skip
+    assert code == 0
+    (participant,) = find_participants(study, ["01"], masks_dir=masks_dir)
+    names = participant_outputs(participant)
+    folder = out / "sub-01"
+    sidecar = json.loads((folder / names.sidecar).read_text())["svr"]
+    tissue = sidecar["tissue"]
+    assert "error" not in tissue, tissue
+    written = load_nifti(folder / names.labels)
+    recon = load_nifti(folder / names.volume)
+    assert torch.allclose(written.affine, recon.affine)
+    assert set(written.data.unique().tolist()) <= {0.0, 1.0, 2.0, 5.0}
+    assert tissue["volumes_ml"]["white_matter"] > 0 and tissue["atlases"]
+    assert (folder / names.report).read_text().startswith("<!DOCTYPE html>")
+    rows = (folder / names.measures).read_text().splitlines()
+    assert rows[0].startswith("key\tname\tvalue") and len(rows) == 18
+    assert json.loads((folder / names.measures).with_suffix(".json").read_text())["measures"]
+    # the group level: the tissue columns and the cohort plot
+    code, _ = _main(["bids", str(study), str(out), "group"])
+    assert code == 0
+    table = (out / GROUP_TSV).read_text().splitlines()
+    header = table[0].split("\t")
+    row = dict(zip(header, table[1].split("\t"), strict=True))
+    assert {"tissue", "intracranial_ml", "brain_bpd_mm", "gestational_age_weeks"} <= set(header)
+    assert row["tissue"] in ("trusted", "not trusted") and row["gestational_age_weeks"] == "20"
+    assert float(row["intracranial_ml"]) == pytest.approx(
+        sum(v for k, v in tissue["volumes_ml"].items() if k == "intracranial"), rel=1e-3
+    )
+    assert (out / GROUP_TISSUE_PNG).is_file()
+    assert GROUP_TISSUE_PNG in (out / GROUP_HTML).read_text()
+    # --tissue-labels needs the atlases
+    err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST, "--tissue-labels"],
+               capsys)  # fmt: skip
+    assert "--tissue-labels needs --atlas-dir" in err

@@ -37,6 +37,7 @@ import torch
 from synthetic import ellipsoid_brain
 
 import svr.apps.demo as recon_demo
+import svr.apps.tissue as tissue_app
 import svr.files
 import svr.image
 import svr.masking as brain_mask
@@ -283,6 +284,10 @@ def env(tmp_path_factory) -> dict[str, str]:
     shutil.copy(f["brain"], root / "atlas_good" / "GA30" / "srr.nii.gz")
     shutil.copy(f["mask"], root / "atlas_good" / "GA30" / "mask.nii.gz")
     f["atlas_good"] = str(root / "atlas_good")
+    # ... and one with tissue labels (svr segment-volume): the brain's mask as white matter
+    shutil.copytree(root / "atlas_good", root / "atlas_labels")
+    shutil.copy(f["mask"], root / "atlas_labels" / "GA30" / "parcellation.nii.gz")
+    f["atlas_labels"] = str(root / "atlas_labels")
     # A BIDS dataset of one participant (svr bids) and its masks as a derivatives folder.
     for name in ("bids", "bids_masks"):
         (root / name / "sub-01" / "anat").mkdir(parents=True)
@@ -334,6 +339,9 @@ BASE = {
     "demo-loss": "demo --loss-only --num-poses 2 --steps 1 --output {out}/demo.json --device cpu",
     "segment-stack": "segment-stack --input-stacks {stack} --output-stack-masks {out}/mask.nii.gz "
     "--mask-model {masker} --output-qa {out}/masks.png --device cpu",
+    # labels of a volume (the segmentation is replaced by a sentinel)
+    "segment-volume": "segment-volume --input-volume {brain} --atlas-dir {atlas_labels} "
+    "--gestational-age 30 --output-labels {out}/dseg.nii.gz --output-report {out}/report.html",
     # positional BIDS_DIR OUTPUT_DIR participant (the reconstruction is replaced by a sentinel)
     "bids": "bids {bids} {out}/derivatives participant --masks-dir {bids_masks} --iterations 1 "
     "--sr-iterations 1 --output-resolution 4 --device cpu",
@@ -409,6 +417,7 @@ EXISTING = {
     "demo": ("demo/", "--output-dir"),
     "demo-loss": ("demo.json", "--output"),
     "segment-stack": ("mask.nii.gz", "--output-stack-masks"),
+    "segment-volume": ("dseg.nii.gz", "--output-labels"),
 }
 
 OUTPUT_OPTION = {
@@ -425,7 +434,11 @@ OUTPUT_OPTION = {
     "demo": ("--output-dir", "demo"),
     "demo-loss": ("--output", "demo.json"),
     "segment-stack": ("--output-stack-masks", "mask.nii.gz"),
+    "segment-volume": ("--output-labels", "dseg.nii.gz"),
 }
+
+CPU_ONLY = {"segment-volume"}
+"""Commands without ``--device``: SimpleITK on the CPU (``--threads``)."""
 
 
 @dataclass
@@ -629,6 +642,31 @@ def _cases() -> list[Case]:
             ["--thicknesses: got 2 values for 3 stacks"],
         )
     )
+    for bad, problem in BAD_FILES.items():
+        add(
+            Case(
+                f"segment-volume-input-volume-{bad}",
+                "segment-volume",
+                ["--input-volume", ref(bad)],
+                [ref(bad), problem],
+                setup="unreadable" if bad == "unreadable" else None,
+            )
+        )
+    for case_id, changes, expect in (
+        (
+            "atlas-without-labels",
+            ["--atlas-dir", "{atlas_good}"],
+            ["{atlas_good}/GA30/parcellation.nii.gz is missing"],
+        ),
+        ("atlas-missing", ["--atlas-dir", "{out}/no-atlas"], ["{out}/no-atlas is not a folder"]),
+        ("atlas-empty", ["--atlas-dir", "{atlas_empty}"], ["no GA*/srr.nii.gz volumes"]),
+        ("age-zero", ["--gestational-age", "0"], ["--gestational-age", "a finite number > 0"]),
+        ("measures-suffix", ["--output-measures", "{out}/m.csv"], ["m.csv", ".tsv or .json"]),
+        ("report-suffix", ["--output-report", "{out}/r.txt"], ["r.txt", "written as .html"]),
+        ("output-is-input", ["--output-labels", "{brain}"], ["{brain}", "given twice"]),
+        ("mask-grid", ["--input-mask", "{small_mask}"], ["{brain}", "mask shape"]),
+    ):
+        add(Case(f"segment-volume-{case_id}", "segment-volume", changes, expect))
     for command in ("register", "reconstruct"):
         add(
             Case(
@@ -1038,7 +1076,7 @@ def _cases() -> list[Case]:
                     [message],
                 )
             )
-    for command in BASE:
+    for command in sorted(set(BASE) - CPU_ONLY):
         add(
             Case(
                 f"{command}-device-tpu",
@@ -1345,7 +1383,8 @@ def test_every_subcommand_is_swept():
     assert {BASE[case.command].split()[0] for case in CASES} == set(SUBCOMMANDS)
     ids = {case.id for case in CASES}
     for key in BASE:
-        assert {f"{key}-device-tpu", f"{key}-output-unwritable"} <= ids
+        assert f"{key}-output-unwritable" in ids
+        assert key in CPU_ONLY or f"{key}-device-tpu" in ids
 
 
 def test_real_process_prints_one_line_or_a_traceback(env, tmp_path):
@@ -1381,8 +1420,10 @@ def test_the_base_invocations_are_good(key, env, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(recon_demo, "simulate_case", _never_called)
     monkeypatch.setattr(brain_mask, "segment_stack", _never_called)
     monkeypatch.setattr(mask_recipe, "train_stage", _never_called)
+    monkeypatch.setattr(tissue_app, "segment_volume", _never_called)
     argv = _argv(Case("control", key, [], []), names)
-    if key in ("register", "reconstruct", "demo", "segment-stack", "bids", "train-brain-mask"):
+    sentinel = ("register", "reconstruct", "demo", "segment-stack", "bids", "train-brain-mask")
+    if key in (*sentinel, "segment-volume"):
         with pytest.raises(AssertionError, match="the computation started"):
             main([*argv, "-q"])
     else:

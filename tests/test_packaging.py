@@ -125,8 +125,18 @@ LAYERS = {
     # The masking stage runs before stack preparation and uses preparation and registration
     # (the fusion); nothing below it imports it.
     "masking": ("svr", "svr.sampling", "svr.models", "svr.reconstruction", "svr.masking"),
+    # The tissue stage runs after reconstruction on its output files: atlases and labels only.
+    "tissue": ("svr", "svr.sampling", "svr.tissue"),
 }
-UPPER = ("svr.sampling", "svr.models", "svr.reconstruction", "svr.masking", "svr.apps", "svr.cli")
+UPPER = (
+    "svr.sampling",
+    "svr.models",
+    "svr.reconstruction",
+    "svr.masking",
+    "svr.tissue",
+    "svr.apps",
+    "svr.cli",
+)
 FOLDERS = {folder: name for name, folder in subpackage_folders().items()}
 """The repository's top-level folders installed as subpackages of ``svr`` (pyproject.toml)."""
 

@@ -16,19 +16,19 @@ The dataset is read with pybids (:class:`bids.BIDSLayout`), never by parsing pat
   in a temporary sibling and moved into place when complete (:func:`svr.files.atomic_directory`),
   so a job killed half-way leaves no partial derivative, and a folder that exists is a finished
   participant.
-* :func:`write_dataset_description` (``dataset_description.json`` with ``GeneratedBy``) and
-  :func:`group_report`: one TSV and one HTML page over every finished participant.
+* :func:`write_dataset_description`: ``dataset_description.json`` with ``GeneratedBy``.
+
+The group level is :mod:`svr.apps.bids_group`.
 """
 
 from __future__ import annotations
 
 import csv
-import html
 import json
 import math
 import os
 import platform
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,29 +37,19 @@ from svr import __version__
 from svr.files import atomic_write_text
 
 __all__ = [
-    "GROUP_HTML",
-    "GROUP_TSV",
     "BidsError",
     "BidsStack",
     "Participant",
     "ParticipantOutputs",
     "check_output_dir",
     "find_participants",
-    "group_report",
     "participant_age",
     "participant_outputs",
-    "read_sidecars",
     "write_dataset_description",
 ]
 
 PIPELINE = "fetal-svr"
 """The ``GeneratedBy`` name of the derivatives."""
-
-GROUP_TSV = "svr_group.tsv"
-"""The group level's table, at the top of the output folder."""
-
-GROUP_HTML = "svr_group.html"
-"""The group level's review page, at the top of the output folder."""
 
 _NIFTI = [".nii", ".nii.gz"]
 _MATCHED = ("session", "acquisition", "run", "reconstruction", "direction")
@@ -123,6 +113,9 @@ class ParticipantOutputs:
         transforms: The slices' poses and quality.
         qa: The quality figure.
         sidecar: The JSON sidecar (provenance).
+        labels: The tissue labels (``--tissue-labels``).
+        measures: The tissue volumes and measures (TSV; a JSON beside with the suffix changed).
+        report: The tissue report (HTML).
     """
 
     volume: Path
@@ -130,6 +123,9 @@ class ParticipantOutputs:
     transforms: Path
     qa: Path
     sidecar: Path
+    labels: Path
+    measures: Path
+    report: Path
 
 
 def participant_outputs(participant: Participant) -> ParticipantOutputs:
@@ -141,6 +137,9 @@ def participant_outputs(participant: Participant) -> ParticipantOutputs:
         transforms=Path(f"{stem}_transforms.csv"),
         qa=Path(f"{stem}_qa.png"),
         sidecar=Path(f"{stem}_T2w.json"),
+        labels=Path(f"{stem}_dseg.nii.gz"),
+        measures=Path(f"{stem}_desc-tissue_measures.tsv"),
+        report=Path(f"{stem}_desc-tissue_report.html"),
     )
 
 
@@ -415,157 +414,3 @@ def environment() -> dict[str, str]:
         "torch": torch.__version__,
         "platform": platform.platform(),
     }
-
-
-def read_sidecars(
-    output_dir: str | os.PathLike[str], participant_labels: Iterable[str] | None = None
-) -> list[dict[str, Any]]:
-    """The provenance sidecars of every finished participant in ``output_dir``, by label.
-
-    Args:
-        output_dir: The derivatives folder.
-        participant_labels: Subjects to keep (with or without ``sub-``); ``None`` for all.
-
-    Returns:
-        The sidecars' contents, each with ``"_path"`` (the sidecar relative to ``output_dir``).
-    """
-    root = Path(output_dir)
-    keep = (
-        None if participant_labels is None else {p.removeprefix("sub-") for p in participant_labels}
-    )
-    out = []
-    for path in sorted(root.glob("sub-*/**/anat/*_rec-svr_T2w.json")):
-        if any(part.startswith(".") for part in path.relative_to(root).parts):
-            continue  # a participant still being written
-        data = json.loads(path.read_text(encoding="utf-8"))
-        svr = data.get("svr", {})
-        if keep is not None and svr.get("subject") not in keep:
-            continue
-        data["_path"] = path.relative_to(root).as_posix()
-        out.append(data)
-    return out
-
-
-_COLUMNS = (
-    "participant_id",
-    "session_id",
-    "verdict",
-    "frame_trust",
-    "stacks",
-    "slices",
-    "slices_excluded",
-    "initialisation",
-    "frame",
-    "rounds",
-    "converged",
-    "seconds",
-    "device",
-    "warnings",
-)
-
-
-def _row(sidecar: dict[str, Any]) -> dict[str, str]:
-    svr = sidecar["svr"]
-    kept = svr.get("initialisation", {})
-    verdict = svr.get("verdict") or {}
-    return {
-        "participant_id": f"sub-{svr['subject']}",
-        "session_id": f"ses-{svr['session']}" if svr.get("session") else "n/a",
-        "verdict": str(verdict.get("status", "n/a")),
-        "frame_trust": str(verdict.get("frame", "n/a")),
-        "stacks": str(len(svr.get("inputs", []))),
-        "slices": str(svr.get("slices", "n/a")),
-        "slices_excluded": str(svr.get("slices_excluded", "n/a")),
-        "initialisation": ", ".join(f"{v}" for v in kept.values()) or "n/a",
-        "frame": str(svr.get("frame", "n/a")),
-        "rounds": str(svr.get("rounds", "n/a")),
-        "converged": "n/a" if svr.get("converged") is None else str(svr["converged"]).lower(),
-        "seconds": f"{svr.get('total_seconds', float('nan')):.1f}",
-        "device": str(svr.get("device", "n/a")),
-        "warnings": " | ".join(svr.get("warnings", [])) or "",
-    }
-
-
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}{'' if n == 1 else 's'}"
-
-
-def group_report(
-    output_dir: str | os.PathLike[str], participant_labels: Iterable[str] | None = None
-) -> tuple[Path, Path, int]:
-    """Write the group level: one TSV and one HTML review page over the finished participants.
-
-    Args:
-        output_dir: The derivatives folder of the participant level.
-        participant_labels: Subjects to include; ``None`` for all.
-
-    Returns:
-        The TSV, the HTML page and the number of participants in them.
-
-    Raises:
-        BidsError: If no participant has finished in ``output_dir``.
-    """
-    root = Path(output_dir)
-    sidecars = read_sidecars(root, participant_labels)
-    if not sidecars:
-        raise BidsError(
-            f"OUTPUT_DIR {output_dir}: no finished participant (run the participant level first)"
-        )
-    rows = [_row(s) for s in sidecars]
-    tsv = "\t".join(_COLUMNS) + "\n"
-    tsv += "".join(
-        "\t".join(r[c].replace("\t", " ").replace("\n", " ") for c in _COLUMNS) + "\n" for r in rows
-    )
-    tsv_path = atomic_write_text(root / GROUP_TSV, tsv, overwrite=True)
-    index, cards = [], []
-    for sidecar, row in zip(sidecars, rows, strict=True):
-        session = "" if row["session_id"] == "n/a" else f" {row['session_id']}"
-        title = html.escape(row["participant_id"] + session)
-        anchor = title.replace(" ", "_")
-        sidecar_path = Path(sidecar["_path"])
-        qa = html.escape(
-            sidecar_path.with_name(sidecar_path.name.replace("_T2w.json", "_qa.png")).as_posix()
-        )
-        warnings = sidecar["svr"].get("warnings", [])
-        flag = " (FAILED)" if row["verdict"] == "failed" else " (warnings)" if warnings else ""
-        index.append(f"<li><a href='#{anchor}'>{title}</a>{flag}</li>")
-        notes = (
-            "<ul class='warn'>" + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul>"
-            if warnings
-            else "<p class='ok'>no warnings</p>"
-        )
-        facts = "".join(
-            f"<tr><th>{html.escape(c.replace('_', ' '))}</th><td>{html.escape(row[c])}</td></tr>"
-            for c in _COLUMNS[2:-1]
-        )
-        cards.append(
-            f"<section id='{anchor}'><a href='{qa}'><img src='{qa}' alt='QA figure of {title}' "
-            f"loading='lazy'></a><div><h2>{title}</h2><table>{facts}</table>{notes}</div>"
-            "</section>"
-        )
-    flagged = sum(1 for s in sidecars if s["svr"].get("warnings"))
-    failed = sum(1 for row in rows if row["verdict"] == "failed")
-    page = f"""<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8">
-<title>fetal-svr: {_count(len(sidecars), "participant")}</title>
-<style>
-body {{ font-family: sans-serif; margin: 1.5em; }}
-section {{ border-top: 1px solid #ccc; padding: 0.5em 0; display: flex; gap: 1.5em;
-  align-items: flex-start; }}
-section img {{ width: 520px; max-width: 60vw; }}
-h2 {{ margin-top: 0.2em; }}
-th {{ text-align: left; padding-right: 1em; font-weight: normal; color: #555; }}
-.warn li {{ color: #a40; }} .ok {{ color: #070; }}
-</style></head><body>
-<h1>fetal-svr reconstructions</h1>
-<p>{_count(len(sidecars), "participant")}, <b>{failed} failed</b> (no usable volume: see each
-verdict), {flagged} with warnings; the table:
-<a href="{GROUP_TSV}">{GROUP_TSV}</a>. Each figure is the participant's QA page (orthogonal
-views of the initial and final volume, each slice's agreement with the volume, the rounds); click
-it to enlarge.</p>
-<ul>{"".join(index)}</ul>
-{"".join(cards)}
-</body></html>
-"""
-    html_path = atomic_write_text(root / GROUP_HTML, page, overwrite=True)
-    return tsv_path, html_path, len(sidecars)

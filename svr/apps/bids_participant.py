@@ -23,7 +23,9 @@ from svr.apps.reconstruct import (
     run_reconstruction,
 )
 from svr.files import file_sha256
+from svr.image import Image
 from svr.reconstruction.result import ReconstructionResult
+from svr.tissue.labels import TISSUE_LABELS
 
 __all__ = ["ParticipantJob", "ParticipantSummary", "run_participant"]
 
@@ -42,6 +44,8 @@ class ParticipantJob:
         command: The command line, for the provenance.
         arguments: The command's options and their values, for the provenance.
         weeks: The participant's gestational age (weeks), or ``None``.
+        tissue_atlases: Atlas folders to label the tissues with (``--tissue-labels``); empty
+            for none.
         overwrite: Replace the participant's folder if it exists.
         verbose: Log errors with their traceback.
         quiet: Warnings and errors only.
@@ -54,6 +58,7 @@ class ParticipantJob:
     command: tuple[str, ...]
     arguments: dict[str, Any] = field(default_factory=dict)
     weeks: float | None = None
+    tissue_atlases: tuple[str, ...] = ()
     overwrite: bool = False
     verbose: bool = False
     quiet: bool = False
@@ -220,13 +225,71 @@ def _write(
     target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_directory(target, overwrite=work.overwrite) as tmp:
         (tmp / "anat").mkdir()
-        write_volume(result.volume, tmp / names.volume)
+        write_volume(result.volume, tmp / names.volume, verdict=result.verdict)
         write_volume(result.mask, tmp / names.mask)
         write_transforms(result, tmp / names.transforms)
         masks = sidecar["svr"]["options"]["masks"]
-        qa_figure(result, tmp / names.qa, notes=[work.participant.label, f"masks: {masks}"])
+        labels = _tissue(work, names, result, tmp, sidecar)
+        qa_figure(
+            result,
+            tmp / names.qa,
+            notes=[work.participant.label, f"masks: {masks}"],
+            labels=labels,
+            label_colours=[label.colour for label in TISSUE_LABELS],
+        )
         sidecar["svr"]["total_seconds"] = time.perf_counter() - began
         (tmp / names.sidecar).write_text(json.dumps(sidecar, indent=1) + "\n", encoding="utf-8")
+
+
+def _tissue(
+    work: ParticipantJob,
+    names: ParticipantOutputs,
+    result: ReconstructionResult,
+    tmp: Path,
+    sidecar: dict[str, Any],
+) -> Image | None:
+    """Label, measure and report the tissues (``--tissue-labels``) into ``tmp``; the labels.
+
+    A failure (no age, the volume not in an atlas frame) is a warning (the sidecar's), not the
+    participant's error; a reconstruction whose verdict is not ok (stamped in its volume) has its
+    labels flagged, and labels not trusted are a warning too (both from
+    :func:`~svr.apps.tissue.run_tissue`).
+    """
+    if not work.tissue_atlases:
+        return None
+    from svr.apps.tissue import TissueJob, run_tissue
+    from svr.image import load_nifti
+
+    if work.weeks is None:
+        sidecar["svr"]["tissue"] = {"error": "no gestational age (--age-column)"}
+        log.warning("tissue labels: no gestational age (--age-column)")
+        return None
+    job = TissueJob(
+        input_volume=tmp / names.volume,
+        atlas_dirs=tuple(Path(d) for d in work.tissue_atlases),
+        weeks=work.weeks,
+        output_labels=tmp / names.labels,
+        output_report=tmp / names.report,
+        output_measures=(tmp / names.measures, (tmp / names.measures).with_suffix(".json")),
+        input_mask=tmp / names.mask,
+    )
+    try:
+        outcome = run_tissue(job)
+    except ValueError as err:
+        message = " ".join(str(err).split()).replace(str(tmp) + "/", "")
+        sidecar["svr"]["tissue"] = {"error": message}
+        log.warning("tissue labels: %s", message)
+        return None
+    segmentation, biometry = outcome.segmentation, outcome.biometry
+    sidecar["svr"]["tissue"] = {
+        "trusted": segmentation.trusted,
+        "problems": list(segmentation.problems),
+        "atlases": [str(fit.path) for fit in segmentation.atlases],
+        "suggested_age_weeks": outcome.suggested_age_weeks,
+        "volumes_ml": biometry.volumes_ml,
+        "measures_mm": {k: (v if v == v else None) for k, v in biometry.measures_mm.items()},
+    }
+    return load_nifti(tmp / names.labels)
 
 
 def model_digest(name: str) -> str | None:

@@ -23,10 +23,10 @@ from svr.apps.bids import (
     Participant,
     check_output_dir,
     find_participants,
-    group_report,
     participant_age,
     write_dataset_description,
 )
+from svr.apps.bids_group import group_report
 from svr.cli.common import (
     CliError,
     HelpFormatter,
@@ -130,6 +130,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "so that each is fitted to the atlases of its own age",
     )
     bids.add_argument(
+        "--tissue-labels",
+        action="store_true",
+        help="also label each reconstruction's tissues with the atlases of --atlas-dir (svr "
+        "segment-volume: labels, volumes, biometry, an HTML report; needs each participant's age)",
+    )
+    bids.add_argument(
         "--thickness",
         type=positive_float,
         metavar="MM",
@@ -173,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.age_column is not None and args.atlas_dir is None:
         raise CliError("--age-column needs --atlas-dir")
+    if args.tissue_labels and args.atlas_dir is None:
+        raise CliError("--tissue-labels needs --atlas-dir (the atlases whose labels are used)")
     if args.age_column is not None and args.gestational_age is not None:
         raise CliError("give --gestational-age or --age-column, not both")
     device = resolve_device(args.device)
@@ -248,6 +256,7 @@ def _participant_job(
         command=("svr", *sys.argv[1:]),
         arguments=arguments,
         weeks=weeks if weeks is not None else args.gestational_age,
+        tissue_atlases=(args.atlas_dir,) if args.tissue_labels else (),
         overwrite=args.overwrite,
         verbose=args.verbose,
         quiet=args.quiet,

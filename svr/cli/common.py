@@ -83,6 +83,11 @@ def add_common_options(parser: argparse.ArgumentParser) -> None:
         help="torch device: auto (cuda if available, else cpu), cpu, cuda, cuda:N",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed")
+    add_verbosity_options(parser)
+
+
+def add_verbosity_options(parser: argparse.ArgumentParser) -> None:
+    """Add ``--verbose`` and ``--quiet`` (one or the other)."""
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument(
         "-v", "--verbose", action="store_true", help="debug logging and tracebacks on errors"

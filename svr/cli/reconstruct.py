@@ -211,7 +211,8 @@ def _write_outputs(
 
     written = []
     if args.output_volume is not None:
-        written.append(str(write_volume(result.volume, args.output_volume, args.overwrite)))
+        volume = write_volume(result.volume, args.output_volume, args.overwrite, result.verdict)
+        written.append(str(volume))
     if args.output_transforms is not None:
         written.append(str(write_transforms(result, args.output_transforms, args.overwrite)))
     if args.output_slices is not None:

@@ -1,0 +1,328 @@
+"""Tissue labels of a reconstruction by multi-atlas segmentation.
+
+The atlases of the ages nearest the fetus's (``--gestational-age``, from one or more atlas
+folders in the ``GA<weeks>*/{srr,mask,parcellation}.nii.gz`` layout) are each registered to the
+reconstruction (:mod:`svr.tissue.registration`: affine, then demons), their label maps pulled
+onto the reconstruction's own grid as per-label probabilities and fused by locally weighted
+voting (:mod:`svr.tissue.fusion`). What comes back says how sure it is: each atlas's fit, the
+fused probability and the atlases' agreement per voxel, and a verdict.
+
+A volume that is not in an atlas frame (its brain turned by more than
+``TissueConfig.max_rotation_deg`` from every atlas, or the affine fit fails) is refused
+with :class:`NotInAtlasFrameError`: labels would be pulled from the wrong places.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import SimpleITK as sitk  # noqa: N813 (the usual alias)
+
+from svr.image import Image, load_nifti
+from svr.sampling.volume import atlas_labels_path, atlas_paths_near
+from svr.tissue.fusion import FusedLabels, fuse_labels, local_weights
+from svr.tissue.labels import TISSUE_LABELS
+from svr.tissue.registration import AtlasRegistrationConfig, register_atlas, resample_like
+from svr.tissue.sitk_images import from_sitk, to_sitk
+from svr.validation import check_instance, check_int, check_number, check_number_tuple
+
+__all__ = [
+    "AtlasFit",
+    "NotInAtlasFrameError",
+    "TissueConfig",
+    "TissueSegmentation",
+    "atlas_age",
+    "segment_volume",
+    "select_atlases",
+]
+
+log = logging.getLogger(__name__)
+
+N_LABELS = len(TISSUE_LABELS) + 1
+"""Label values 0 (background) to 8."""
+
+
+class NotInAtlasFrameError(ValueError):
+    """The volume's brain is not in an atlas frame (the message says how far it is)."""
+
+
+@dataclass(frozen=True)
+class TissueConfig:
+    """How a reconstruction's tissue labels are found.
+
+    Attributes:
+        window_weeks: Atlases whose age is within this many weeks of the fetus's are used
+            (the nearest age when none is), >= 0.
+        max_atlases: At most this many, nearest age first, >= 1.
+        hold_out: Atlas ages (weeks) never used (evaluations on an atlas's own ages).
+        registration: How each atlas is registered.
+        fusion_sigma_mm: Window of the local vote weights (mm, > 0).
+        fusion_power: Exponent of the local vote weights (>= 0; 0: majority voting).
+        max_rotation_deg: A volume whose best atlas fit turns it more than this is not in an
+            atlas frame (an error), degrees.
+        min_ncc: Below this correlation of the best-fitting atlas after the affine step the
+            volume is not in an atlas frame either (an error).
+        trusted_ncc: Below this correlation after the deformable step the labels are flagged
+            as not to be trusted (a warning, the labels are still written).
+        trusted_agreement: Below this mean agreement of the atlases inside the brain the labels
+            are flagged too.
+
+    Raises:
+        ConfigFieldError: On construction, naming the field, for a value out of range.
+    """
+
+    window_weeks: float = 1.0
+    max_atlases: int = 3
+    hold_out: tuple[float, ...] = ()
+    registration: AtlasRegistrationConfig = field(default_factory=AtlasRegistrationConfig)
+    fusion_sigma_mm: float = 2.0
+    fusion_power: float = 1.0
+    max_rotation_deg: float = 25.0
+    min_ncc: float = 0.4
+    trusted_ncc: float = 0.7
+    trusted_agreement: float = 0.8
+
+    def __post_init__(self) -> None:
+        owner = "TissueConfig"
+        check_number(owner, "window_weeks", self.window_weeks, ge=0)
+        check_int(owner, "max_atlases", self.max_atlases, minimum=1)
+        check_number(owner, "fusion_sigma_mm", self.fusion_sigma_mm, gt=0)
+        check_number(owner, "fusion_power", self.fusion_power, ge=0)
+        check_number(owner, "max_rotation_deg", self.max_rotation_deg, gt=0, le=180)
+        for name in ("min_ncc", "trusted_ncc", "trusted_agreement"):
+            check_number(owner, name, getattr(self, name), ge=0, le=1)
+        hold_out = check_number_tuple(owner, "hold_out", self.hold_out, gt=0, allow_list=True)
+        object.__setattr__(self, "hold_out", hold_out)
+        check_instance(owner, "registration", self.registration, AtlasRegistrationConfig)
+
+
+class AtlasFit(NamedTuple):
+    """How one atlas fitted the reconstruction.
+
+    Attributes:
+        path: The atlas's ``srr.nii.gz``.
+        weeks: Its gestational age.
+        rotation: (3, 3) the affine's rotation (RAS): the volume's directions to the atlas's.
+        rotation_deg: Its angle (degrees): the volume's frame against the atlas's.
+        scale: The affine's mean scale (atlas size over the reconstruction's brain).
+        ncc_affine: Correlation after the affine step.
+        ncc: Correlation after the deformable step.
+        weight: Its mean vote weight inside the brain.
+    """
+
+    path: Path
+    weeks: float
+    rotation: np.ndarray
+    rotation_deg: float
+    scale: float
+    ncc_affine: float
+    ncc: float
+    weight: float
+
+
+class TissueSegmentation(NamedTuple):
+    """A reconstruction's tissue labels and how sure they are.
+
+    Attributes:
+        labels: (I, J, K) uint8 labels on the volume's grid (0 outside its brain).
+        probability: (I, J, K) fused probability of each voxel's label.
+        agreement: (I, J, K) fraction of the atlases that chose the same label.
+        atlases: One fit per atlas used.
+        atlas_volumes_ml: Per atlas, each label's volume (mL) it alone would give (its warped
+            labels on the volume's grid): their spread is the atlases' disagreement.
+        trusted: Whether the labels pass the checks (:class:`TissueConfig`).
+        problems: What failed the checks (one line each; empty when trusted).
+    """
+
+    labels: np.ndarray
+    probability: np.ndarray
+    agreement: np.ndarray
+    atlases: list[AtlasFit]
+    atlas_volumes_ml: list[dict[int, float]]
+    trusted: bool
+    problems: list[str]
+
+
+def atlas_age(path: str | os.PathLike[str]) -> float:
+    """The gestational age (weeks) of an atlas volume: the digits after ``GA`` of its folder."""
+    match = re.match(r"GA(\d+(?:\.\d+)?)", Path(path).parent.name)
+    if match is None:
+        raise ValueError(f"{Path(path).parent}: not named GA<weeks> (e.g. GA28)")
+    return float(match.group(1))
+
+
+def select_atlases(
+    folders: Sequence[str | os.PathLike[str]], weeks: float, config: TissueConfig
+) -> list[tuple[Path, Path, Path]]:
+    """The ``(srr, mask, parcellation)`` paths of the atlases to use, nearest age first.
+
+    Args:
+        folders: Atlas folders (each of ``GA<weeks>*`` subfolders).
+        weeks: The fetus's gestational age.
+        config: ``window_weeks``, ``max_atlases`` and ``hold_out``.
+
+    Returns:
+        At most ``max_atlases`` triples over all folders, the nearest ages first.
+
+    Raises:
+        VolumeSourceError: A folder is missing, holds no atlas or lacks a parcellation.
+    """
+    found: list[tuple[float, Path, Path]] = []
+    for folder in folders:
+        for volume, mask in atlas_paths_near(folder, weeks, config.window_weeks, config.hold_out):
+            found.append((abs(atlas_age(volume) - weeks), volume, mask))
+    found.sort(key=lambda entry: entry[0])
+    return [
+        (volume, mask, atlas_labels_path(volume)) for _, volume, mask in found[: config.max_atlases]
+    ]
+
+
+def _one_hot_warped(
+    labels: sitk.Image, reference: sitk.Image, transform: sitk.Transform
+) -> np.ndarray:
+    """(L, I, J, K) float32 probability of each label value, warped onto ``reference``."""
+    field = sitk.TransformToDisplacementField(
+        transform,
+        sitk.sitkVectorFloat64,
+        reference.GetSize(),
+        reference.GetOrigin(),
+        reference.GetSpacing(),
+        reference.GetDirection(),
+    )
+    dense = sitk.DisplacementFieldTransform(field)
+    out = []
+    for value in range(N_LABELS):
+        indicator = sitk.Cast(labels == value, sitk.sitkFloat32)
+        out.append(from_sitk(resample_like(indicator, reference, dense)))
+    probability = np.stack(out).astype(np.float32)
+    # outside the atlas's grid nothing was sampled: background
+    probability[0] += np.clip(1.0 - probability.sum(0), 0.0, 1.0)
+    return probability
+
+
+def segment_volume(
+    volume: Image,
+    atlas_dirs: Sequence[str | os.PathLike[str]],
+    weeks: float,
+    config: TissueConfig | None = None,
+    mask: np.ndarray | None = None,
+    name: str = "volume",
+) -> TissueSegmentation:
+    """Tissue labels of a reconstruction in the atlases' label set, on its own grid.
+
+    Args:
+        volume: The reconstruction (T2w, in an atlas frame up to a few degrees).
+        atlas_dirs: Atlas folders (``GA<weeks>*/{srr,mask,parcellation}.nii.gz``).
+        weeks: The fetus's gestational age (weeks, > 0).
+        config: Settings (defaults: :class:`TissueConfig`).
+        mask: (I, J, K) bool brain on the volume's grid; default: its nonzero voxels.
+        name: How errors name the volume (its file).
+
+    Returns:
+        The labels and how sure they are.
+
+    Raises:
+        NotInAtlasFrameError: If no atlas fits the brain without turning it more than
+            ``max_rotation_deg`` or its correlation stays under ``min_ncc``.
+        VolumeSourceError: If an atlas folder is missing or has no atlas near the age.
+        ValueError: If ``mask`` is empty or not on the volume's grid.
+    """
+    config = config or TissueConfig()
+    array = volume.data.detach().cpu().numpy().astype(np.float32)
+    affine = volume.affine.detach().cpu().numpy()
+    brain = array > 0 if mask is None else np.asarray(mask, dtype=bool)
+    if brain.shape != array.shape:
+        raise ValueError(f"{name}: mask shape {brain.shape} is not the volume's {array.shape}")
+    if not brain.any():
+        raise ValueError(f"{name}: the brain is empty (no voxel above 0 or in the mask)")
+    array = np.where(brain, array, 0.0).astype(np.float32)
+    fixed = to_sitk(array, affine)
+    fixed_mask = to_sitk(brain.astype(np.uint8), affine)
+    fits: list[AtlasFit] = []
+    probabilities: list[np.ndarray] = []
+    images: list[np.ndarray] = []
+    for srr, atlas_mask_path, parcellation in select_atlases(atlas_dirs, weeks, config):
+        atlas = load_nifti(srr)
+        atlas_mask = load_nifti(atlas_mask_path).data.numpy() > 0.5
+        atlas_affine = atlas.affine.numpy()
+        moving = to_sitk(atlas.data.numpy() * atlas_mask, atlas_affine)
+        warp = register_atlas(
+            fixed,
+            fixed_mask,
+            moving,
+            to_sitk(atlas_mask.astype(np.uint8), atlas_affine),
+            config.registration,
+        )
+        log.info(
+            "atlas %s: turned %.1f deg, scale %.3f, NCC %.3f affine, %.3f deformable",
+            srr.parent.name,
+            warp.rotation_deg,
+            warp.scale,
+            warp.ncc_affine,
+            warp.ncc,
+        )
+        labels_image = to_sitk(load_nifti(parcellation).data.numpy().round(), atlas_affine)
+        probabilities.append(_one_hot_warped(labels_image, fixed, warp.transform))
+        images.append(from_sitk(resample_like(moving, fixed, warp.transform)))
+        fits.append(
+            AtlasFit(
+                srr,
+                atlas_age(srr),
+                warp.rotation,
+                warp.rotation_deg,
+                warp.scale,
+                warp.ncc_affine,
+                warp.ncc,
+                0.0,
+            )
+        )
+    best = max(range(len(fits)), key=lambda i: fits[i].ncc_affine)
+    if fits[best].rotation_deg > config.max_rotation_deg or fits[best].ncc_affine < config.min_ncc:
+        raise NotInAtlasFrameError(
+            f"{name}: not in an atlas frame (the best atlas fit turns it "
+            f"{fits[best].rotation_deg:.0f} deg, correlation {fits[best].ncc_affine:.2f}); "
+            "reconstruct it with --registration cnn and an --atlas-volume, or give its "
+            "atlas-frame output"
+        )
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    sx, sy, sz = (float(config.fusion_sigma_mm / step) for step in spacing)
+    weights = local_weights(array, images, brain, (sx, sy, sz), config.fusion_power)
+    fused: FusedLabels = fuse_labels(probabilities, weights, brain)
+    fits = [
+        fit._replace(weight=float(w[brain].mean())) for fit, w in zip(fits, weights, strict=True)
+    ]
+    voxel_ml = float(abs(np.linalg.det(affine[:3, :3]))) / 1000.0
+    atlas_volumes = [
+        {
+            label.value: float((np.argmax(p, axis=0)[brain] == label.value).sum() * voxel_ml)
+            for label in TISSUE_LABELS
+        }
+        for p in probabilities
+    ]
+    problems = []
+    ncc = max(fit.ncc for fit in fits)
+    if ncc < config.trusted_ncc:
+        problems.append(
+            f"the atlases fit the volume poorly (best correlation {ncc:.2f} < {config.trusted_ncc})"
+        )
+    agreement = float(fused.agreement[brain].mean())
+    if agreement < config.trusted_agreement:
+        problems.append(
+            f"the atlases disagree (mean agreement {agreement:.2f} < {config.trusted_agreement})"
+        )
+    return TissueSegmentation(
+        fused.labels,
+        fused.probability,
+        fused.agreement,
+        fits,
+        atlas_volumes,
+        not problems,
+        problems,
+    )
