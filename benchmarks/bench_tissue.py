@@ -127,6 +127,7 @@ def main() -> None:
     parser.add_argument("--fusion-sigma", type=float, default=2.0)
     parser.add_argument("--fusion-power", type=float, default=1.0)
     parser.add_argument("--affine-only", action="store_true")
+    parser.add_argument("--no-trim", action="store_true", help="labels over the whole mask")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--results", type=Path)
     parser.add_argument(
@@ -189,6 +190,7 @@ def main() -> None:
                     registration=registration,
                     fusion_sigma_mm=args.fusion_sigma,
                     fusion_power=args.fusion_power,
+                    trim_to_affine_brain=not args.no_trim,
                 )
                 labels, rotation = run_multi_atlas(folder / "volume.nii.gz", info, config)
             else:

@@ -31,7 +31,13 @@ from svr.tissue.fusion import FusedLabels, fuse_labels, local_weights
 from svr.tissue.labels import TISSUE_LABELS
 from svr.tissue.registration import AtlasRegistrationConfig, register_atlas, resample_like
 from svr.tissue.sitk_images import from_sitk, to_sitk
-from svr.validation import check_instance, check_int, check_number, check_number_tuple
+from svr.validation import (
+    check_bool,
+    check_instance,
+    check_int,
+    check_number,
+    check_number_tuple,
+)
 
 __all__ = [
     "AtlasFit",
@@ -73,6 +79,9 @@ class TissueConfig:
             as not to be trusted (a warning, the labels are still written).
         trusted_agreement: Below this mean agreement of the atlases inside the brain the labels
             are flagged too.
+        trim_to_affine_brain: Label only the voxels inside most atlases' brain masks after the
+            affine step (0 elsewhere): a reconstruction's brain mask is often looser than the
+            brain, and the deformable step stretches the atlases over what lies inside it.
 
     Raises:
         ConfigFieldError: On construction, naming the field, for a value out of range.
@@ -88,6 +97,7 @@ class TissueConfig:
     min_ncc: float = 0.4
     trusted_ncc: float = 0.7
     trusted_agreement: float = 0.8
+    trim_to_affine_brain: bool = True
 
     def __post_init__(self) -> None:
         owner = "TissueConfig"
@@ -101,6 +111,7 @@ class TissueConfig:
         hold_out = check_number_tuple(owner, "hold_out", self.hold_out, gt=0, allow_list=True)
         object.__setattr__(self, "hold_out", hold_out)
         check_instance(owner, "registration", self.registration, AtlasRegistrationConfig)
+        check_bool(owner, "trim_to_affine_brain", self.trim_to_affine_brain)
 
 
 class AtlasFit(NamedTuple):
@@ -248,6 +259,7 @@ def segment_volume(
     fits: list[AtlasFit] = []
     probabilities: list[np.ndarray] = []
     images: list[np.ndarray] = []
+    affine_brains: list[np.ndarray] = []
     for srr, atlas_mask_path, parcellation in select_atlases(atlas_dirs, weeks, config):
         atlas = load_nifti(srr)
         atlas_mask = load_nifti(atlas_mask_path).data.numpy() > 0.5
@@ -271,6 +283,8 @@ def segment_volume(
         labels_image = to_sitk(load_nifti(parcellation).data.numpy().round(), atlas_affine)
         probabilities.append(_one_hot_warped(labels_image, fixed, warp.transform))
         images.append(from_sitk(resample_like(moving, fixed, warp.transform)))
+        atlas_brain = to_sitk(atlas_mask.astype(np.float32), atlas_affine)
+        affine_brains.append(from_sitk(resample_like(atlas_brain, fixed, warp.affine)))
         fits.append(
             AtlasFit(
                 srr,
@@ -295,6 +309,11 @@ def segment_volume(
     sx, sy, sz = (float(config.fusion_sigma_mm / step) for step in spacing)
     weights = local_weights(array, images, brain, (sx, sy, sz), config.fusion_power)
     fused: FusedLabels = fuse_labels(probabilities, weights, brain)
+    if config.trim_to_affine_brain:
+        # the demons stretch the atlas brains over non-brain signal inside a loose mask: keep
+        # labels only where most atlases' brains lie after the affine step alone
+        outside = np.mean(affine_brains, axis=0) < 0.5
+        fused = fused._replace(labels=np.where(outside, 0, fused.labels).astype(np.uint8))
     fits = [
         fit._replace(weight=float(w[brain].mean())) for fit, w in zip(fits, weights, strict=True)
     ]

@@ -14,7 +14,8 @@ atlas frame: the output of `svr reconstruct --registration cnn` with an --atlas-
 volume left in the scanner frame is refused with one line). The atlases of the ages nearest the
 fetus's (--gestational-age; within --window-weeks, at most --max-atlases) are each registered
 to the volume (SimpleITK: affine, then demons), and their labels are fused voxel by voxel,
-weighted by how well each atlas matches the volume around that voxel. The labels are those of
+weighted by how well each atlas matches the volume around that voxel, within the atlases'
+brains after the affine step (a loose brain mask is not filled with tissue). The labels are those of
 the atlases' parcellation.nii.gz: 1 white matter, 2 ventricles, 3 cerebellum, 4 extra-axial
 CSF, 5 cortical grey matter, 6 deep grey matter, 7 brainstem, 8 corpus callosum; they are
 written as uint8 on the volume's own grid with its header.
