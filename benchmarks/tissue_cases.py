@@ -21,11 +21,12 @@ import json
 import math
 from pathlib import Path
 
-import nibabel as nib
 import numpy as np
 import SimpleITK as sitk  # noqa: N813
+import torch
 from scipy.spatial.transform import Rotation
 
+from svr.image import Image, load_nifti, save_labels_like, save_nifti
 from svr.tissue.registration import affine_register, resample_like
 from svr.tissue.sitk_images import from_sitk, to_sitk
 
@@ -33,15 +34,19 @@ _LPS = np.diag([-1.0, -1.0, 1.0])
 
 
 def _load(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    image = nib.load(str(path))
-    return np.asarray(image.dataobj, dtype=np.float32), np.asarray(image.affine, dtype=np.float64)
+    image = load_nifti(path)
+    return image.data.numpy(), image.affine.numpy()
 
 
-def _write(path: Path, array: np.ndarray, affine: np.ndarray, dtype: type) -> None:
-    image = nib.Nifti1Image(array.astype(dtype), affine)
-    image.set_sform(affine, code=1)
-    image.set_qform(affine, code=1)
-    nib.save(image, str(path))
+def _write_case(
+    out: Path, volume: np.ndarray, affine: np.ndarray, truth: np.ndarray, info: dict
+) -> None:
+    """``volume.nii.gz``, ``truth_labels.nii.gz`` (its grid and header) and ``case.json``."""
+    out.mkdir(parents=True, exist_ok=True)
+    image = Image(torch.from_numpy(volume.astype(np.float32)), torch.from_numpy(affine))
+    save_nifti(image, out / "volume.nii.gz", overwrite=True)
+    save_labels_like(truth, out / "volume.nii.gz", out / "truth_labels.nii.gz", overwrite=True)
+    (out / "case.json").write_text(json.dumps(info, indent=1), encoding="utf-8")
 
 
 def gt_volume_case(atlas_age: Path, out: Path, family: str, weeks: float, seed: int) -> None:
@@ -74,9 +79,6 @@ def gt_volume_case(atlas_age: Path, out: Path, family: str, weeks: float, seed: 
     )
     volume = np.where(moved_mask > 0.5, volume, 0.0)
     truth = np.where(moved_mask > 0.5, truth, 0)
-    out.mkdir(parents=True, exist_ok=True)
-    _write(out / "volume.nii.gz", volume, grid, np.float32)
-    _write(out / "truth_labels.nii.gz", truth, grid, np.uint8)
     info = {
         "weeks": weeks,
         "family": family,
@@ -85,7 +87,7 @@ def gt_volume_case(atlas_age: Path, out: Path, family: str, weeks: float, seed: 
         "rotation_deg": float(np.degrees(rotation.magnitude())),
         "shift_mm": float(np.linalg.norm(shift)),
     }
-    (out / "case.json").write_text(json.dumps(info, indent=1), encoding="utf-8")
+    _write_case(out, volume, grid, truth, info)
 
 
 def recon_case(recon: Path, atlas_age: Path, out: Path, family: str, weeks: float) -> float:
@@ -106,9 +108,6 @@ def recon_case(recon: Path, atlas_age: Path, out: Path, family: str, weeks: floa
     moved = from_sitk(resample_like(moving, fixed, rigid))
     inside = volume > 0
     ncc = float(np.corrcoef(volume[inside], moved[inside])[0, 1])
-    out.mkdir(parents=True, exist_ok=True)
-    _write(out / "volume.nii.gz", volume, affine, np.float32)
-    _write(out / "truth_labels.nii.gz", truth, affine, np.uint8)
     info = {
         "weeks": weeks,
         "family": family,
@@ -117,5 +116,5 @@ def recon_case(recon: Path, atlas_age: Path, out: Path, family: str, weeks: floa
         "recon": str(recon),
         "truth_ncc": ncc,
     }
-    (out / "case.json").write_text(json.dumps(info, indent=1), encoding="utf-8")
+    _write_case(out, volume, affine, truth, info)
     return ncc

@@ -23,7 +23,10 @@ from typing import NamedTuple
 
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
+import torch
 
+from svr.geometry import rotation_angle
+from svr.image_metrics import ncc as image_ncc
 from svr.validation import (
     check_bool,
     check_int,
@@ -39,6 +42,7 @@ __all__ = [
     "deformable_register",
     "register_atlas",
     "resample_like",
+    "rotation_degrees",
 ]
 
 
@@ -91,8 +95,6 @@ class AtlasWarp(NamedTuple):
         affine: The affine part alone.
         rotation: (3, 3) the affine's rotation (its polar factor) in RAS: it turns the
             reconstruction's world directions into the atlas's.
-        rotation_deg: Its angle (degrees): how far the reconstruction's frame is from the
-            atlas's.
         scale: The affine's mean scale (cube root of its determinant): the atlas's size over
             the reconstruction's brain.
         ncc_affine: Correlation of the two brains after the affine, over the fixed brain.
@@ -102,10 +104,14 @@ class AtlasWarp(NamedTuple):
     transform: sitk.Transform
     affine: sitk.AffineTransform
     rotation: np.ndarray
-    rotation_deg: float
     scale: float
     ncc_affine: float
     ncc: float
+
+    @property
+    def rotation_deg(self) -> float:
+        """The rotation's angle (degrees): the reconstruction's frame against the atlas's."""
+        return rotation_degrees(self.rotation)
 
 
 def _grid_like(image: sitk.Image, spacing_mm: float) -> sitk.Image:
@@ -147,13 +153,13 @@ def _down(image: sitk.Image, spacing_mm: float) -> sitk.Image:
 
 
 def ncc(a: sitk.Image, b: sitk.Image, mask: sitk.Image) -> float:
-    """Pearson correlation of two images on one grid over ``mask`` (> 0)."""
-    inside = sitk.GetArrayViewFromImage(mask) > 0
-    x = sitk.GetArrayViewFromImage(a)[inside].astype(np.float64)
-    y = sitk.GetArrayViewFromImage(b)[inside].astype(np.float64)
-    x, y = x - x.mean(), y - y.mean()
-    denominator = math.sqrt(float((x * x).sum() * (y * y).sum()))
-    return float((x * y).sum() / denominator) if denominator > 0 else 0.0
+    """Pearson correlation of two images on one grid over ``mask`` (> 0).
+
+    The images are flattened into one "slice" for :func:`svr.image_metrics.ncc`.
+    """
+    flat = [torch.from_numpy(sitk.GetArrayFromImage(image)).reshape(1, -1, 1) for image in (a, b)]
+    inside = torch.from_numpy(sitk.GetArrayFromImage(mask) > 0).reshape(1, -1, 1)
+    return float(image_ncc(flat[0].double(), flat[1].double(), inside)[0])
 
 
 def _fit(
@@ -284,15 +290,18 @@ def deformable_register(
     return sitk.DisplacementFieldTransform(sitk.Cast(field, sitk.sitkVectorFloat64))
 
 
-def _rotation_and_scale(affine: sitk.AffineTransform) -> tuple[np.ndarray, float, float]:
-    """The affine matrix's polar rotation (RAS), its angle (deg) and the mean scale."""
+def rotation_degrees(rotation: np.ndarray) -> float:
+    """The angle (degrees) of a (3, 3) rotation matrix (:func:`svr.geometry.rotation_angle`)."""
+    turn = torch.as_tensor(rotation, dtype=torch.float64)
+    return math.degrees(float(rotation_angle(torch.eye(3, dtype=torch.float64), turn)))
+
+
+def _rotation_and_scale(affine: sitk.AffineTransform) -> tuple[np.ndarray, float]:
+    """The affine matrix's polar rotation (RAS) and its mean scale."""
     matrix = np.asarray(affine.GetMatrix(), dtype=np.float64).reshape(3, 3)
     u, _, vt = np.linalg.svd(matrix)
-    rotation = u @ vt
-    cos = (np.trace(rotation) - 1.0) / 2.0
-    angle = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
     lps = np.diag([-1.0, -1.0, 1.0])
-    return lps @ rotation @ lps, angle, float(abs(np.linalg.det(matrix)) ** (1.0 / 3.0))
+    return lps @ (u @ vt) @ lps, float(abs(np.linalg.det(matrix)) ** (1.0 / 3.0))
 
 
 def register_atlas(
@@ -328,5 +337,5 @@ def register_atlas(
         displacement = deformable_register(fixed, moved, mask, config)
         transform = sitk.CompositeTransform([affine, displacement])
         score = ncc(fixed, resample_like(moving, fixed, transform), mask)
-    rotation, angle, scale = _rotation_and_scale(affine)
-    return AtlasWarp(transform, affine, rotation, angle, scale, ncc_affine, score)
+    rotation, scale = _rotation_and_scale(affine)
+    return AtlasWarp(transform, affine, rotation, scale, ncc_affine, score)

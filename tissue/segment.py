@@ -29,7 +29,12 @@ from svr.image import Image, load_nifti
 from svr.sampling.volume import atlas_labels_path, atlas_paths_near
 from svr.tissue.fusion import FusedLabels, fuse_labels, local_weights
 from svr.tissue.labels import TISSUE_LABELS
-from svr.tissue.registration import AtlasRegistrationConfig, register_atlas, resample_like
+from svr.tissue.registration import (
+    AtlasRegistrationConfig,
+    register_atlas,
+    resample_like,
+    rotation_degrees,
+)
 from svr.tissue.sitk_images import from_sitk, to_sitk
 from svr.validation import (
     check_bool,
@@ -121,7 +126,6 @@ class AtlasFit(NamedTuple):
         path: The atlas's ``srr.nii.gz``.
         weeks: Its gestational age.
         rotation: (3, 3) the affine's rotation (RAS): the volume's directions to the atlas's.
-        rotation_deg: Its angle (degrees): the volume's frame against the atlas's.
         scale: The affine's mean scale (atlas size over the reconstruction's brain).
         ncc_affine: Correlation after the affine step.
         ncc: Correlation after the deformable step.
@@ -131,11 +135,15 @@ class AtlasFit(NamedTuple):
     path: Path
     weeks: float
     rotation: np.ndarray
-    rotation_deg: float
     scale: float
     ncc_affine: float
     ncc: float
     weight: float
+
+    @property
+    def rotation_deg(self) -> float:
+        """The rotation's angle (degrees): the volume's frame against the atlas's."""
+        return rotation_degrees(self.rotation)
 
 
 class TissueSegmentation(NamedTuple):
@@ -148,8 +156,8 @@ class TissueSegmentation(NamedTuple):
         atlases: One fit per atlas used.
         atlas_volumes_ml: Per atlas, each label's volume (mL) it alone would give (its warped
             labels on the volume's grid): their spread is the atlases' disagreement.
-        trusted: Whether the labels pass the checks (:class:`TissueConfig`).
-        problems: What failed the checks (one line each; empty when trusted).
+        problems: What failed the checks (:class:`TissueConfig`), one line each; empty when
+            the labels can be trusted.
     """
 
     labels: np.ndarray
@@ -157,8 +165,12 @@ class TissueSegmentation(NamedTuple):
     agreement: np.ndarray
     atlases: list[AtlasFit]
     atlas_volumes_ml: list[dict[int, float]]
-    trusted: bool
     problems: list[str]
+
+    @property
+    def trusted(self) -> bool:
+        """Whether the labels pass every check."""
+        return not self.problems
 
 
 def atlas_age(path: str | os.PathLike[str]) -> float:
@@ -290,7 +302,6 @@ def segment_volume(
                 srr,
                 atlas_age(srr),
                 warp.rotation,
-                warp.rotation_deg,
                 warp.scale,
                 warp.ncc_affine,
                 warp.ncc,
@@ -342,6 +353,5 @@ def segment_volume(
         fused.agreement,
         fits,
         atlas_volumes,
-        not problems,
         problems,
     )

@@ -162,7 +162,7 @@ def run_tissue(job: TissueJob) -> TissueOutcome:
     segmentation = segment_volume(volume, job.atlas_dirs, job.weeks, job.config, mask, name)
     if known:
         problems = [*known, *segmentation.problems]
-        segmentation = segmentation._replace(trusted=False, problems=problems)
+        segmentation = segmentation._replace(problems=problems)
     for problem in segmentation.problems:
         log.warning("%s: labels not trusted: %s", name, problem)
     best = max(segmentation.atlases, key=lambda fit: fit.weight)
