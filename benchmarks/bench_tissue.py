@@ -128,8 +128,12 @@ def main() -> None:
     parser.add_argument("--fusion-power", type=float, default=1.0)
     parser.add_argument("--affine-only", action="store_true")
     parser.add_argument("--no-trim", action="store_true", help="labels over the whole mask")
+    parser.add_argument(
+        "--no-refine", action="store_true", help="one registration pass, on the output's own mask"
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--results", type=Path)
+    parser.add_argument("--json", type=Path, help="also write every case's figures here")
     parser.add_argument(
         "--cli-time",
         action="store_true",
@@ -191,6 +195,7 @@ def main() -> None:
                     fusion_sigma_mm=args.fusion_sigma,
                     fusion_power=args.fusion_power,
                     trim_to_affine_brain=not args.no_trim,
+                    refine_brain=not args.no_refine,
                 )
                 labels, rotation = run_multi_atlas(folder / "volume.nii.gz", info, config)
             else:
@@ -217,6 +222,7 @@ def main() -> None:
             rows["time"].append(seconds)
             rows["kind"].append(info["kind"])
             rows["mm"].append(measure_err)
+            rows.setdefault("case", []).append(case)
             line = (
                 f"| {method} | {case} | {np.mean(per_label):.3f} | "
                 + " | ".join(f"{d:.2f}" for d in per_label)
@@ -259,6 +265,8 @@ def main() -> None:
                 f"linear measures: median abs error {np.nanmedian(mm):.2f} mm ({measures_text})"
             )
     print("\n".join(text[len(lines) + 2 :]))
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=1, default=float))
     if args.results:
         write_results(args.results, "Tissue labels against the truth", "\n".join(text))
 

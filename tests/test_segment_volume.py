@@ -7,12 +7,15 @@ import json
 import nibabel as nib
 import numpy as np
 import pytest
+import torch
+from scipy import ndimage
 from scipy.spatial.transform import Rotation
 from tissue_phantom import atlas_folder, centred_affine, grid_points, image_of, phantom_labels, save
 
 from svr.cli import main
-from svr.image import load_nifti, save_nifti
+from svr.image import Image, load_nifti, save_nifti
 from svr.stamp import read_stamp, verdict_stamp
+from svr.tissue.segment import TissueConfig, segment_volume
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +152,22 @@ def test_stamps_round_trip_and_refuse_what_they_cannot_hold():
     assert read_stamp(b"") is None and read_stamp("made by another tool") is None
     with pytest.raises(ValueError, match="status"):
         verdict_stamp("fine", "trusted")
+
+
+def test_a_loose_mask_does_not_inflate_the_labels(tmp_path, atlases):
+    """Non-brain signal inside a loose mask (as a reconstruction's) is not labelled as tissue.
+
+    The volume carries a 0.3 halo 0-6 mm around the brain, all of it inside its mask; registering
+    once on that mask draws the atlases outwards, the second pass on the cut volume does not.
+    """
+    volume_path, truth, affine = _case(tmp_path)
+    data = load_nifti(volume_path).data.numpy()
+    halo = ndimage.binary_dilation(truth > 0, iterations=4) & (truth == 0)
+    data = np.where(halo, 0.3, data).astype(np.float32)
+    volume = Image(torch.from_numpy(data), torch.from_numpy(affine))
+    errors = {}
+    for refine in (False, True):
+        result = segment_volume(volume, [atlases], 28.0, TissueConfig(refine_brain=refine))
+        errors[refine] = (result.labels > 0).sum() / (truth > 0).sum() - 1.0
+        assert result.trusted
+    assert abs(errors[True]) < 0.03 and errors[False] > 2 * abs(errors[True]), errors

@@ -2,7 +2,8 @@
 
 The atlases of the ages nearest the fetus's (``--gestational-age``, from one or more atlas
 folders in the ``GA<weeks>*/{srr,mask,parcellation}.nii.gz`` layout) are each registered to the
-reconstruction (:mod:`svr.tissue.registration`: affine, then demons), their label maps pulled
+reconstruction (:mod:`svr.tissue.registration`: affine; then, on the reconstruction cut to the
+atlases' brains, affine and demons again), their label maps pulled
 onto the reconstruction's own grid as per-label probabilities and fused by locally weighted
 voting (:mod:`svr.tissue.fusion`). What comes back says how sure it is: each atlas's fit, the
 fused probability and the atlases' agreement per voxel, and a verdict.
@@ -18,7 +19,7 @@ import logging
 import os
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -31,6 +32,7 @@ from svr.tissue.fusion import FusedLabels, fuse_labels, local_weights
 from svr.tissue.labels import TISSUE_LABELS
 from svr.tissue.registration import (
     AtlasRegistrationConfig,
+    AtlasWarp,
     register_atlas,
     resample_like,
     rotation_degrees,
@@ -85,8 +87,12 @@ class TissueConfig:
         trusted_agreement: Below this mean agreement of the atlases inside the brain the labels
             are flagged too.
         trim_to_affine_brain: Label only the voxels inside most atlases' brain masks after the
-            affine step (0 elsewhere): a reconstruction's brain mask is often looser than the
-            brain, and the deformable step stretches the atlases over what lies inside it.
+            (last) affine step (0 elsewhere): a reconstruction's brain mask is often looser than
+            the brain, and the deformable step stretches the atlases over what lies inside it.
+        refine_brain: Register twice: first the affine step alone, then everything again on
+            the volume cut to where any atlas's brain lies after that step, as the atlases
+            themselves are cut to their brains (a loose mask's non-brain signal otherwise
+            draws every atlas outwards, and each label's volume with it).
 
     Raises:
         ConfigFieldError: On construction, naming the field, for a value out of range.
@@ -100,9 +106,10 @@ class TissueConfig:
     fusion_power: float = 1.0
     max_rotation_deg: float = 25.0
     min_ncc: float = 0.4
-    trusted_ncc: float = 0.7
+    trusted_ncc: float = 0.8
     trusted_agreement: float = 0.8
     trim_to_affine_brain: bool = True
+    refine_brain: bool = True
 
     def __post_init__(self) -> None:
         owner = "TissueConfig"
@@ -117,6 +124,7 @@ class TissueConfig:
         object.__setattr__(self, "hold_out", hold_out)
         check_instance(owner, "registration", self.registration, AtlasRegistrationConfig)
         check_bool(owner, "trim_to_affine_brain", self.trim_to_affine_brain)
+        check_bool(owner, "refine_brain", self.refine_brain)
 
 
 class AtlasFit(NamedTuple):
@@ -127,8 +135,9 @@ class AtlasFit(NamedTuple):
         weeks: Its gestational age.
         rotation: (3, 3) the affine's rotation (RAS): the volume's directions to the atlas's.
         scale: The affine's mean scale (atlas size over the reconstruction's brain).
-        ncc_affine: Correlation after the affine step.
-        ncc: Correlation after the deformable step.
+        ncc_affine: Correlation after the first affine step, over the volume's own brain.
+        ncc: Correlation after the last (deformable) step, over the brain it was registered on
+            (with ``refine_brain``, the volume cut to the atlases' brains).
         weight: Its mean vote weight inside the brain.
     """
 
@@ -230,6 +239,67 @@ def _one_hot_warped(
     return probability
 
 
+class _Atlas(NamedTuple):
+    """One atlas age loaded for registration."""
+
+    path: Path
+    weeks: float
+    image: sitk.Image  # its brain (srr times mask), float32
+    mask: sitk.Image  # uint8
+    brain: sitk.Image  # the mask as float32, for resampling
+    labels: sitk.Image
+
+
+def _load_atlas(srr: Path, mask_path: Path, parcellation: Path) -> _Atlas:
+    atlas = load_nifti(srr)
+    mask = load_nifti(mask_path).data.numpy() > 0.5
+    affine = atlas.affine.numpy()
+    return _Atlas(
+        srr,
+        atlas_age(srr),
+        to_sitk(atlas.data.numpy() * mask, affine),
+        to_sitk(mask.astype(np.uint8), affine),
+        to_sitk(mask.astype(np.float32), affine),
+        to_sitk(load_nifti(parcellation).data.numpy().round(), affine),
+    )
+
+
+def _register_atlases(
+    array: np.ndarray,
+    brain: np.ndarray,
+    affine: np.ndarray,
+    atlases: list[_Atlas],
+    registration: AtlasRegistrationConfig,
+) -> list[AtlasWarp]:
+    """Each atlas registered to the volume ``array`` (0 outside ``brain``)."""
+    fixed = to_sitk(array, affine)
+    fixed_mask = to_sitk(brain.astype(np.uint8), affine)
+    return [register_atlas(fixed, fixed_mask, a.image, a.mask, registration) for a in atlases]
+
+
+def _affine_brains(
+    atlases: list[_Atlas], warps: list[AtlasWarp], array: np.ndarray, affine: np.ndarray
+) -> list[np.ndarray]:
+    """(I, J, K) each atlas's brain mask pulled onto the volume's grid by its affine step alone."""
+    reference = to_sitk(array, affine)
+    return [
+        from_sitk(resample_like(atlas.brain, reference, warp.affine))
+        for atlas, warp in zip(atlases, warps, strict=True)
+    ]
+
+
+def _check_frame(warps: list[AtlasWarp], config: TissueConfig, name: str) -> None:
+    """Refuse a volume that no atlas fits without a large turn (:class:`NotInAtlasFrameError`)."""
+    best = max(warps, key=lambda warp: warp.ncc_affine)
+    if best.rotation_deg > config.max_rotation_deg or best.ncc_affine < config.min_ncc:
+        raise NotInAtlasFrameError(
+            f"{name}: not in an atlas frame (the best atlas fit turns it "
+            f"{best.rotation_deg:.0f} deg, correlation {best.ncc_affine:.2f}); "
+            "reconstruct it with --registration cnn and an --atlas-volume, or give its "
+            "atlas-frame output"
+        )
+
+
 def segment_volume(
     volume: Image,
     atlas_dirs: Sequence[str | os.PathLike[str]],
@@ -266,55 +336,52 @@ def segment_volume(
     if not brain.any():
         raise ValueError(f"{name}: the brain is empty (no voxel above 0 or in the mask)")
     array = np.where(brain, array, 0.0).astype(np.float32)
+    atlases = [_load_atlas(*paths) for paths in select_atlases(atlas_dirs, weeks, config)]
+    # with a second pass the first needs the affine step alone
+    first = _register_atlases(
+        array,
+        brain,
+        affine,
+        atlases,
+        replace(config.registration, deformable=False)
+        if config.refine_brain
+        else config.registration,
+    )
+    _check_frame(first, config, name)
+    affine_brains = _affine_brains(atlases, first, array, affine)
+    warps = first
+    if config.refine_brain:
+        # the atlases are brains cut out by their masks; cut the volume alike, keeping every
+        # voxel that one of them calls brain after the affine step, and register again (a loose
+        # mask's non-brain signal otherwise draws every atlas outwards)
+        cut = brain & (np.max(affine_brains, axis=0) >= 0.5)
+        if cut.any():
+            warps = _register_atlases(
+                np.where(cut, array, 0.0).astype(np.float32),
+                cut,
+                affine,
+                atlases,
+                config.registration,
+            )
+            affine_brains = _affine_brains(atlases, warps, array, affine)
     fixed = to_sitk(array, affine)
-    fixed_mask = to_sitk(brain.astype(np.uint8), affine)
-    fits: list[AtlasFit] = []
-    probabilities: list[np.ndarray] = []
-    images: list[np.ndarray] = []
-    affine_brains: list[np.ndarray] = []
-    for srr, atlas_mask_path, parcellation in select_atlases(atlas_dirs, weeks, config):
-        atlas = load_nifti(srr)
-        atlas_mask = load_nifti(atlas_mask_path).data.numpy() > 0.5
-        atlas_affine = atlas.affine.numpy()
-        moving = to_sitk(atlas.data.numpy() * atlas_mask, atlas_affine)
-        warp = register_atlas(
-            fixed,
-            fixed_mask,
-            moving,
-            to_sitk(atlas_mask.astype(np.uint8), atlas_affine),
-            config.registration,
+    pairs = list(zip(atlases, warps, strict=True))
+    probabilities = [_one_hot_warped(a.labels, fixed, w.transform) for a, w in pairs]
+    images = [from_sitk(resample_like(a.image, fixed, w.transform)) for a, w in pairs]
+    fits = [
+        AtlasFit(
+            atlas.path, atlas.weeks, warp.rotation, warp.scale, check.ncc_affine, warp.ncc, 0.0
         )
+        for atlas, warp, check in zip(atlases, warps, first, strict=True)
+    ]
+    for fit in fits:
         log.info(
             "atlas %s: turned %.1f deg, scale %.3f, NCC %.3f affine, %.3f deformable",
-            srr.parent.name,
-            warp.rotation_deg,
-            warp.scale,
-            warp.ncc_affine,
-            warp.ncc,
-        )
-        labels_image = to_sitk(load_nifti(parcellation).data.numpy().round(), atlas_affine)
-        probabilities.append(_one_hot_warped(labels_image, fixed, warp.transform))
-        images.append(from_sitk(resample_like(moving, fixed, warp.transform)))
-        atlas_brain = to_sitk(atlas_mask.astype(np.float32), atlas_affine)
-        affine_brains.append(from_sitk(resample_like(atlas_brain, fixed, warp.affine)))
-        fits.append(
-            AtlasFit(
-                srr,
-                atlas_age(srr),
-                warp.rotation,
-                warp.scale,
-                warp.ncc_affine,
-                warp.ncc,
-                0.0,
-            )
-        )
-    best = max(range(len(fits)), key=lambda i: fits[i].ncc_affine)
-    if fits[best].rotation_deg > config.max_rotation_deg or fits[best].ncc_affine < config.min_ncc:
-        raise NotInAtlasFrameError(
-            f"{name}: not in an atlas frame (the best atlas fit turns it "
-            f"{fits[best].rotation_deg:.0f} deg, correlation {fits[best].ncc_affine:.2f}); "
-            "reconstruct it with --registration cnn and an --atlas-volume, or give its "
-            "atlas-frame output"
+            fit.path.parent.name,
+            fit.rotation_deg,
+            fit.scale,
+            fit.ncc_affine,
+            fit.ncc,
         )
     spacing = np.linalg.norm(affine[:3, :3], axis=0)
     sx, sy, sz = (float(config.fusion_sigma_mm / step) for step in spacing)
@@ -337,10 +404,11 @@ def segment_volume(
         for p in probabilities
     ]
     problems = []
-    ncc = max(fit.ncc for fit in fits)
-    if ncc < config.trusted_ncc:
+    best_ncc = max(fit.ncc for fit in fits)
+    if best_ncc < config.trusted_ncc:
         problems.append(
-            f"the atlases fit the volume poorly (best correlation {ncc:.2f} < {config.trusted_ncc})"
+            f"the atlases fit the volume poorly (best correlation {best_ncc:.2f} < "
+            f"{config.trusted_ncc})"
         )
     agreement = float(fused.agreement[brain].mean())
     if agreement < config.trusted_agreement:
