@@ -175,7 +175,16 @@ def main() -> None:
     summary: dict[str, dict[str, list]] = {}
     for method in args.methods:
         rows = summary.setdefault(
-            method, {"dice": [], "per_label": [], "vol_err": [], "time": [], "kind": [], "mm": []}
+            method,
+            {
+                "case": [],
+                "dice": [],
+                "per_label": [],
+                "vol_err": [],
+                "time": [],
+                "kind": [],
+                "mm": [],
+            },
         )
         for case in cases:
             folder = args.cases_dir / case
@@ -222,7 +231,7 @@ def main() -> None:
             rows["time"].append(seconds)
             rows["kind"].append(info["kind"])
             rows["mm"].append(measure_err)
-            rows.setdefault("case", []).append(case)
+            rows["case"].append(case)
             line = (
                 f"| {method} | {case} | {np.mean(per_label):.3f} | "
                 + " | ".join(f"{d:.2f}" for d in per_label)

@@ -39,6 +39,7 @@ __all__ = [
     "AtlasRegistrationConfig",
     "AtlasWarp",
     "affine_register",
+    "correlation_method",
     "deformable_register",
     "register_atlas",
     "resample_like",
@@ -162,6 +163,21 @@ def ncc(a: sitk.Image, b: sitk.Image, mask: sitk.Image) -> float:
     return float(image_ncc(flat[0].double(), flat[1].double(), inside)[0])
 
 
+def correlation_method(fixed_mask: sitk.Image) -> sitk.ImageRegistrationMethod:
+    """A registration method by Pearson correlation over ``fixed_mask``.
+
+    A quarter of the mask's voxels on a regular grid, linear interpolation; the optimiser, levels
+    and transform are the caller's.
+    """
+    method = sitk.ImageRegistrationMethod()
+    method.SetMetricAsCorrelation()
+    method.SetMetricFixedMask(fixed_mask)
+    method.SetMetricSamplingStrategy(method.REGULAR)
+    method.SetMetricSamplingPercentage(0.25, seed=1)
+    method.SetInterpolator(sitk.sitkLinear)
+    return method
+
+
 def _fit(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -170,12 +186,7 @@ def _fit(
     iterations: int,
 ) -> sitk.Transform:
     """One intensity-based fit of ``transform`` (Pearson correlation, three levels)."""
-    method = sitk.ImageRegistrationMethod()
-    method.SetMetricAsCorrelation()
-    method.SetMetricFixedMask(fixed_mask)
-    method.SetMetricSamplingStrategy(method.REGULAR)
-    method.SetMetricSamplingPercentage(0.25, seed=1)
-    method.SetInterpolator(sitk.sitkLinear)
+    method = correlation_method(fixed_mask)
     method.SetOptimizerAsRegularStepGradientDescent(
         learningRate=1.0,
         minStep=1e-3,

@@ -246,7 +246,6 @@ class _Atlas(NamedTuple):
     weeks: float
     image: sitk.Image  # its brain (srr times mask), float32
     mask: sitk.Image  # uint8
-    brain: sitk.Image  # the mask as float32, for resampling
     labels: sitk.Image
 
 
@@ -259,7 +258,6 @@ def _load_atlas(srr: Path, mask_path: Path, parcellation: Path) -> _Atlas:
         atlas_age(srr),
         to_sitk(atlas.data.numpy() * mask, affine),
         to_sitk(mask.astype(np.uint8), affine),
-        to_sitk(mask.astype(np.float32), affine),
         to_sitk(load_nifti(parcellation).data.numpy().round(), affine),
     )
 
@@ -278,12 +276,11 @@ def _register_atlases(
 
 
 def _affine_brains(
-    atlases: list[_Atlas], warps: list[AtlasWarp], array: np.ndarray, affine: np.ndarray
+    atlases: list[_Atlas], warps: list[AtlasWarp], reference: sitk.Image
 ) -> list[np.ndarray]:
-    """(I, J, K) each atlas's brain mask pulled onto the volume's grid by its affine step alone."""
-    reference = to_sitk(array, affine)
+    """(I, J, K) each atlas's brain mask pulled onto ``reference``'s grid by its affine alone."""
     return [
-        from_sitk(resample_like(atlas.brain, reference, warp.affine))
+        from_sitk(resample_like(atlas.mask, reference, warp.affine))
         for atlas, warp in zip(atlases, warps, strict=True)
     ]
 
@@ -348,7 +345,8 @@ def segment_volume(
         else config.registration,
     )
     _check_frame(first, config, name)
-    affine_brains = _affine_brains(atlases, first, array, affine)
+    fixed = to_sitk(array, affine)
+    affine_brains = _affine_brains(atlases, first, fixed)
     warps = first
     if config.refine_brain:
         # the atlases are brains cut out by their masks; cut the volume alike, keeping every
@@ -363,8 +361,7 @@ def segment_volume(
                 atlases,
                 config.registration,
             )
-            affine_brains = _affine_brains(atlases, warps, array, affine)
-    fixed = to_sitk(array, affine)
+            affine_brains = _affine_brains(atlases, warps, fixed)
     pairs = list(zip(atlases, warps, strict=True))
     probabilities = [_one_hot_warped(a.labels, fixed, w.transform) for a, w in pairs]
     images = [from_sitk(resample_like(a.image, fixed, w.transform)) for a, w in pairs]

@@ -52,12 +52,7 @@ def main() -> None:
     size = zip(fixed.GetSize(), fixed.GetSpacing(), strict=True)
     mesh = [max(2, round(n * step / args.mesh_mm)) for n, step in size]
     bspline = sitk.BSplineTransformInitializer(fixed, mesh)
-    method = sitk.ImageRegistrationMethod()
-    method.SetMetricAsCorrelation()
-    method.SetMetricFixedMask(fixed_mask)
-    method.SetMetricSamplingStrategy(method.REGULAR)
-    method.SetMetricSamplingPercentage(0.25, seed=1)
-    method.SetInterpolator(sitk.sitkLinear)
+    method = reg.correlation_method(fixed_mask)
     method.SetOptimizerAsLBFGSB(
         gradientConvergenceTolerance=1e-5, numberOfIterations=args.iterations
     )
