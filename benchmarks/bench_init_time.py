@@ -1,14 +1,12 @@
 """Time of the learned initialisation against stack registration alone, on the bench cases.
 
 ``learned_start`` (each stack and each of its interleaved packets placed by the
-stack-pose model, with or without the atlas fit; stack registration from the three starts; the
-per-stack NCC choice against the other stacks) against
-``stack_registration`` alone, and the per-stack estimates by themselves; the figure the issue
-bounds is the time added per stack. Since 2026-11-27 ``learned_start`` with a model
-no longer fits each stack to the atlas (the atlas only sets the output frame), so its
-"model + atlas" row times the same work as "model"; the per-stack estimate's "model + atlas" row
-still times the fit (what ``svr predict --atlas-volume`` does). The "--packets 1" row leaves the
-packets out (one stack registration fewer).
+stack-pose model; stack registration from the three starts; the per-stack NCC choice against the
+other stacks) against ``stack_registration`` alone; the network's placement by itself
+(``network_placement``: every stack's and packet's transform, what places each slice before
+registration), per slice; and the per-stack estimates by themselves. The figure the issue bounds
+is the time added per stack. The "--packets 1" row leaves the packets out (one stack
+registration fewer).
 
 Run from the repository root::
 
@@ -27,16 +25,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from bench_common import SHARED, case_age, load_case_stacks, neighbour_atlas
+from bench_common import SHARED, load_case_stacks
 
 from svr.models.stack_pose import StackPoseNet, load_stack_pose_model
-from svr.reconstruction.atlas_fit import atlas_levels
 from svr.reconstruction.config import ReconstructionConfig
-from svr.reconstruction.initialisation.learned import learned_start
+from svr.reconstruction.initialisation.learned import learned_start, network_placement
 from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose
 from svr.reconstruction.registration import stack_registration
 from svr.reconstruction.slices import extract_slices
-from svr.sampling.volume import CanonicalVolume, load_canonical_volume
 
 
 def timed(repeats: int, work: Callable[..., object], *args: object) -> float:
@@ -49,24 +45,22 @@ def timed(repeats: int, work: Callable[..., object], *args: object) -> float:
     return statistics.median(seconds)
 
 
-def estimates(model: StackPoseNet, stacks: list, with_atlas: CanonicalVolume | None) -> None:
-    """Each stack's own estimate (with the atlas fit where an atlas is given)."""
-    levels = None if with_atlas is None else atlas_levels(with_atlas)
+def estimates(model: StackPoseNet, stacks: list) -> None:
+    """Each stack's own estimate, alone."""
     for stack in stacks:
-        estimate_stack_pose(
-            model,
-            stack.image,
-            stack.mask.data > 0.5,
-            atlas=with_atlas,
-            levels=levels,
-            restart_deg=10.0,
-        )
+        estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, restart_deg=10.0)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="stack-pose")
-    parser.add_argument("--cases", nargs="*", default=["sb24-large", "sb28-moderate"])
+    parser.add_argument(
+        "--cases",
+        nargs="*",
+        type=Path,
+        default=[Path("sb24-large"), Path("sb28-moderate")],
+        help="bench case names, or case folders",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--results", type=Path, help="also write the table here (markdown)")
     parser.add_argument(
@@ -77,31 +71,40 @@ def main() -> int:
     model = load_stack_pose_model(args.model)
     rows = []
     for name in args.cases:
-        case = SHARED / "data" / "bench" / name
+        case = name if name.exists() else SHARED / "data" / "bench" / str(name)
         stacks = load_case_stacks(case)
         slices = extract_slices(stacks)
-        atlas = load_canonical_volume(*neighbour_atlas(case_age(case)))
         config = ReconstructionConfig.preset("learned")
         registration = timed(
             args.repeats, stack_registration, slices, config.initialisation_grid_mm
         )
+        alone = timed(args.repeats, estimates, model, stacks) / len(stacks)
         variants = (
-            ("model", None, config),
-            ("model + atlas", atlas, config),
-            ("model, --packets 1", None, dataclasses.replace(config, packets=1)),
+            ("model", config),
+            ("model, --packets 1", dataclasses.replace(config, packets=1)),
         )
-        for label, with_atlas, settings in variants:
-            full = timed(args.repeats, learned_start, slices, stacks, model, settings, with_atlas)
-            alone = timed(args.repeats, estimates, model, stacks, with_atlas) / len(stacks)
+        for label, settings in variants:
+            full = timed(args.repeats, learned_start, slices, stacks, model, settings)
+            placement = timed(
+                args.repeats,
+                network_placement,
+                stacks,
+                model,
+                settings.packets,
+                settings.initialisation.restart_deg,
+            )
+            per_slice_ms = 1000.0 * placement / len(slices)
             added = (full - registration) / len(stacks)
             rows.append(
-                f"| {name} ({len(stacks)} stacks) | {label} | {registration:.1f} s | "
-                f"{full:.1f} s (x{full / registration:.2f}) | {alone:.2f} s | {added:.2f} s |"
+                f"| {case.name} ({len(stacks)} stacks, {len(slices)} slices) | {label} | "
+                f"{registration:.1f} s | {full:.1f} s (x{full / registration:.2f}) | "
+                f"{per_slice_ms:.1f} ms | {alone:.2f} s | {added:.2f} s |"
             )
             print(
-                f"{name}, {label} ({args.threads} threads): "
+                f"{case.name}, {label} ({args.threads} threads): "
                 f"stack registration {registration:.1f} s, "
                 f"learned initialisation {full:.1f} s (x{full / registration:.2f}); "
+                f"network placement {per_slice_ms:.1f} ms per slice; "
                 f"estimate {alone:.2f} s per stack; added {added:.2f} s per stack",
                 flush=True,
             )
@@ -112,7 +115,7 @@ def main() -> int:
                 f"--model {args.model}",
                 f"--repeats {args.repeats}",
                 "--cases",
-                *args.cases,
+                *map(str, args.cases),
             ]
         )
         lines = [
@@ -123,8 +126,8 @@ def main() -> int:
             f"time the median of {args.repeats} runs.",
             "",
             "| case | learned initialisation | stack registration | learned (ratio) | "
-            "estimate per stack | added per stack |",
-            "|---|---|---:|---:|---:|---:|",
+            "network placement per slice | estimate per stack | added per stack |",
+            "|---|---|---:|---:|---:|---:|---:|",
             *rows,
             "",
         ]

@@ -138,6 +138,9 @@ def test_alignment_notebook(tmp_path, jupyter_path, monkeypatch):
         assert (report / name).is_file()
     assert (out / "worst_cases.png").is_file() and (out / "histograms.png").is_file()
     assert len(list((out / "training" / "checkpoints").glob("step_*"))) == 2
+    # section 9: a small simulated case, each slice placed by its stack and by its packet
+    assert (out / "packet-case" / "truth_slices.json").is_file()
+    assert (out / "packet_starts.png").is_file()
 
 
 @pytest.fixture(scope="module")

@@ -28,10 +28,18 @@ def main() -> None:
     parser.add_argument("--max-turn", type=float, default=10.0, help="residual range (deg)")
     parser.add_argument("--minutes", type=float, default=16.0)
     parser.add_argument("--overfit", action="store_true", help="one fixed batch of 4 packets")
+    parser.add_argument(
+        "--pure-rotation", action="store_true", help="residuals that are rotations alone"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = SliceRefinerConfig(head=args.head)
-    config = training.RefinerTrainingConfig(max_turn_deg=args.max_turn)
+    config = training.RefinerTrainingConfig(
+        max_turn_deg=args.max_turn,
+        pure_rotation=args.pure_rotation,
+        # without shifts the data's metric is singular: the default one (L = 20 mm) instead
+        metric="default" if args.pure_rotation else "data",
+    )
     brains = training.prepare_brains(_volumes([args.brain]))
     fixed = training.draw_packets(brains, model, config, torch.Generator().manual_seed(5))
     validation = (
@@ -40,7 +48,9 @@ def main() -> None:
         else training.draw_packets(
             brains,
             model,
-            training.RefinerTrainingConfig(packets_per_step=24, max_turn_deg=args.max_turn),
+            training.RefinerTrainingConfig(
+                packets_per_step=24, max_turn_deg=args.max_turn, pure_rotation=args.pure_rotation
+            ),
             torch.Generator().manual_seed(999),
         )
     )

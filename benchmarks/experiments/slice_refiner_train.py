@@ -79,6 +79,9 @@ class RefinerTrainingConfig:
         metric_length_mm: ``L`` of the ``"default"`` metric.
         checkpoint_every: Steps between checkpoints.
         seed: Seed of every draw.
+        pure_rotation: A diagnostic: every slice's current pose is its true pose turned about the
+            slice's centre by a random rotation up to ``max_turn_deg`` (no shift), so that the
+            residual is a rotation alone.
 
     Raises:
         ConfigFieldError: On construction, naming the field.
@@ -98,6 +101,7 @@ class RefinerTrainingConfig:
     metric_length_mm: float = 20.0
     checkpoint_every: int = 250
     seed: int = 0
+    pure_rotation: bool = False
 
     def __post_init__(self) -> None:
         owner = "RefinerTrainingConfig"
@@ -215,6 +219,10 @@ def _packet_poses(
     placement[:3, 3] = torch.randn(3, generator=generator, dtype=torch.float64)
     placement[:3, 3] *= config.placement_shift_mm
     current = se3_compose(se3_compose(placement, _chordal_mean(motion))[None], nominal)
+    if config.pure_rotation:
+        turn = torch.eye(4, dtype=torch.float64).repeat(length, 1, 1)
+        turn[:, :3, :3] = _random_rotations(length, config.max_turn_deg, generator)
+        current = se3_compose(true, se3_inverse(turn))
     return true, current
 
 

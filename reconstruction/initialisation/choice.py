@@ -33,6 +33,7 @@ __all__ = [
     "agreeing_stacks",
     "choose_per_stack",
     "place_stacks",
+    "placed_by_packets",
     "register_stacks",
     "registered_candidate",
     "stack_moves",
@@ -264,6 +265,22 @@ def agreed_frame(slices: SliceSet, registered: Tensor, placed: Tensor, votes: Te
     return robust_mean_pose(each[group[ids]])
 
 
+def placed_by_packets(slices: SliceSet, packet_to_canonical: Tensor) -> Tensor:
+    """Each slice at its scanner pose moved by its packet's transform: the packets' start.
+
+    Args:
+        slices: All slices, at their scanner poses.
+        packet_to_canonical: (S, P, 4, 4) float64 CPU each packet's scanner -> canonical
+            transform; the packet of the slice from k-plane ``k`` is ``k % P``.
+
+    Returns:
+        (N, 4, 4) float64 CPU the slices' canonical poses (of their arrays, as ``slices.poses``).
+    """
+    packet = slices.slice_indices.cpu() % packet_to_canonical.shape[1]
+    moved = packet_to_canonical[slices.stack_ids.cpu(), packet]
+    return se3_compose(moved, slices.poses.to(torch.float64).cpu())
+
+
 def place_stacks(
     slices: SliceSet,
     to_canonical: Tensor,
@@ -307,9 +324,7 @@ def place_stacks(
     from_placed = register_stacks(slices, placed, config)
     candidates = {"cnn": registered_candidate(slices, from_placed, placed, votes)}
     if packet_to_canonical is not None:
-        count = packet_to_canonical.shape[1]
-        packet = slices.slice_indices.cpu() % count
-        by_packet = se3_compose(packet_to_canonical[ids, packet], scanner)
+        by_packet = placed_by_packets(slices, packet_to_canonical)
         from_packets = register_stacks(slices, by_packet, config)
         candidates["packets"] = registered_candidate(slices, from_packets, by_packet, votes)
     if registered is None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -46,9 +47,76 @@ from svr.reconstruction.initialisation.stack_pose import (
 )
 from svr.reconstruction.slices import SliceSet, Stack
 
-__all__ = ["learned_start"]
+__all__ = ["NetworkPlacement", "learned_start", "network_placement"]
 
 log = logging.getLogger(__name__)
+
+
+class NetworkPlacement(NamedTuple):
+    """Every stack (and packet) placed in canonical space by the stack-pose network alone.
+
+    Attributes:
+        to_canonical: (S, 4, 4) float64 CPU each stack's scanner -> canonical transform.
+        packet_to_canonical: (S, P, 4, 4) float64 CPU each packet's (packet of slice ``k``:
+            ``k % P``), or ``None`` with one packet per stack.
+        scores: (S,) float64 the network's score of each stack's transform (logits).
+        notes: Per stack, what its estimate says of itself (method, score, packets' turns).
+    """
+
+    to_canonical: Tensor
+    packet_to_canonical: Tensor | None
+    scores: Tensor
+    notes: list[str]
+
+
+def network_placement(
+    stacks: Sequence[Stack], model: StackPoseNet, packets: int, restart_deg: float
+) -> NetworkPlacement:
+    """Steps 1 and 2 of the module docstring: each stack's and packet's own transform.
+
+    Args:
+        stacks: The stacks, in their scanner frames.
+        model: The stack-pose network.
+        packets: Interleaved packets per stack (``ReconstructionConfig.packets``); 1 for none.
+        restart_deg: The turn of the network's restarts about each stack's choice (degrees).
+
+    Returns:
+        The placements, before any registration.
+    """
+    to_canonical = torch.empty(len(stacks), 4, 4, dtype=torch.float64)
+    packet_to_canonical = torch.empty(len(stacks), packets, 4, 4, dtype=torch.float64)
+    notes, scores = [], []
+    for sid, stack in enumerate(stacks):
+        mask = stack.mask.data > 0.5
+        estimate = estimate_stack_pose(model, stack.image, mask, restart_deg=restart_deg)
+        to_canonical[sid] = estimate.to_canonical
+        scores.append(float(estimate.score))
+        note = f"{estimate.method}, score {estimate.score:.2f}"
+        log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
+        if packets > 1:
+            per_packet = estimate_packet_poses(
+                model, stack.image, mask, estimate.to_canonical, stack.k_indices.cpu() % packets
+            )
+            packet_to_canonical[sid] = estimate.to_canonical  # packets without a plane here
+            packet_to_canonical[sid, : len(per_packet.to_canonical)] = per_packet.to_canonical
+            turns = [
+                math.degrees(rotation_angle(t, estimate.to_canonical))
+                for t in per_packet.to_canonical
+            ]
+            note += "; packets " + ", ".join(f"{t:.0f} deg" for t in turns)
+            log.info(
+                "%s: packets %s from the stack's frame (own hypothesis: %s)",
+                stack.name,
+                ", ".join(f"{t:.1f}" for t in turns),
+                per_packet.own.tolist(),
+            )
+        notes.append(note)
+    return NetworkPlacement(
+        to_canonical,
+        packet_to_canonical if packets > 1 else None,
+        torch.tensor(scores, dtype=torch.float64),
+        notes,
+    )
 
 
 def learned_start(
@@ -65,37 +133,9 @@ def learned_start(
     Returns:
         The slices at their starting canonical poses, the choice and notes per stack.
     """
-    packets = config.packets
-    to_canonical = torch.empty(len(stacks), 4, 4, dtype=torch.float64)
-    packet_to_canonical = torch.empty(len(stacks), packets, 4, 4, dtype=torch.float64)
-    heads, scores = [], []
-    for sid, stack in enumerate(stacks):
-        mask = stack.mask.data > 0.5
-        estimate = estimate_stack_pose(
-            model, stack.image, mask, restart_deg=config.initialisation.restart_deg
-        )
-        to_canonical[sid] = estimate.to_canonical
-        scores.append(float(estimate.score))
-        head = f"{estimate.method}, score {estimate.score:.2f}"
-        log.info("%s: stack pose by %s (score %.3f)", stack.name, estimate.method, estimate.score)
-        if packets > 1:
-            per_packet = estimate_packet_poses(
-                model, stack.image, mask, estimate.to_canonical, stack.k_indices.cpu() % packets
-            )
-            packet_to_canonical[sid] = estimate.to_canonical  # packets without a plane here
-            packet_to_canonical[sid, : len(per_packet.to_canonical)] = per_packet.to_canonical
-            turns = [
-                math.degrees(rotation_angle(t, estimate.to_canonical))
-                for t in per_packet.to_canonical
-            ]
-            head += "; packets " + ", ".join(f"{t:.0f} deg" for t in turns)
-            log.info(
-                "%s: packets %s from the stack's frame (own hypothesis: %s)",
-                stack.name,
-                ", ".join(f"{t:.1f}" for t in turns),
-                per_packet.own.tolist(),
-            )
-        heads.append(head)
+    placement = network_placement(stacks, model, config.packets, config.initialisation.restart_deg)
+    to_canonical, packet_to_canonical = placement.to_canonical, placement.packet_to_canonical
+    heads = placement.notes
     scanner = slices.poses.to(torch.float64).cpu()
     registered = register_stacks(slices, scanner, config)
     moves = stack_moves(slices, scanner, registered)
@@ -113,14 +153,14 @@ def learned_start(
             log.info("%s: its own transform is a twin of the stacks' frame: turned", stack.name)
             heads[sid] += "; turned to the stacks' frame"
             to_canonical[sid] = se3_compose(turned, to_canonical[sid])
-            if packets > 1:
+            if packet_to_canonical is not None:
                 packet_to_canonical[sid] = se3_compose(turned, packet_to_canonical[sid])
     # Each stack's vote for the output frame: the model's confidence in its transform.
-    votes = torch.sigmoid(torch.tensor(scores, dtype=torch.float64))
+    votes = torch.sigmoid(placement.scores)
     start = place_stacks(
         slices,
         to_canonical,
-        packet_to_canonical if packets > 1 else None,
+        packet_to_canonical,
         votes,
         heads,
         config,

@@ -1,4 +1,4 @@
-"""``svr evaluate``: the paper's Table 3 for trained slice-pose networks on held-out volumes."""
+"""``svr evaluate``: the paper's Table 3 for trained pose networks on held-out volumes or cases."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 from svr.cli.common import (
     MODEL_HELP,
@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     import torch
 
     from svr.models.network import SlicePoseNet
+    from svr.models.stack_pose import StackPoseNet
     from svr.sampling.slicer import SliceConfig
     from svr.sampling.volume import CanonicalVolume
 
@@ -48,8 +49,17 @@ is also printed.
 
 A checkpoint DIR is a checkpoint folder (config.json + model.safetensors), a folder of step_*
 checkpoints, a training --output-dir (the last two give their newest checkpoint), or `default`:
-the model shipped with the package (write ./default for a folder of that name). NAME=DIR names
-the method in the tables; a plain DIR is named after the folder.
+the slice-pose model shipped with the package (write ./default for a folder of that name), or
+`stack-pose` with --cases. NAME=DIR names the method in the tables; a plain DIR is named after
+the folder.
+
+With --cases, the checkpoints are stack-pose models (svr train-stack-pose) measured per slice in
+context: each case is a simulated case folder (svr simulate's output: stacks, masks, every
+slice's true pose and the ground-truth volume), every stack and interleaved packet is placed by
+the network alone, as svr reconstruct --registration cnn starts (before any registration), and
+each slice's start is compared with its true canonical pose: the same tables, with slices of
+128 x 128 pixels at 1 mm cut from the ground-truth volume for the image metrics; a slice whose
+brain area is below --min-brain-fraction of the case's largest is left out.
 
 Atlases: the Fidon 2021 spina bifida atlas (zenodo.org/record/5524312: GA21..GA34 folders with
 srr.nii.gz and mask.nii.gz, downloaded to a folder such as atlas/) or any folder laid out alike.
@@ -60,7 +70,16 @@ examples:
   svr evaluate --checkpoints se3=runs/se3 posenet=runs/posenet \\
       --atlas-dir atlas/ --only-ga 24 28 32 \\
       --num-slices 500 --thickness 3 --output-dir eval/atlas
+  svr simulate --input-volume atlas/GA28/srr.nii.gz --input-mask atlas/GA28/mask.nii.gz \\
+      --num-stacks 4 --orientations oblique --rotation-deg 70 --translation-mm 10 \\
+      --output-dir cases/ga28
+  svr evaluate --checkpoints se3=runs/stack-se3 anchor=runs/stack-anchor \\
+      --cases cases/ga28 --output-dir eval/packets
 """
+
+CASE_SLICE_SIZE = (128, 128)
+"""Pixels of the slices cut for the image metrics with --cases (at CASE_SLICE_SPACING_MM)."""
+CASE_SLICE_SPACING_MM = 1.0
 
 NUM_EXAMPLES = 3  # worst and median cases by geodesic distance shown per method
 POSE_COLUMNS = ("r_x", "r_y", "r_z", "t_x", "t_y", "t_z")
@@ -72,7 +91,7 @@ class _Method:
 
     name: str
     folder: Path
-    model: SlicePoseNet
+    model: SlicePoseNet | StackPoseNet
 
 
 @dataclass
@@ -116,6 +135,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     data.add_argument("--input-volumes", nargs="*", default=[], help="volume files")
     data.add_argument("--input-masks", nargs="*", default=[], help="their masks, in order")
     data.add_argument(
+        "--cases",
+        nargs="+",
+        default=[],
+        metavar="DIR",
+        help="simulated case folders (svr simulate): evaluate stack-pose checkpoints per slice, "
+        "each slice placed by its packet (see above); not with the options above",
+    )
+    data.add_argument(
         "--phantom-ga",
         type=positive_float,
         nargs="+",
@@ -136,7 +163,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--min-brain-fraction",
         type=float,
         default=0.1,
-        help="redraw poses whose slice has a smaller fraction of pixels in the brain mask",
+        help="redraw poses whose slice has a smaller fraction of pixels in the brain mask (with "
+        "--cases: leave out slices whose brain area is below this fraction of the case's largest)",
     )
     p.add_argument("--batch-size", type=positive_int, default=64, help="slices per forward pass")
     add_common_options(p)
@@ -162,16 +190,29 @@ def _parse_checkpoint_specs(specs: list[str]) -> list[tuple[str, str]]:
     return named
 
 
-def _load_method(name: str, spec: str, device: str) -> _Method:
-    """Load the network of a ``--checkpoints`` DIR onto ``device``, in eval mode."""
+def _load_method(name: str, spec: str, device: str, stack_pose: bool) -> _Method:
+    """Load the network of a ``--checkpoints`` DIR onto ``device``, in eval mode.
+
+    Args:
+        name: The method's label.
+        spec: Its ``DIR``.
+        device: Where to put it.
+        stack_pose: Whether a stack-pose model is expected (``--cases``), or a slice-pose one.
+    """
     from svr.models.checkpoint import CheckpointError, resolve_model_path
-    from svr.models.predict import load_pose_model
+    from svr.models.predict import load_any_pose_model, pose_model_kind
+    from svr.models.stack_pose import STACK_POSE_MODEL, stack_pose_model_path
 
     try:
-        folder = resolve_model_path(spec)
+        kind = pose_model_kind(spec)
+        folder = stack_pose_model_path() if spec == STACK_POSE_MODEL else resolve_model_path(spec)
+        if stack_pose != (kind == "stack-pose"):
+            wanted = "a stack-pose model (with --cases)" if stack_pose else "a slice-pose model"
+            hint = "" if stack_pose else "; evaluate stack-pose models per slice with --cases"
+            raise CliError(f"--checkpoints: {folder} is a {kind} model, expected {wanted}{hint}")
+        model = load_any_pose_model(folder, device)
     except CheckpointError as err:
         raise CliError(f"--checkpoints: {err}") from err
-    model = load_pose_model(folder, device)
     log.info("%s: %s (%s)", name, folder, model.config.representation)
     return _Method(name, folder, model)
 
@@ -182,7 +223,8 @@ def _common_geometry(methods: list[_Method]) -> tuple[tuple[int, int], float]:
     Raises:
         CliError: If the models differ in either.
     """
-    geometry = {m.name: (m.model.config.input_size, m.model.config.spacing_mm) for m in methods}
+    configs = {m.name: cast("SlicePoseNet", m.model).config for m in methods}
+    geometry = {name: (c.input_size, c.spacing_mm) for name, c in configs.items()}
     if len(set(geometry.values())) > 1:
         listed = ", ".join(
             f"{name} {size[0]}x{size[1]} px at {spacing:g} mm"
@@ -302,6 +344,49 @@ _OPTIONS = {"thickness_mm": "--thickness"}
 """The option behind each SliceConfig field it sets (:func:`~svr.cli.common.option_errors`)."""
 
 
+def _case_slices(
+    args: argparse.Namespace, methods: list[_Method], config: SliceConfig
+) -> tuple[list[_VolumeSlices], dict[str, list[torch.Tensor]]]:
+    """Each case's slices with enough brain at their true poses, and each method's starts.
+
+    A slice is kept where its brain area at its true pose is at least ``--min-brain-fraction``
+    of the case's largest (the rule scales with the brain, whatever its age).
+    """
+    from svr.geometry import se3_to_vector
+    from svr.image import Image
+    from svr.reconstruction.config import ReconstructionConfig
+    from svr.reconstruction.initialisation.case_evaluation import (
+        CaseError,
+        load_case,
+        packet_starts,
+    )
+    from svr.sampling.slicer import sample_slices
+
+    recon = ReconstructionConfig()  # the packets and restarts that reconstruction uses
+    data: list[_VolumeSlices] = []
+    starts: dict[str, list[torch.Tensor]] = {m.name: [] for m in methods}
+    for folder in args.cases:
+        try:
+            case = load_case(folder)
+        except CaseError as err:
+            raise CliError(f"--cases: {err}") from err
+        truth = se3_to_vector(case.truth)
+        slices = sample_slices(case.volume.image, truth, config).float()
+        mask = Image(case.volume.mask.float(), case.volume.image.affine)
+        brain = sample_slices(mask, truth, config)
+        area = (brain > 0.5).flatten(1).float().sum(1)
+        keep = area >= args.min_brain_fraction * area.max().clamp_min(1.0)
+        if not bool(keep.any()):
+            raise CliError(f"--cases: {folder}: no slice of the brain in its stacks")
+        data.append(_VolumeSlices(str(folder), case.volume, truth[keep], slices[keep]))
+        for method in methods:
+            model = cast("StackPoseNet", method.model)
+            placed = packet_starts(model, case, recon.packets, recon.initialisation.restart_deg)
+            starts[method.name].append(se3_to_vector(placed)[keep])
+        log.info("%s: %d of %d slices evaluated", case.name, int(keep.sum()), len(keep))
+    return data, starts
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``svr evaluate``."""
     import numpy as np
@@ -313,28 +398,39 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0 <= args.min_brain_fraction < 1:
         raise CliError(f"--min-brain-fraction must be in [0, 1), got {args.min_brain_fraction}")
+    if args.cases and (args.atlas_dir or args.input_volumes or args.input_masks):
+        raise CliError("--cases: give either --cases or volumes (--atlas-dir, --input-volumes)")
     out = check_output_path(args.output_dir, args.overwrite)
     device = resolve_device(args.device)
     named = _parse_checkpoint_specs(args.checkpoints)
-    methods = [_load_method(name, spec, device) for name, spec in named]
-    size, spacing = _common_geometry(methods)
+    cases = bool(args.cases)
+    methods = [_load_method(name, spec, device, cases) for name, spec in named]
+    if cases:
+        size, spacing = CASE_SLICE_SIZE, CASE_SLICE_SPACING_MM
+    else:
+        size, spacing = _common_geometry(methods)
     with option_errors(_OPTIONS):  # size and spacing are the models'
         config = SliceConfig(size=size, spacing_mm=spacing, thickness_mm=args.thickness)
-    volumes, sources = _volumes(args)
-
-    generator = torch.Generator().manual_seed(args.seed)
-    data = [
-        _validation_slices(volume.to(device), source, config, args, generator)
-        for volume, source in zip(volumes, sources, strict=True)
-    ]
+    if cases:
+        data, starts = _case_slices(args, methods, config)
+    else:
+        volumes, sources = _volumes(args)
+        generator = torch.Generator().manual_seed(args.seed)
+        data = [
+            _validation_slices(volume.to(device), source, config, args, generator)
+            for volume, source in zip(volumes, sources, strict=True)
+        ]
     eval_config = EvalConfig(slice=config)
     results: dict[str, dict[str, np.ndarray]] = {}
     predicted: dict[str, torch.Tensor] = {}
     for method in methods:
         per_volume = []
         poses = []
-        for d in data:
-            pred = _predict(method.model, d.slices, args.batch_size)
+        for v, d in enumerate(data):
+            if cases:
+                pred = starts[method.name][v]
+            else:
+                pred = _predict(cast("SlicePoseNet", method.model), d.slices, args.batch_size)
             per_volume.append(evaluate_poses(d.volume, d.poses, pred, eval_config, d.slices))
             poses.append(pred.cpu())
         results[method.name] = {
@@ -354,17 +450,19 @@ def run(args: argparse.Namespace) -> int:
     atomic_write_text(out / "poses.csv", _poses_csv(data, predicted))
     info = {
         "checkpoints": {m.name: str(m.folder) for m in methods},
-        "volumes": sources,
-        "slices_per_volume": args.num_slices,
-        "rotation": args.rotation,
+        "volumes": [d.source for d in data],
+        "slices_per_volume": [len(d.poses) for d in data] if cases else args.num_slices,
+        "rotation": None if cases else args.rotation,
         "input_size": list(size),
         "spacing_mm": spacing,
         "thickness_mm": args.thickness,
         "min_brain_fraction": args.min_brain_fraction,
-        "seed": args.seed,
+        "seed": None if cases else args.seed,
+        "cases": bool(cases),
     }
     atomic_write_text(out / "evaluation.json", json.dumps(info, indent=1) + "\n")
     total = sum(len(d.poses) for d in data)
-    print(f"wrote {out}: {len(methods)} methods on {total} slices from {len(data)} volumes\n")
+    what = "cases" if cases else "volumes"
+    print(f"wrote {out}: {len(methods)} methods on {total} slices from {len(data)} {what}\n")
     print((out / "summary.md").read_text(encoding="utf-8"), end="")
     return 0
