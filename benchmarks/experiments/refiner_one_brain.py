@@ -31,12 +31,16 @@ def main() -> None:
     parser.add_argument(
         "--pure-rotation", action="store_true", help="residuals that are rotations alone"
     )
+    parser.add_argument(
+        "--shift-mm", type=float, default=0.0, help="with --pure-rotation: shifts too (std, mm)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = SliceRefinerConfig(head=args.head)
     config = training.RefinerTrainingConfig(
         max_turn_deg=args.max_turn,
         pure_rotation=args.pure_rotation,
+        pure_rotation_shift_mm=args.shift_mm,
         # without shifts the data's metric is singular: the default one (L = 20 mm) instead
         metric="default" if args.pure_rotation else "data",
     )
@@ -49,7 +53,10 @@ def main() -> None:
             brains,
             model,
             training.RefinerTrainingConfig(
-                packets_per_step=24, max_turn_deg=args.max_turn, pure_rotation=args.pure_rotation
+                packets_per_step=24,
+                max_turn_deg=args.max_turn,
+                pure_rotation=args.pure_rotation,
+                pure_rotation_shift_mm=args.shift_mm,
             ),
             torch.Generator().manual_seed(999),
         )

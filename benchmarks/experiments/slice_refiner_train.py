@@ -82,6 +82,8 @@ class RefinerTrainingConfig:
         pure_rotation: A diagnostic: every slice's current pose is its true pose turned about the
             slice's centre by a random rotation up to ``max_turn_deg`` (no shift), so that the
             residual is a rotation alone.
+        pure_rotation_shift_mm: With ``pure_rotation``, also shift each slice by a random
+            offset (per-axis standard deviation, mm, in the slice's frame).
 
     Raises:
         ConfigFieldError: On construction, naming the field.
@@ -102,6 +104,7 @@ class RefinerTrainingConfig:
     checkpoint_every: int = 250
     seed: int = 0
     pure_rotation: bool = False
+    pure_rotation_shift_mm: float = 0.0
 
     def __post_init__(self) -> None:
         owner = "RefinerTrainingConfig"
@@ -222,6 +225,9 @@ def _packet_poses(
     if config.pure_rotation:
         turn = torch.eye(4, dtype=torch.float64).repeat(length, 1, 1)
         turn[:, :3, :3] = _random_rotations(length, config.max_turn_deg, generator)
+        if config.pure_rotation_shift_mm > 0:
+            shift = torch.randn(length, 3, generator=generator, dtype=torch.float64)
+            turn[:, :3, 3] = shift * config.pure_rotation_shift_mm
         current = se3_compose(true, se3_inverse(turn))
     return true, current
 
