@@ -77,9 +77,9 @@ def true_slice_poses(
     Returns:
         Poses mapping slice-plane mm (origin at the file's plane centre) to the frame, in mm.
     """
-    poses = torch.eye(4, dtype=torch.float64).repeat(len(slices), 1, 1)
-    poses[:, :3, :3] = torch.tensor([s[frame]["R"] for s in slices], dtype=torch.float64)
-    poses[:, :3, 3] = torch.tensor([s[frame]["t"] for s in slices], dtype=torch.float64)
+    from svr.sampling.simulate import pose_from_json
+
+    poses = torch.stack([pose_from_json(s[frame]) for s in slices])
     if centre_mm is not None:
         poses[:, :3, 3] -= centre_mm.cpu().to(torch.float64)
     return poses

@@ -526,6 +526,14 @@ def _pose_json(T: Tensor) -> dict:
     return {"R": T[:3, :3].tolist(), "t": T[:3, 3].tolist()}
 
 
+def pose_from_json(entry: dict) -> Tensor:
+    """(4, 4) float64 a pose as ``truth_slices.json`` stores it (``{"R": 3x3, "t": 3}``, mm)."""
+    matrix = torch.eye(4, dtype=torch.float64)
+    matrix[:3, :3] = torch.tensor(entry["R"], dtype=torch.float64)
+    matrix[:3, 3] = torch.tensor(entry["t"], dtype=torch.float64)
+    return matrix
+
+
 def write_case(
     case: SimulatedCase, out_dir: str | os.PathLike[str], overwrite: bool = False, source: str = ""
 ) -> Path:

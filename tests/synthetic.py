@@ -1,4 +1,4 @@
-"""Small synthetic brains for tests: a textured ellipsoid and its mask."""
+"""Small synthetic brains for tests: a textured ellipsoid and its mask, and the smallest phantom."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from svr.image import Image
+from svr.sampling.phantom import gestational_age_config, make_phantom
 
 
 def ellipsoid_brain(
@@ -34,3 +35,8 @@ def ellipsoid_brain(
         Image(torch.from_numpy(data).float(), affine),
         Image(torch.from_numpy(mask).float(), affine.clone()),
     )
+
+
+def small_phantom() -> tuple[Image, Image]:
+    """The built-in phantom at GA 20 on a 36^3 grid at 2 mm, ``(volume, mask)``: fast commands."""
+    return make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from scipy import ndimage
+from synthetic import small_phantom
 
 import svr.cli
 from svr.apps.bids import (
@@ -23,7 +24,6 @@ from svr.apps.bids import (
 )
 from svr.apps.bids_group import GROUP_HTML, GROUP_TISSUE_PNG, GROUP_TSV
 from svr.image import load_nifti, save_nifti
-from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import canonicalize
 
@@ -52,7 +52,7 @@ def dataset(tmp_path_factory) -> tuple[Path, Path]:
     _write_json(masks_dir / "dataset_description.json", {
         "Name": "masks", "BIDSVersion": "1.9.0", "DatasetType": "derivative",
         "GeneratedBy": [{"Name": "manual"}]})  # fmt: skip
-    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    volume, mask = small_phantom()
     phantom = canonicalize(volume, mask, name="phantom")
     for subject, session, seed in SUBJECTS:
         config = SimulationConfig(
@@ -289,7 +289,7 @@ def test_each_participant_is_fitted_to_the_atlases_of_its_own_age(dataset, tmp_p
     shutil.copytree(bids_dir, study)
     (study / "participants.tsv").write_text("participant_id\tga\nsub-01\t25\nsub-02\t33\n")
     # An atlas folder: GA20 the subjects' own brain, GA30 a brain of noise in the same mask.
-    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    volume, mask = small_phantom()
     atlas = tmp_path / "atlas"
     for name, image in (
         ("GA20_phantom", volume),
@@ -441,7 +441,7 @@ def test_tissue_labels_are_derivatives_and_the_group_tabulates_them(dataset, tmp
     (study / "participants.tsv").write_text("participant_id\tga\nsub-01\t20\nsub-02\t21\n")
     # An atlas folder of the subjects' own phantom brain at three ages, its labels cut from its
     # intensities (the bright core "ventricles", the rest "white matter", the rim "cortex").
-    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    volume, mask = small_phantom()
     inside = mask.data > 0.5
     labels = torch.zeros(volume.shape)
     labels[inside] = 1.0

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
+from synthetic import small_phantom
 
 from svr.cli import main
 from svr.geometry import rotation_angle
@@ -26,14 +27,13 @@ from svr.reconstruction.initialisation import case_evaluation
 from svr.reconstruction.initialisation.case_evaluation import CaseError, load_case, packet_starts
 from svr.reconstruction.initialisation.learned import NetworkPlacement
 from svr.reconstruction.slices import array_poses
-from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import canonicalize
 
 
 def _case(folder: Path, motion: str) -> Path:
-    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    volume, mask = small_phantom()
     config = SimulationConfig(
         num_stacks=2,
         thickness_mm=4.0,

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from recon_settings import recon_config
+from synthetic import small_phantom
 
 import svr.cli
 import svr.files
@@ -21,7 +22,6 @@ from svr.models.checkpoint import save_checkpoint
 from svr.models.network import ModelConfig, build_model, checkpoint_model_config
 from svr.models.predict import load_slice_folder
 from svr.pose_io import read_pose_table
-from svr.sampling.phantom import gestational_age_config, make_phantom
 from svr.sampling.simulate import SimulationConfig, simulate_case, write_case
 from svr.sampling.volume import canonicalize
 
@@ -46,7 +46,7 @@ FAST = [
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory) -> Path:
-    volume, mask = make_phantom(gestational_age_config(20, spacing_mm=2.0, shape=(36, 36, 36)))
+    volume, mask = small_phantom()
     config = SimulationConfig(
         thickness_mm=5.0,
         in_plane_mm=2.5,

@@ -32,6 +32,7 @@ from svr.reconstruction.initialisation.choice import placed_by_packets
 from svr.reconstruction.initialisation.learned import network_placement
 from svr.reconstruction.slices import SliceSet, Stack, extract_slices, plane_poses
 from svr.reconstruction.stacks import load_stacks
+from svr.sampling.simulate import pose_from_json
 from svr.sampling.volume import CanonicalVolume, canonicalize
 
 __all__ = ["CaseError", "SimulatedCase", "load_case", "packet_starts"]
@@ -60,13 +61,6 @@ class SimulatedCase(NamedTuple):
     slices: SliceSet
     truth: Tensor
     volume: CanonicalVolume
-
-
-def _pose(entry: dict) -> Tensor:
-    matrix = torch.eye(4, dtype=torch.float64)
-    matrix[:3, :3] = torch.tensor(entry["R"], dtype=torch.float64)
-    matrix[:3, 3] = torch.tensor(entry["t"], dtype=torch.float64)
-    return matrix
 
 
 def _read_json(path: Path) -> dict:
@@ -115,8 +109,8 @@ def load_case(folder: str | os.PathLike[str]) -> SimulatedCase:
     atlas, scanner = [], []
     for sid, k in zip(slices.stack_ids.tolist(), slices.slice_indices.tolist(), strict=True):
         entry = truth[Path(slices.stack_names[sid]).name][int(k)]
-        atlas.append(_pose(entry["atlas"]))
-        scanner.append(_pose(entry["scanner"]))
+        atlas.append(pose_from_json(entry["atlas"]))
+        scanner.append(pose_from_json(entry["scanner"]))
     atlas_poses, scanner_poses = torch.stack(atlas), torch.stack(scanner)
     # The ground truth volume lies in the scanner frame; every slice's truth gives the same
     # scanner -> atlas transform.

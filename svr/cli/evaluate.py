@@ -282,10 +282,11 @@ def _validation_slices(
     return _VolumeSlices(source, volume, poses, sample_slices(volume.image, poses, config).float())
 
 
-def _predict(model: SlicePoseNet, slices: torch.Tensor, batch_size: int) -> torch.Tensor:
-    """(N, 6) predicted poses of (N, H, W) slices, in batches, without gradients."""
+def _predict(method: _Method, slices: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """(N, 6) a slice-pose method's predicted poses of (N, H, W) slices, in batches."""
     import torch
 
+    model = cast("SlicePoseNet", method.model)
     return torch.cat(
         [model.predict_poses(batch.unsqueeze(1)) for batch in torch.split(slices, batch_size)]
     )
@@ -420,19 +421,16 @@ def run(args: argparse.Namespace) -> int:
             _validation_slices(volume.to(device), source, config, args, generator)
             for volume, source in zip(volumes, sources, strict=True)
         ]
+        starts = {m.name: [_predict(m, d.slices, args.batch_size) for d in data] for m in methods}
     eval_config = EvalConfig(slice=config)
     results: dict[str, dict[str, np.ndarray]] = {}
     predicted: dict[str, torch.Tensor] = {}
     for method in methods:
-        per_volume = []
-        poses = []
-        for v, d in enumerate(data):
-            if cases:
-                pred = starts[method.name][v]
-            else:
-                pred = _predict(cast("SlicePoseNet", method.model), d.slices, args.batch_size)
-            per_volume.append(evaluate_poses(d.volume, d.poses, pred, eval_config, d.slices))
-            poses.append(pred.cpu())
+        per_volume = [
+            evaluate_poses(d.volume, d.poses, pred, eval_config, d.slices)
+            for d, pred in zip(data, starts[method.name], strict=True)
+        ]
+        poses = [pred.cpu() for pred in starts[method.name]]
         results[method.name] = {
             key: np.concatenate([r[key] for r in per_volume]) for key in per_volume[0]
         }
@@ -458,7 +456,7 @@ def run(args: argparse.Namespace) -> int:
         "thickness_mm": args.thickness,
         "min_brain_fraction": args.min_brain_fraction,
         "seed": None if cases else args.seed,
-        "cases": bool(cases),
+        "cases": cases,
     }
     atomic_write_text(out / "evaluation.json", json.dumps(info, indent=1) + "\n")
     total = sum(len(d.poses) for d in data)
