@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
@@ -196,31 +197,23 @@ def simulate_cases(
     return out
 
 
-def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
-    """Write ``volume`` (in the canonical frame) relabelled into the stacks' scanner frame.
+def scanner_from_canonical(transforms: Path) -> np.ndarray:
+    """(4, 4) ``G``: the stacks' scanner frame as a canonical-frame output's slices see it.
 
-    The shared yardstick registers a reconstruction to the ground truth from a set of start
-    orientations, and its score depends on the orientation the volume comes in: the same array
-    with only its affine turned by a rigid transform scored up to 2.8 dB lower on sb24-large
-    (``benchmarks/results/frame-equivariance.md``). A canonical-frame output is therefore
-    also scored in the scanner frame, without resampling: its affine is premultiplied by
     ``G = robust_mean_pose(S_i o P_i^-1)`` over the slices that were not excluded, with ``S_i``
     the scanner pose of the slice's k-plane in its file and ``P_i`` its final canonical pose from
-    the transforms table. ``G`` is the scanner frame as the slices see it, which is the frame a
-    ``--registration stack`` run outputs in up to the template stack's own motion.
+    the transforms table: canonical mm -> scanner mm, up to each stack's own motion. This, not a
+    canonical output's affine, is its frame: the affine maps voxels to canonical mm on a grid
+    built in the frame the slices had before the output was turned onto an atlas or levelled, so
+    its rotation is only those last turns.
 
     Args:
-        volume: The canonical-frame volume (NIfTI).
-        transforms: Its ``--output-transforms`` table (``.csv``).
-        out: Where to write the copy.
+        transforms: A canonical-frame ``--output-transforms`` table (``.csv``).
 
     Returns:
-        ``out``.
+        float64 ``G``.
     """
     import csv
-
-    import nibabel as nib
-    import numpy as np
 
     from svr.geometry import se3_compose, se3_inverse, vector_to_se3
     from svr.geometry.averaging import robust_mean_pose
@@ -236,9 +229,33 @@ def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
     )
     canonical = vector_to_se3(table.poses)
     use = torch.tensor(kept)
-    frame = robust_mean_pose(se3_compose(scanner[use], se3_inverse(canonical[use])))
+    return robust_mean_pose(se3_compose(scanner[use], se3_inverse(canonical[use]))).numpy()
+
+
+def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
+    """Write ``volume`` (in the canonical frame) relabelled into the stacks' scanner frame.
+
+    The shared yardstick registers a reconstruction to the ground truth from a set of start
+    orientations, and its score depends on the orientation the volume comes in: the same array
+    with only its affine turned by a rigid transform scored up to 2.8 dB lower on sb24-large
+    (``benchmarks/results/frame-equivariance.md``). A canonical-frame output is therefore
+    also scored in the scanner frame, without resampling: its affine is premultiplied by
+    :func:`scanner_from_canonical`, the scanner frame as the slices see it, which is the frame a
+    ``--registration stack`` run outputs in up to the template stack's own motion.
+
+    Args:
+        volume: The canonical-frame volume (NIfTI).
+        transforms: Its ``--output-transforms`` table (``.csv``).
+        out: Where to write the copy.
+
+    Returns:
+        ``out``.
+    """
+    import nibabel as nib
+
     image = nib.load(volume)
-    relabelled = nib.Nifti1Image(np.asarray(image.dataobj), frame.numpy() @ image.affine)
+    frame = scanner_from_canonical(transforms)
+    relabelled = nib.Nifti1Image(np.asarray(image.dataobj), frame @ image.affine)
     nib.save(relabelled, out)
     return out
 

@@ -6,22 +6,27 @@ spina bifida, unlike the atlas's brains) a frame and its front-back twin fit the
 equally well, so a choice by NCC alone followed rounding: the output flipped with the number of
 threads. This reconstructs the real scan once per thread count (``OMP_NUM_THREADS``, a fresh process
 each) and reports, per run, the frame chosen (the start that won and the final NCCs of the frames
-compared) and the angle between the output's frame and a reference: the frame of an earlier output
-whose axial, coronal and sagittal views were looked at and found to be the atlas's standard planes
-(``benchmarks/results/real-scan-frame-reference.json``, its affine). There is no ground truth on a
-real scan; what this measures is whether every run lands on that frame (a few degrees) rather than
-its twin (150-180 degrees).
+compared) and the angle between the output's frame and a reference frame.
+
+A canonical output's frame is ``G`` (:func:`bench_common.scanner_from_canonical`: canonical mm ->
+the stacks' scanner mm, from its transforms table), not its affine: the affine maps voxels to
+canonical mm on a grid built in the slices' frame before the last turns (onto an atlas, onto the
+mid-sagittal plane), so its rotation is those turns alone. The reference
+(``benchmarks/results/real-scan-frame-reference.json``) is ``G`` of a run whose axial, coronal and
+sagittal views were looked at and found to be the standard planes (``--write-reference`` records
+it from the first run). There is no ground truth on a real scan; what this measures is whether
+every run lands on that frame (a few degrees) rather than its twin (150-180 degrees).
 
 ``--fabian`` also reconstructs each subject of the FaBiAN stacks (simulated normal brains from
 another atlas family; ``bench_real_stacks.py``) with the atlas whose brain volume is nearest its
-mask's, and measures the output frame against the files' own world frame, which is the simulated
-brain's anatomical frame: a second brain unlike the training atlas's, with a reference from the
-files rather than from a look.
+mask's, and measures ``G`` against the identity: the files' world frame is the simulated brain's
+anatomical frame, a second brain unlike the training atlas's, with a reference from the files
+rather than from a look. The output's last turns are shown beside it.
 
 Run from the repository root (about 2-4 minutes per run on one core)::
 
     python benchmarks/bench_real_frame.py [--threads 1 2] [--out runs/real-frame] [--fabian] \
-        [--results benchmarks/results/real-scan-frame.md]
+        [--auto-masks] [--write-reference] [--results benchmarks/results/real-scan-frame.md]
 """
 
 from __future__ import annotations
@@ -40,7 +45,14 @@ from pathlib import Path
 
 import nibabel as nib
 import numpy as np
-from bench_common import ATLAS, FABIAN, FABIAN_STACKS, SHARED, write_results
+from bench_common import (
+    ATLAS,
+    FABIAN,
+    FABIAN_STACKS,
+    SHARED,
+    scanner_from_canonical,
+    write_results,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "benchmarks" / "results" / "real-scan-frame-reference.json"
@@ -79,10 +91,12 @@ def _reconstruct(
     folders = [atlas] if isinstance(atlas, Path) else list(atlas)
     command = [
         sys.executable, "-m", "svr", "reconstruct", "--input-stacks", *stacks,
-        "--stack-masks", *masks, "--registration", "cnn", "--model", model,
+        *(["--stack-masks", *masks] if masks else []), "--registration", "cnn", "--model", model,
         "--atlas-volume", *(str(f / "srr.nii.gz") for f in folders),
         "--atlas-mask", *(str(f / "mask.nii.gz") for f in folders),
-        "--output-volume", str(output), "--overwrite", "-v", *options,
+        "--output-volume", str(output), "--output-transforms", str(_transforms(output)),
+        "--output-qa", str(output.with_name(output.name.split(".")[0] + ".png")),
+        "--overwrite", "-v", *options,
     ]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     began = time.perf_counter()
@@ -91,6 +105,11 @@ def _reconstruct(
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
     return done.stderr, seconds
+
+
+def _transforms(output: Path) -> Path:
+    """The transforms table written beside an output volume."""
+    return output.with_name(output.name.split(".")[0] + ".csv")
 
 
 def _mask_ml(path: Path) -> float:
@@ -122,11 +141,12 @@ def fabian_rows(model: str, threads: list[int], out: Path) -> list[str]:
             log, seconds = _reconstruct(
                 stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2")
             )
-            angle = frame_angle_deg(np.eye(4), nib.load(output).affine)
+            angle = frame_angle_deg(np.eye(4), scanner_from_canonical(_transforms(output)))
+            turns = frame_angle_deg(np.eye(4), nib.load(output).affine)
             split = "split" if "stacks disagree" in log else "agree"
             rows.append(
                 f"| {subject.removeprefix('sub-')} | {len(names)} | {atlas.name} | {n} | "
-                f"{angle:.1f} | {split} | {seconds:.0f} |"
+                f"**{angle:.1f}** | {turns:.1f} | {split} | {seconds:.0f} |"
             )
             print(rows[-1], flush=True)
     return rows
@@ -146,37 +166,63 @@ def main() -> int:
     parser.add_argument("--model", default="stack-pose")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--reference", type=Path, default=REFERENCE)
+    parser.add_argument(
+        "--write-reference",
+        action="store_true",
+        help="record the first run's frame as the reference (after its views were looked at)",
+    )
+    parser.add_argument(
+        "--auto-masks", action="store_true", help="the automatic masks (the README's example)"
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "real-frame")
     parser.add_argument("--results", type=Path, help="also write the table here (markdown)")
     parser.add_argument(
         "--fabian", action="store_true", help="also the FaBiAN subjects' output frames"
     )
     args = parser.parse_args()
-    reference = np.asarray(json.loads(args.reference.read_text(encoding="utf-8"))["affine"])
+    recorded = json.loads(args.reference.read_text(encoding="utf-8"))
+    if "scanner_from_canonical" not in recorded and not args.write_reference:
+        parser.error(f"--reference {args.reference}: no 'scanner_from_canonical' frame recorded")
+    reference = np.asarray(recorded.get("scanner_from_canonical", np.eye(4)))
     runs = range(1, 7)
     stacks = [str(args.scan / f"sub-01_run-{i}_T2w.nii.gz") for i in runs]
     masks = [str(args.scan / f"sub-01_run-{i}_T2w_desc-brain_mask.nii.gz") for i in runs]
     args.out.mkdir(parents=True, exist_ok=True)
-    rows, affines = [], []
+    rows, frames = [], []
+    tag = "auto" if args.auto_masks else "manual"
     for threads in args.threads:
-        output = args.out / f"real-cnn-{threads}t.nii.gz"
-        log, seconds = _reconstruct(stacks, masks, args.atlas, args.model, output, threads)
+        output = args.out / f"real-cnn-{tag}-{threads}t.nii.gz"
+        log, seconds = _reconstruct(
+            stacks, [] if args.auto_masks else masks, args.atlas, args.model, output, threads
+        )
         match = FRAME_LINE.search(log)
         start, detail = (match.group(3), match.group(4)) if match else ("?", "")
-        affine = nib.load(output).affine
-        affines.append(affine)
-        angle = frame_angle_deg(reference, affine)
+        frame = scanner_from_canonical(_transforms(output))
+        frames.append(frame)
+        if args.write_reference and len(frames) == 1:
+            reference = frame
+            record = {
+                "what": f"canonical mm -> scanner mm frame G (benchmarks/bench_common."
+                f"scanner_from_canonical) of {output.name}: svr reconstruct --registration cnn "
+                f"of the real scan (sub-01, runs 1-6, {tag} masks, atlas "
+                f"{', '.join(a.name for a in args.atlas)}, {datetime.date.today().isoformat()}), "
+                "whose axial, coronal and sagittal views were looked at and are the standard "
+                "planes; the reference frame of benchmarks/bench_real_frame.py",
+                "scanner_from_canonical": np.round(frame, 6).tolist(),
+            }
+            args.reference.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+        angle = frame_angle_deg(reference, frame)
         final = detail.split("; coarse")[0].removeprefix("final NCC ")
-        rows.append(f"| {threads} | {angle:.1f} | {start} | {final} | {seconds:.0f} |")
+        rows.append(f"| {tag} | {threads} | **{angle:.1f}** | {start} | {final} | {seconds:.0f} |")
         print(rows[-1], flush=True)
     spread = max(
-        (frame_angle_deg(a, b) for i, a in enumerate(affines) for b in affines[i + 1 :]),
+        (frame_angle_deg(a, b) for i, a in enumerate(frames) for b in frames[i + 1 :]),
         default=0.0,
     )
     lines = [
-        "| threads | frame vs reference (deg) | start kept | final NCC of the frames compared "
-        "| wall (s) |",
-        "|---:|---:|---|---|---:|",
+        "| masks | threads | frame vs reference (deg) | start kept | final NCC of the frames "
+        "compared | wall (s) |",
+        "|---|---:|---:|---|---|---:|",
         *rows,
         "",
         f"Largest angle between two runs' frames: {spread:.1f} deg.",
@@ -186,9 +232,9 @@ def main() -> int:
             "",
             "FaBiAN subjects (output frame against the files' world frame):",
             "",
-            "| subject | stacks | atlas | threads | frame vs files' frame (deg) | stacks' frames "
-            "| wall (s) |",
-            "|---|---:|---|---:|---:|---|---:|",
+            "| subject | stacks | atlas | threads | frame vs files' frame (deg) | last turns of "
+            "the output (deg) | stacks' frames | wall (s) |",
+            "|---|---:|---|---:|---:|---:|---|---:|",
             *fabian_rows(args.model, args.threads, args.out),
         ]
     text = "\n".join(lines)

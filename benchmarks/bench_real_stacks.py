@@ -53,7 +53,7 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import torch
-from bench_common import FABIAN, FABIAN_STACKS, SHARED, write_results
+from bench_common import FABIAN, FABIAN_STACKS, SHARED, scanner_from_canonical, write_results
 from bench_real_frame import REFERENCE, rotation_part
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -103,10 +103,13 @@ def make_truth(transforms: Path, output: Path, scan: Path, out: Path) -> None:
     from svr.image import load_nifti, stack_slice_poses
     from svr.pose_io import read_pose_table
 
-    reference = np.asarray(json.loads(REFERENCE.read_text(encoding="utf-8"))["affine"])
+    reference = np.asarray(
+        json.loads(REFERENCE.read_text(encoding="utf-8"))["scanner_from_canonical"]
+    )
+    # the run's canonical frame -> the reference's: G_ref^-1 o G_run (rotation only)
     turn = torch.eye(4, dtype=torch.float64)
     turn[:3, :3] = torch.from_numpy(
-        rotation_part(reference) @ rotation_part(nib.load(output).affine).T
+        rotation_part(np.linalg.inv(reference) @ scanner_from_canonical(transforms))
     )
     table = read_pose_table(transforms)
     canonical = vector_to_se3(table.poses)

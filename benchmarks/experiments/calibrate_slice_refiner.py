@@ -50,6 +50,12 @@ def main() -> None:
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--val-every", type=int, default=250)
     parser.add_argument("--out", type=Path, default=None, help="checkpoint folder (resumable)")
+    parser.add_argument(
+        "--pure-rotation", action="store_true", help="residuals that are rotations alone"
+    )
+    parser.add_argument(
+        "--shift-mm", type=float, default=0.0, help="with --pure-rotation: shifts too (std, mm)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -60,18 +66,23 @@ def main() -> None:
     train += [args.crl / f"GA{w}_crl" for w in (22, 24, 26, 28, 30, 32, 34, 36)]
     held_out = [args.wu / f"GA{w}_wu" for w in (24, 28, 32)]
     model = SliceRefinerConfig(context=args.context, head=args.head)
+    residuals = {
+        "max_turn_deg": args.max_turn,
+        "max_step_deg": args.max_step,
+        "pure_rotation": args.pure_rotation,
+        "pure_rotation_shift_mm": args.shift_mm,
+    }
     config = RefinerTrainingConfig(
         steps=args.steps,
-        max_turn_deg=args.max_turn,
-        max_step_deg=args.max_step,
         learning_rate=args.lr,
+        # without shifts the data's metric is singular: the default one (L = 20 mm) instead
+        metric="default" if args.pure_rotation else "data",
+        **residuals,
     )
     validation = draw_packets(
         prepare_brains(_volumes(held_out)),
         model,
-        RefinerTrainingConfig(
-            packets_per_step=24, max_turn_deg=args.max_turn, max_step_deg=args.max_step
-        ),
+        RefinerTrainingConfig(packets_per_step=24, **residuals),
         torch.Generator().manual_seed(123),
     )
     start = torch.rad2deg(validation.residuals[validation.valid][:, :3].norm(dim=1))

@@ -34,6 +34,7 @@ def main() -> None:
     parser.add_argument(
         "--shift-mm", type=float, default=0.0, help="with --pure-rotation: shifts too (std, mm)"
     )
+    parser.add_argument("--save", type=Path, help="write the trained weights here (a state dict)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = SliceRefinerConfig(head=args.head)
@@ -97,6 +98,9 @@ def main() -> None:
                 f"translation median {translation.median():.2f} mm",
                 flush=True,
             )
+    if args.save is not None:
+        args.save.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"head": args.head, "state_dict": net.state_dict()}, args.save)
     rotation, translation = training.residual_errors(net.eval(), validation)
     print(
         f"final step {step}: rotation median {rotation.median():.2f} deg, translation median "

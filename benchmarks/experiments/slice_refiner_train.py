@@ -41,11 +41,13 @@ from svr.sampling.volume import CanonicalVolume, downsample_volume
 from svr.validation import check_choice, check_int, check_number, check_range
 
 __all__ = [
+    "PacketScene",
     "RefinerBrain",
     "RefinerTrainingConfig",
     "draw_packets",
     "metric_weights",
     "prepare_brains",
+    "render_inputs",
     "residual_errors",
     "train_slice_refiner",
 ]
@@ -256,11 +258,48 @@ def _planes(poses: Tensor, offsets: Sequence[float]) -> Tensor:
     return se3_compose(poses[:, None], shifts[None]).reshape(-1, 4, 4)
 
 
+class PacketScene(NamedTuple):
+    """What one drawn packet needs to be seen again from other current poses (an iterated step).
+
+    Attributes:
+        slices: (L, H, W) the acquired slices (PSF, noise, brain mask), before the intensity curve.
+        reference: The blurred reference volume the planes are resampled from.
+        gamma: The exponent of the shared intensity curve.
+        true: (L, 4, 4) float64 the slices' true poses (canonical mm).
+        current: (L, 4, 4) float64 their current poses.
+        valid: (L,) bool, slices with enough brain to be learned from.
+    """
+
+    slices: Tensor
+    reference: Image
+    gamma: float
+    true: Tensor
+    current: Tensor
+    valid: Tensor
+
+
+def render_inputs(scene: PacketScene, current: Tensor, model: SliceRefinerConfig) -> Tensor:
+    """(L, C, H, W) float32 the network's inputs for the scene's slices at ``current`` poses.
+
+    Args:
+        scene: The packet (:func:`draw_packets` with ``scenes``).
+        current: (L, 4, 4) float64 the slices' current poses (canonical mm).
+        model: The inputs the network takes.
+    """
+    size = model.size
+    thin = SliceConfig(size=size, spacing_mm=model.spacing_mm)
+    planes = sample_slices(scene.reference, _planes(current, model.plane_offsets_mm), thin)
+    planes = planes.reshape(len(current), len(model.plane_offsets_mm), *size)
+    inputs = torch.cat([scene.slices[:, None], planes], dim=1).clamp_min(0).pow(scene.gamma)
+    return inputs.float()
+
+
 def draw_packets(
     brains: Sequence[RefinerBrain],
     model: SliceRefinerConfig,
     config: RefinerTrainingConfig,
     generator: torch.Generator,
+    scenes: list[PacketScene] | None = None,
 ) -> PacketBatch:
     """``config.packets_per_step`` packets of ``config.packet_length`` slices (module docstring).
 
@@ -269,6 +308,7 @@ def draw_packets(
         model: The inputs the network takes (size, spacing, reference planes, representation).
         config: The draws' ranges.
         generator: The batch's random generator.
+        scenes: If given, each packet's :class:`PacketScene` is appended to it.
 
     Returns:
         The batch.
@@ -285,8 +325,6 @@ def draw_packets(
         slices = sample_slices(brain.sharp, true, thick)
         mask = sample_slices(brain.mask, true, thin) > 0.5
         reference = brain.blurred[int(torch.randint(len(BLUR_MM), (1,), generator=generator))]
-        planes = sample_slices(reference, _planes(current, model.plane_offsets_mm), thin)
-        planes = planes.reshape(len(true), len(model.plane_offsets_mm), *size)
         noise = config.noise[0] + (config.noise[1] - config.noise[0]) * torch.rand(
             1, generator=generator
         )
@@ -296,13 +334,16 @@ def draw_packets(
         gamma = config.gamma[0] + (config.gamma[1] - config.gamma[0]) * float(
             torch.rand(1, generator=generator)
         )
-        inputs = torch.cat([slices[:, None], planes], dim=1).clamp_min(0).pow(gamma)
+        valid = mask.flatten(1).float().mean(1) > 0.05
+        scene = PacketScene(slices, reference, gamma, true, current, valid)
+        if scenes is not None:
+            scenes.append(scene)
+        inputs = render_inputs(scene, current, model)
         residual = se3_to_vector(se3_compose(se3_inverse(current), true))
         mean = _chordal_mean(current)
         relative = se3_to_vector(se3_compose(se3_inverse(mean)[None], current)).float()
         times = torch.arange(len(true), dtype=torch.float32)
-        valid = mask.flatten(1).float().mean(1) > 0.05
-        parts.append((inputs.float(), residual, times, relative, valid))
+        parts.append((inputs, residual, times, relative, valid))
     inputs, residuals, times, poses, valid = (torch.stack(p) for p in zip(*parts, strict=True))
     labels = pose_labels(residuals, model.representation).float()
     return PacketBatch(inputs, labels, residuals, times, poses, valid)
