@@ -94,8 +94,8 @@ def _reconstruct(
         *(["--stack-masks", *masks] if masks else []), "--registration", "cnn", "--model", model,
         "--atlas-volume", *(str(f / "srr.nii.gz") for f in folders),
         "--atlas-mask", *(str(f / "mask.nii.gz") for f in folders),
-        "--output-volume", str(output), "--output-transforms", str(_transforms(output)),
-        "--output-qa", str(output.with_name(output.name.split(".")[0] + ".png")),
+        "--output-volume", str(output), "--output-transforms", str(_beside(output, ".csv")),
+        "--output-qa", str(_beside(output, ".png")),
         "--overwrite", "-v", *options,
     ]  # fmt: skip
     env = dict(os.environ, OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
@@ -107,9 +107,9 @@ def _reconstruct(
     return done.stderr, seconds
 
 
-def _transforms(output: Path) -> Path:
-    """The transforms table written beside an output volume."""
-    return output.with_name(output.name.split(".")[0] + ".csv")
+def _beside(output: Path, suffix: str) -> Path:
+    """A file written beside an output volume (its transforms table, its QA figure)."""
+    return output.with_name(output.name.split(".")[0] + suffix)
 
 
 def _mask_ml(path: Path) -> float:
@@ -141,7 +141,7 @@ def fabian_rows(model: str, threads: list[int], out: Path) -> list[str]:
             log, seconds = _reconstruct(
                 stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2")
             )
-            angle = frame_angle_deg(np.eye(4), scanner_from_canonical(_transforms(output)))
+            angle = frame_angle_deg(np.eye(4), scanner_from_canonical(_beside(output, ".csv")))
             turns = frame_angle_deg(np.eye(4), nib.load(output).affine)
             split = "split" if "stacks disagree" in log else "agree"
             rows.append(
@@ -197,7 +197,7 @@ def main() -> int:
         )
         match = FRAME_LINE.search(log)
         start, detail = (match.group(3), match.group(4)) if match else ("?", "")
-        frame = scanner_from_canonical(_transforms(output))
+        frame = scanner_from_canonical(_beside(output, ".csv"))
         frames.append(frame)
         if args.write_reference and len(frames) == 1:
             reference = frame

@@ -19,9 +19,9 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
-from scipy.ndimage import binary_erosion
+from bench_real_frame import rotation_part
 
-__all__ = ["MidplaneEstimate", "affine_rotation", "midplane_of_array", "midplane_of_file"]
+__all__ = ["MidplaneEstimate", "midplane_of_array", "midplane_of_file"]
 
 STARTS_DEG = ((0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (0.0, 30.0), (0.0, -30.0))
 """Starting turns (about the second and third axes, degrees) of the mirror registration.
@@ -49,12 +49,6 @@ class MidplaneEstimate:
         return math.degrees(math.acos(min(1.0, abs(float(self.normal[0])))))
 
 
-def _mask(inside: np.ndarray, spacing: np.ndarray) -> sitk.Image:
-    image = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(inside, (2, 1, 0)), np.uint8))
-    image.SetSpacing(tuple(float(s) for s in spacing))
-    return image
-
-
 def _image(data: np.ndarray, spacing: np.ndarray) -> sitk.Image:
     image = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(data, (2, 1, 0)), np.float32))
     image.SetSpacing(tuple(float(s) for s in spacing))
@@ -62,7 +56,7 @@ def _image(data: np.ndarray, spacing: np.ndarray) -> sitk.Image:
 
 
 def midplane_of_array(
-    data: np.ndarray, spacing_mm: np.ndarray, threads: int = 1, erode_mm: float = 0.0
+    data: np.ndarray, spacing_mm: np.ndarray, threads: int = 1
 ) -> MidplaneEstimate:
     """The mid-sagittal plane of a volume whose first array axis is roughly left-right.
 
@@ -70,8 +64,6 @@ def midplane_of_array(
         data: (X, Y, Z) intensities, the brain (background 0).
         spacing_mm: (3,) voxel spacing (mm).
         threads: SimpleITK's threads.
-        erode_mm: If > 0, the correlation is taken inside the brain's support eroded by this
-            much (the brain's inside alone, not its outline).
 
     Returns:
         The plane's normal in the array axes and the mirror registration's correlation.
@@ -80,30 +72,19 @@ def midplane_of_array(
     spacing = np.asarray(spacing_mm, dtype=np.float64)
     fixed = _image(data, spacing)
     moving = _image(data[::-1], spacing)
-    masks = None
-    if erode_mm > 0:
-        inside = binary_erosion(data > 0, iterations=max(1, round(erode_mm / float(spacing.min()))))
-        masks = (_mask(inside, spacing), _mask(inside[::-1], spacing))
-    centre = (np.array(data.shape) - 1) / 2 * spacing
-    best: tuple[float, sitk.Euler3DTransform] | None = None
-    starts = []
+    centre = tuple(float(c) for c in (np.array(data.shape) - 1) / 2 * spacing)
+    found = []
     for about_y, about_z in STARTS_DEG:
         start = sitk.Euler3DTransform()
-        start.SetCenter(tuple(float(c) for c in centre))
+        start.SetCenter(centre)
         start.SetRotation(0.0, math.radians(about_y), math.radians(about_z))
-        starts.append(start)
-    for index in range(len(starts) + 1):
-        if index == len(starts):  # polish: from the reflection the best estimate implies
-            assert best is not None
-            start = sitk.Euler3DTransform(best[1])
-            reflection = np.eye(3) - 2.0 * np.outer(*(_normal(best[1]),) * 2)
-            start.SetMatrix(tuple((FLIP @ reflection).ravel()))
-        else:
-            start = starts[index]
-        metric, found = _register(fixed, moving, start, masks)
-        if best is None or metric < best[0]:
-            best = (metric, found)
-    assert best is not None
+        found.append(_register(fixed, moving, start))
+    # polish: once more from the exact reflection about the best start's plane
+    best = min(found, key=lambda pair: pair[0])
+    start = sitk.Euler3DTransform(best[1])
+    normal = _normal(best[1])
+    start.SetMatrix(tuple((FLIP @ (np.eye(3) - 2.0 * np.outer(normal, normal))).ravel()))
+    best = min([best, _register(fixed, moving, start)], key=lambda pair: pair[0])
     return MidplaneEstimate(_normal(best[1]), -float(best[0]))
 
 
@@ -112,16 +93,10 @@ FLIP = np.diag([-1.0, 1.0, 1.0])
 
 
 def _register(
-    fixed: sitk.Image,
-    moving: sitk.Image,
-    start: sitk.Euler3DTransform,
-    masks: tuple[sitk.Image, sitk.Image] | None = None,
+    fixed: sitk.Image, moving: sitk.Image, start: sitk.Euler3DTransform
 ) -> tuple[float, sitk.Euler3DTransform]:
     """SimpleITK's rigid registration of the mirror image from ``start``: (metric, transform)."""
     method = sitk.ImageRegistrationMethod()
-    if masks is not None:
-        method.SetMetricFixedMask(masks[0])
-        method.SetMetricMovingMask(masks[1])
     method.SetMetricAsCorrelation()
     method.SetInterpolator(sitk.sitkLinear)
     method.SetOptimizerAsRegularStepGradientDescent(1.0, 1e-4, 300)
@@ -146,23 +121,19 @@ def _normal(transform: sitk.Euler3DTransform) -> np.ndarray:
     return normal if normal[0] >= 0 else -normal
 
 
-def affine_rotation(affine: np.ndarray) -> np.ndarray:
-    """The (3, 3) rotation of a voxel-to-world affine: its columns divided by the spacing."""
-    return affine[:3, :3] / np.linalg.norm(affine[:3, :3], axis=0)
-
-
 def midplane_of_file(path: Path, threads: int = 1) -> tuple[MidplaneEstimate, np.ndarray]:
     """The mid-sagittal plane of a NIfTI reconstruction, and its normal in world coordinates.
 
     Args:
-        path: A canonical output of ``svr reconstruct`` (array axes = its frame's x, y, z).
+        path: A canonical output of ``svr reconstruct``: its world is the canonical frame, its
+            array axes those of the grid it was reconstructed on (before its last turns).
         threads: SimpleITK's threads.
 
     Returns:
-        The estimate in the volume's own frame, and (3,) the normal in the file's world frame.
+        The estimate in the array's axes, and (3,) the normal in the file's world frame.
     """
     image = nib.load(str(path))
     data = np.asarray(image.dataobj, dtype=np.float32)
     spacing = np.linalg.norm(image.affine[:3, :3], axis=0)
     estimate = midplane_of_array(np.clip(data, 0, None), spacing, threads)
-    return estimate, affine_rotation(image.affine) @ estimate.normal
+    return estimate, rotation_part(image.affine) @ estimate.normal

@@ -29,7 +29,7 @@ from calibrate_slice_refiner import _volumes
 from slice_refiner import SliceRefinerConfig, SliceRefinerNet, load_slice_refiner
 from torch import Tensor
 
-from svr.geometry import se3_compose, se3_inverse, se3_to_vector, vector_to_se3
+from svr.geometry import se3_compose, se3_error, se3_to_vector, vector_to_se3
 
 
 def _load(path: Path) -> SliceRefinerNet:
@@ -45,7 +45,7 @@ def _errors(scenes: list[training.PacketScene], currents: list[Tensor]) -> tuple
     """Rotation (deg) and translation (mm) errors of the valid slices' current poses."""
     rotations, translations = [], []
     for scene, current in zip(scenes, currents, strict=True):
-        error = se3_to_vector(se3_compose(se3_inverse(current), scene.true))[scene.valid]
+        error = se3_error(se3_to_vector(current), se3_to_vector(scene.true))[scene.valid]
         rotations.append(torch.rad2deg(error[:, :3].norm(dim=1)))
         translations.append(error[:, 3:].norm(dim=1))
     return torch.cat(rotations), torch.cat(translations)
