@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 
 from bench_common import (
+    ATLAS,
     SHARED,
     case_age,
     neighbour_atlas,
@@ -112,9 +113,13 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
         return []
     options = ["--model", args.model]
     if args.atlas_offset:
-        pairs = [neighbour_atlas(case_age(case), offset) for offset in args.atlas_offset]
+        pairs = [
+            neighbour_atlas(case_age(case), offset, args.atlas_dir) for offset in args.atlas_offset
+        ]
         options += ["--atlas-volume", *(str(volume) for volume, _ in pairs)]
         options += ["--atlas-mask", *(str(mask) for _, mask in pairs)]
+    if args.no_slice_refinement:
+        options.append("--no-slice-refinement")
     return options
 
 
@@ -216,6 +221,17 @@ def main() -> int:
         "own age plus this many weeks (never the case's own age), one atlas per offset (-1 1: "
         "the ages either side, the first's frame unless the other fits clearly better); "
         "default: no atlas",
+    )
+    parser.add_argument(
+        "--atlas-dir",
+        type=Path,
+        default=ATLAS,
+        help="the atlas family of --atlas-offset (age folders GA<weeks>_*/srr.nii.gz, mask.nii.gz)",
+    )
+    parser.add_argument(
+        "--no-slice-refinement",
+        action="store_true",
+        help="cnn runs leave the slices at their packets' poses (the refiner's baseline)",
     )
     parser.add_argument(
         "--converged",

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Literal, get_args
 
 from svr.errors import ConfigFieldError
+from svr.models.pretrained import SLICE_REFINER_STAGES
 from svr.options import option
 from svr.validation import (
     check_bool,
@@ -82,6 +83,11 @@ class InitialisationConfig:
             score each stack's candidate starts; ``None``: twice the output resolution.
         restart_deg: ``"learned"``: the turn (degrees) of six restarts of the network about each
             stack's chosen transform, averaged (0: none).
+        slice_refinement: ``"learned"`` with an atlas: every slice moved by the shipped slice
+            refiner against the atlas, kept where the other stacks agree better
+            (:mod:`~svr.reconstruction.initialisation.slice_refinement`).
+        slice_refiner_steps: Steps of each shipped refiner stage, in
+            :data:`~svr.models.pretrained.SLICE_REFINER_STAGES`' order (``wide``, ``fine``), >= 0.
         slice_max_deviation_deg: ``"learned-slices"``: a slice whose predicted rotation is
             farther than this (degrees) from its stack's consensus takes the consensus pose.
         slice_max_deviation_mm: ``"learned-slices"``: likewise for its slice centre (mm). Both
@@ -114,6 +120,14 @@ class InitialisationConfig:
         "reconstructions measured on four of six bench cases)",
         metavar="DEG",
     )
+    slice_refinement: bool = option(
+        True,
+        "--no-slice-refinement",
+        "--registration cnn with an atlas: leave each slice at its packet's pose instead of "
+        "moving it by the shipped slice refiner against the atlas (kept only where the other "
+        "stacks agree)",
+    )
+    slice_refiner_steps: tuple[int, ...] = (4, 3)
     slice_max_deviation_deg: float = 30.0
     slice_max_deviation_mm: float = 20.0
     slice_min_support: float = 0.5
@@ -124,6 +138,16 @@ class InitialisationConfig:
         check_int(owner, "template", self.template, minimum=0, allow_none=True)
         check_number(owner, "grid_mm", self.grid_mm, gt=0, allow_none=True)
         check_number(owner, "restart_deg", self.restart_deg, ge=0)
+        check_bool(owner, "slice_refinement", self.slice_refinement)
+        steps = check_int_tuple(
+            owner,
+            "slice_refiner_steps",
+            self.slice_refiner_steps,
+            length=len(SLICE_REFINER_STAGES),
+            minimum=0,
+            allow_list=True,
+        )
+        object.__setattr__(self, "slice_refiner_steps", steps)
         for name in ("slice_max_deviation_deg", "slice_max_deviation_mm"):
             check_number(owner, name, getattr(self, name), gt=0)
         check_fraction(owner, "slice_min_support", self.slice_min_support)

@@ -19,7 +19,6 @@ from pathlib import Path
 
 import slice_refiner_train as training
 import torch
-from slice_refiner import SliceRefinerConfig
 from slice_refiner_train import (
     RefinerTrainingConfig,
     draw_packets,
@@ -28,6 +27,7 @@ from slice_refiner_train import (
     train_slice_refiner,
 )
 
+from svr.models.slice_refiner import SliceRefinerConfig
 from svr.sampling.volume import CanonicalVolume, load_canonical_volume
 
 
@@ -41,6 +41,13 @@ def main() -> None:
     parser.add_argument("--fidon", type=Path, required=True, help="Fidon 2021 atlas folder")
     parser.add_argument("--crl", type=Path, required=True, help="CRL atlas as GA<weeks>_crl/")
     parser.add_argument("--wu", type=Path, required=True, help="Wu 2021 atlas as GA<weeks>_wu/")
+    parser.add_argument(
+        "--train-on",
+        nargs="+",
+        default=["fidon", "crl"],
+        choices=("fidon", "crl"),
+        help="training families: fidon (CC0, every age but the bench's 24, 28, 32) and crl",
+    )
     parser.add_argument("--minutes", type=float, default=5.0)
     parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument("--context", default="none", choices=("none", "sequence"))
@@ -62,8 +69,13 @@ def main() -> None:
     def fidon(weeks: int) -> Path:
         return args.fidon / f"GA{weeks}_{'notoperated' if weeks < 25 else 'operated'}"
 
-    train = [fidon(w) for w in (21, 23, 25, 27, 29, 31, 33)]
-    train += [args.crl / f"GA{w}_crl" for w in (22, 24, 26, 28, 30, 32, 34, 36)]
+    if args.train_on == ["fidon"]:
+        # the shipped refiner: the atlas whose licence allows shipping weights, bench ages out
+        train = [fidon(w) for w in range(21, 35) if w not in (24, 28, 32)]
+    else:
+        train = [fidon(w) for w in (21, 23, 25, 27, 29, 31, 33)] if "fidon" in args.train_on else []
+        if "crl" in args.train_on:
+            train += [args.crl / f"GA{w}_crl" for w in (22, 24, 26, 28, 30, 32, 34, 36)]
     held_out = [args.wu / f"GA{w}_wu" for w in (24, 28, 32)]
     model = SliceRefinerConfig(context=args.context, head=args.head)
     residuals = {

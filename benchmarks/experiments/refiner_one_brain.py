@@ -18,7 +18,8 @@ from pathlib import Path
 import slice_refiner_train as training
 import torch
 from calibrate_slice_refiner import _volumes
-from slice_refiner import SliceRefinerConfig, SliceRefinerNet
+
+from svr.models.slice_refiner import SliceRefinerConfig, SliceRefinerNet
 
 
 def main() -> None:

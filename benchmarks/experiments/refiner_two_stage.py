@@ -26,10 +26,10 @@ from pathlib import Path
 import slice_refiner_train as training
 import torch
 from calibrate_slice_refiner import _volumes
-from slice_refiner import SliceRefinerConfig, SliceRefinerNet, load_slice_refiner
 from torch import Tensor
 
 from svr.geometry import se3_compose, se3_error, se3_to_vector, vector_to_se3
+from svr.models.slice_refiner import SliceRefinerConfig, SliceRefinerNet, load_slice_refiner
 
 
 def _load(path: Path) -> SliceRefinerNet:

@@ -27,7 +27,6 @@ from typing import NamedTuple
 
 import torch
 from scipy.ndimage import gaussian_filter
-from slice_refiner import SLICE_REFINER, SliceRefinerConfig, SliceRefinerNet
 from torch import Tensor
 
 from svr.geometry import se3_compose, se3_inverse, se3_to_vector, so3_exp, vector_to_se3
@@ -35,6 +34,7 @@ from svr.image import Image
 from svr.losses.metric_weights import default_metric_weights, estimate_metric_weights
 from svr.models.network import loss_function
 from svr.models.resume import cosine_schedule, resume_training, save_training_checkpoint
+from svr.models.slice_refiner import SLICE_REFINER, SliceRefinerConfig, SliceRefinerNet
 from svr.sampling.poses import pose_labels
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume, downsample_volume

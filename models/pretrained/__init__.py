@@ -23,9 +23,12 @@ __all__ = [
     "DEFAULT_MODEL",
     "MAX_MODEL_BYTES",
     "SLICE_POSE_MODEL",
+    "SLICE_REFINER_FOLDER",
+    "SLICE_REFINER_STAGES",
     "STACK_POSE_FOLDER",
     "brain_mask_model_path",
     "default_model_path",
+    "slice_refiner_paths",
     "stack_pose_model_path",
 ]
 
@@ -74,6 +77,24 @@ def stack_pose_model_path() -> Path:
         CheckpointError: If the package is not installed as plain files.
     """
     return _shipped_folder(STACK_POSE_FOLDER)
+
+
+SLICE_REFINER_FOLDER = "slice_refiner"
+"""The package-data folder of the shipped slice refiner (:mod:`svr.models.slice_refiner`)."""
+
+SLICE_REFINER_STAGES = ("wide", "fine")
+"""The shipped slice refiner's stages, in the order they are applied: ``wide`` trained on
+residual rotations up to 30 degrees, ``fine`` on ones up to 10 (each a sub-folder)."""
+
+
+def slice_refiner_paths() -> tuple[Path, ...]:
+    """The folders of the shipped slice refiner's stages (:data:`SLICE_REFINER_STAGES`' order).
+
+    Raises:
+        CheckpointError: If the package is not installed as plain files.
+    """
+    folder = _shipped_folder(SLICE_REFINER_FOLDER)
+    return tuple(folder / stage for stage in SLICE_REFINER_STAGES)
 
 
 def _shipped_folder(name: str) -> Path:

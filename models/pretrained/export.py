@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,12 @@ from svr.models.network import checkpoint_model_config
 from svr.models.predict import pose_model_from_checkpoint
 from svr.models.pretrained import MAX_MODEL_BYTES
 
-__all__ = ["REQUIRED_PROVENANCE", "export_model", "export_stack_pose_model"]
+__all__ = [
+    "REQUIRED_PROVENANCE",
+    "export_model",
+    "export_slice_refiner",
+    "export_stack_pose_model",
+]
 
 REQUIRED_PROVENANCE = ("training_command", "data")
 """Keys that the ``provenance`` of :func:`export_model` must have."""
@@ -176,21 +182,77 @@ def export_stack_pose_model(
     """
     from svr.models.stack_pose import load_stack_pose_model
 
+    return _export_network(
+        "export_stack_pose_model",
+        "stack_pose",
+        load_stack_pose_model,
+        checkpoint_dir,
+        out_dir,
+        provenance,
+        overwrite,
+        "train a smaller model: --width",
+    )
+
+
+def export_slice_refiner(
+    checkpoint_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    provenance: dict[str, Any],
+    overwrite: bool = False,
+) -> Path:
+    """Write a slice-refiner checkpoint (:mod:`svr.models.slice_refiner`) as a float16 model folder.
+
+    Args:
+        checkpoint_dir: A checkpoint folder (or training run folder) of a slice refiner.
+        out_dir: The model folder to create (not ``checkpoint_dir``).
+        provenance: As for :func:`export_model` (``"training_command"`` and ``"data"`` required).
+        overwrite: Whether an existing ``out_dir`` may be replaced.
+
+    Returns:
+        ``out_dir``.
+
+    Raises:
+        CheckpointError: If the checkpoint is not a slice refiner, the provenance is incomplete,
+            or the model would exceed :data:`~svr.models.pretrained.MAX_MODEL_BYTES`.
+    """
+    from svr.models.slice_refiner import SLICE_REFINER, load_slice_refiner
+
+    return _export_network(
+        "export_slice_refiner",
+        SLICE_REFINER,
+        load_slice_refiner,
+        checkpoint_dir,
+        out_dir,
+        provenance,
+        overwrite,
+        "a narrower backbone",
+    )
+
+
+def _export_network(
+    caller: str,
+    architecture: str,
+    load: Callable[[Path], torch.nn.Module],
+    checkpoint_dir: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    provenance: dict[str, Any],
+    overwrite: bool,
+    hint: str,
+) -> Path:
+    """Export a network whose loader checks its architecture and whose config has ``to_dict``."""
     source, out = Path(checkpoint_dir), Path(out_dir)
     if out.resolve() == source.resolve():
-        raise ValueError(f"export_stack_pose_model(): 'out_dir' {out} is the checkpoint folder")
+        raise ValueError(f"{caller}(): 'out_dir' {out} is the checkpoint folder")
     provenance = _check_provenance(out, provenance)
-    model = load_stack_pose_model(source)
-    state_dict = model.state_dict()
+    model = load(source)
     export_config = {
-        "architecture": "stack_pose",
-        "model": model.config.to_dict(),
+        "architecture": architecture,
+        "model": model.config.to_dict(),  # type: ignore[operator]
         "provenance": provenance,
         "export": {
             "source_checkpoint": str(source),
             **_export_record(),
         },
     }
-    return _write_export(
-        source, out, state_dict, export_config, overwrite, "train a smaller model: --width"
-    )
+    return _write_export(source, out, model.state_dict(), export_config, overwrite, hint)

@@ -54,7 +54,7 @@ def initialise(
         model: The network of a learned start: a stack-pose network for ``"learned"``, a
             slice-pose network (with ``model.config``) for ``"learned-slices"``; ``None`` else.
         atlases: Brains of about the fetus's age in canonical space, the preferred first (needed
-            by ``"atlas"``).
+            by ``"atlas"``; ``"learned"`` refines every slice against the first).
 
     Returns:
         The slices at their starting poses, and what each stack kept.
@@ -70,7 +70,7 @@ def initialise(
     if kind == "learned":
         if not isinstance(model, StackPoseNet):
             raise ValueError(_wrong_model(kind, "a stack-pose network (StackPoseNet)", model))
-        return learned_start(slices, stacks, model, config)
+        return learned_start(slices, stacks, model, config, atlases[0] if atlases else None)
     if kind == "learned-slices":
         if not isinstance(model, SlicePoseNet):
             raise ValueError(_wrong_model(kind, "a slice-pose network (SlicePoseNet)", model))

@@ -18,6 +18,9 @@
    (:func:`~svr.reconstruction.initialisation.choice.place_stacks`): each placement refined by
    stack registration and brought into canonical space, and per stack the candidate that agrees
    best with the other stacks, stack registration included.
+5. **Every slice** (with an atlas, ``config.initialisation.slice_refinement``): each slice moved
+   by the shipped slice refiner against the atlas, kept where the other stacks agree better
+   (:func:`~svr.reconstruction.initialisation.slice_refinement.place_slices`).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import torch
 from torch import Tensor
 
 from svr.geometry import half_turns, rotation_angle, se3_compose
+from svr.models.slice_refiner import shipped_slice_refiners
 from svr.models.stack_pose import StackPoseNet
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.initialisation.choice import (
@@ -40,14 +44,16 @@ from svr.reconstruction.initialisation.choice import (
     register_stacks,
     stack_moves,
 )
+from svr.reconstruction.initialisation.slice_refinement import place_slices
 from svr.reconstruction.initialisation.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
     joint_frame,
 )
 from svr.reconstruction.slices import SliceSet, Stack
+from svr.sampling.volume import CanonicalVolume
 
-__all__ = ["NetworkPlacement", "learned_start", "network_placement"]
+__all__ = ["NetworkPlacement", "learned_start", "network_placement", "refined_slices"]
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +126,11 @@ def network_placement(
 
 
 def learned_start(
-    slices: SliceSet, stacks: Sequence[Stack], model: StackPoseNet, config: ReconstructionConfig
+    slices: SliceSet,
+    stacks: Sequence[Stack],
+    model: StackPoseNet,
+    config: ReconstructionConfig,
+    atlas: CanonicalVolume | None = None,
 ) -> Start:
     """Every stack and packet placed by the stack-pose network, or stack registration, per stack.
 
@@ -129,6 +139,9 @@ def learned_start(
         stacks: The stacks they were cut from (same order as ``slices.stack_names``).
         model: The stack-pose network.
         config: Settings (``packets``, ``initialisation.restart_deg``, the template and grid).
+        atlas: A brain of about the fetus's age in canonical space: with it (and
+            ``config.initialisation.slice_refinement``), every slice is then refined against it
+            (step 5 of the module docstring).
 
     Returns:
         The slices at their starting canonical poses, the choice and notes per stack.
@@ -167,7 +180,40 @@ def learned_start(
         registered=registered,
         frame=joint.to_canonical,
     )
-    return start._replace(frame_margin=joint.margin)
+    start = start._replace(frame_margin=joint.margin)
+    if atlas is None or not config.initialisation.slice_refinement:
+        return start
+    return refined_slices(start, atlas, config)
+
+
+def refined_slices(start: Start, atlas: CanonicalVolume, config: ReconstructionConfig) -> Start:
+    """The start with every slice refined against ``atlas`` where the other stacks agree.
+
+    Args:
+        start: The learned start (canonical frame).
+        atlas: A brain of about the fetus's age in canonical space.
+        config: Settings (``initialisation.slice_refiner_steps``, the initialisation grid).
+
+    Returns:
+        The start with the kept slices moved; each stack's note says how many and how far.
+    """
+    slices = start.slices
+    refiners = shipped_slice_refiners(str(slices.device))
+    stages = list(zip(refiners, config.initialisation.slice_refiner_steps, strict=True))
+    placed = place_slices(slices, atlas, stages, config.initialisation_grid_mm)
+    moved = torch.rad2deg(rotation_angle(placed.poses, slices.poses.to(placed.poses)))
+    notes = list(start.notes) or [""] * len(slices.stack_names)
+    for sid, name in enumerate(slices.stack_names):
+        mine = slices.stack_ids == sid
+        kept = placed.kept & mine
+        text = f"slice refiner: {int(kept.sum())} of {int(mine.sum())} slices moved"
+        if bool(kept.any()):
+            text += f" (median {float(moved[kept].median()):.1f} deg)"
+        log.info("%s: %s", name, text)
+        notes[sid] = f"{notes[sid]}; {text}" if notes[sid] else text
+    return start._replace(
+        slices=slices.with_poses(placed.poses.to(slices.poses)), notes=tuple(notes)
+    )
 
 
 def _twin_towards(own: Tensor, expected: Tensor) -> Tensor | None:

@@ -8,9 +8,11 @@ slice's own frame that takes the current pose to the true one, ``T_true = T_curr
 (rotation about the slice's centre, translation in slice-plane mm: ``u``, ``v`` and the normal
 ``w``). Applied and iterated, it is a learned local registration whose reach is trained, not set
 by an optimiser's basin: it is trained with the SE(3) geodesic loss on ``D`` (or a baseline's
-loss, for the comparison of losses) on slices cut at known poses from atlas brains of several
-families, the reference blurred and its intensities remapped as a reconstruction's are
-(:mod:`slice_refiner_train`).
+loss, for the comparison of losses) on slices cut at known poses from atlas brains, the reference
+the same brain blurred and its intensities remapped (``benchmarks/experiments/
+slice_refiner_train.py``; the shipped stages' recipe is on their model card). The reconstruction
+uses the shipped stages against an atlas
+(:mod:`svr.reconstruction.initialisation.slice_refinement`).
 
 Two heads, both trained with the SE(3) geodesic loss on ``D``: ``"regress"`` maps the backbone's
 features to ``D`` directly (a pose representation: ``"se3"``, or a baseline's for the comparison
@@ -30,6 +32,7 @@ alone (the local, iterated structure).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
@@ -59,6 +62,7 @@ __all__ = [
     "SliceRefinerConfig",
     "SliceRefinerNet",
     "load_slice_refiner",
+    "shipped_slice_refiners",
 ]
 
 SLICE_REFINER = "slice-refiner"
@@ -308,3 +312,21 @@ def load_slice_refiner(
     net = SliceRefinerNet(config)
     net.load_state_dict(checkpoint.state_dict)
     return net.to(device).eval()
+
+
+@functools.lru_cache(maxsize=4)
+def shipped_slice_refiners(device: str = "cpu") -> tuple[SliceRefinerNet, ...]:
+    """The shipped refiner's stages, in the order applied (loaded once per device).
+
+    Args:
+        device: Where to put them (``str(torch.device)``).
+
+    Returns:
+        The stages of :data:`svr.models.pretrained.SLICE_REFINER_STAGES`, in eval mode.
+
+    Raises:
+        CheckpointError: If a stage's folder is missing or not a slice refiner.
+    """
+    from svr.models.pretrained import slice_refiner_paths
+
+    return tuple(load_slice_refiner(path, device) for path in slice_refiner_paths())

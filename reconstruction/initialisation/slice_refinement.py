@@ -1,0 +1,255 @@
+"""Every slice placed by the slice refiner against the atlas, kept where the other stacks agree.
+
+After the learned start (:mod:`~svr.reconstruction.initialisation.learned`) every slice sits
+where its stack's or packet's transform put it, not where the fetus was when it was acquired:
+under severe motion within a stack, 18 degrees median from its truth. Here each slice is moved by
+the slice refiner (:class:`svr.models.slice_refiner.SliceRefinerNet`): it sees the slice beside a
+reference volume resampled on the slice's current plane and on parallel planes and predicts the
+residual rigid pose, applied and iterated, one stage after another (the shipped ``wide`` stage,
+trained on residual rotations up to 30 degrees, then ``fine``, up to 10:
+:func:`svr.models.slice_refiner.shipped_slice_refiners`).
+
+The reference is the atlas of the fetus's age in canonical space (brain-masked, at the
+refiner's training scale), not the subject's own slices: a volume from slices 18 degrees off is
+too blurred to register to (measured in ``benchmarks/results/slice-refiner.md``). The atlas is not
+the fetus, and an atlas of another anatomy pulls slices toward its own shape, so a slice keeps its
+refined pose only where it agrees better with the *other* stacks' slices at their refined poses
+than it did at its start with the other stacks at theirs (NCC with a scattered-data volume of
+them): the subject's own data decides, never the atlas (:func:`place_slices`).
+
+Frames: every pose is a slice array's pose (slice-plane mm about the array centre -> canonical
+mm), as :class:`~svr.reconstruction.slices.SliceSet` holds it; the atlas is in canonical mm.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+from torch.nn import functional
+
+from svr.geometry import se3_compose, vector_to_se3
+from svr.image import Image
+from svr.models.slice_refiner import SliceRefinerNet
+from svr.reconstruction.operators import SliceProjector, VolumeGrid
+from svr.reconstruction.registration import slice_ncc
+from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.superres import output_grid, scattered_data_approximation
+from svr.sampling.slicer import SliceConfig, sample_slices
+from svr.sampling.volume import CanonicalVolume, downsample_volume
+
+__all__ = [
+    "KEEP_MARGIN",
+    "SlicePlacement",
+    "atlas_reference",
+    "place_slices",
+    "refine_poses",
+    "refiner_inputs",
+    "slices_on_grid",
+]
+
+log = logging.getLogger(__name__)
+
+KEEP_MARGIN = 0.01
+"""NCC by which a slice's agreement with the other stacks must rise for its refined pose to be
+kept."""
+
+REFERENCE_VOXEL_MM = 1.6
+"""Voxel size (mm) of the references the shipped refiner was trained on (atlases at 0.8 mm,
+downsampled twice)."""
+
+BATCH = 64
+"""Slices per forward pass of the refiner."""
+
+
+def _normalised(values: Tensor, inside: Tensor) -> Tensor:
+    """``values`` divided by the 99th percentile of their ``inside`` part (unchanged if none)."""
+    part = values[inside]
+    scale = float(part.quantile(0.99)) if part.numel() else 1.0
+    return values / (scale if scale > 0 else 1.0)
+
+
+def atlas_reference(atlas: CanonicalVolume) -> Image:
+    """The atlas as the refiner's reference: brain-masked, at about its training voxel size.
+
+    Args:
+        atlas: A brain of about the fetus's age in canonical space (downsampled by the integer
+            factor that brings its voxels nearest to :data:`REFERENCE_VOXEL_MM`).
+
+    Returns:
+        The reference in canonical mm, intensities scaled to 1 at the brain's 99th percentile.
+    """
+    spacing = float(atlas.image.spacing.min())
+    factor = max(1, round(REFERENCE_VOXEL_MM / spacing))
+    small = downsample_volume(atlas, factor) if factor > 1 else atlas
+    data = small.image.data.float() * small.mask.float()
+    return Image(_normalised(data, small.mask > 0), small.image.affine)
+
+
+def slices_on_grid(slices: SliceSet, refiner: SliceRefinerNet) -> Tensor:
+    """(N, H, W) each brain-masked slice on the refiner's pixel grid about its array centre.
+
+    The slice is box-averaged to about the grid's spacing and sampled bilinearly (zero outside);
+    its intensities are scaled to 1 at its brain's 99th percentile.
+
+    Args:
+        slices: The slices.
+        refiner: A stage of the refiner (its input size and pixel spacing).
+
+    Returns:
+        The slices, float32, on ``slices.device``.
+    """
+    config = refiner.config
+    h, w = config.size
+    out = torch.zeros(len(slices), h, w, dtype=torch.float32, device=slices.device)
+    images = (slices.images * slices.masks).float()[:, None]
+    rows, cols = images.shape[-2:]
+    u = (torch.arange(h, dtype=torch.float64) - (h - 1) / 2) * config.spacing_mm
+    v = (torch.arange(w, dtype=torch.float64) - (w - 1) / 2) * config.spacing_mm
+    for i in range(len(slices)):
+        su, sv = (float(x) for x in slices.spacing_mm[i])
+        factor = max(1, round(config.spacing_mm / min(su, sv)))
+        image = functional.avg_pool2d(images[i : i + 1], factor, stride=1, padding=factor // 2)
+        image = image[..., :rows, :cols]
+        gu = (u / su) / ((rows - 1) / 2)
+        gv = (v / sv) / ((cols - 1) / 2)
+        grid = torch.stack(torch.meshgrid(gu, gv, indexing="ij")[::-1], dim=-1)
+        sampled = functional.grid_sample(image, grid[None].to(image), align_corners=True)[0, 0]
+        out[i] = _normalised(sampled, sampled > 0)
+    return out
+
+
+def refiner_inputs(
+    refiner: SliceRefinerNet, images: Tensor, reference: Image, poses: Tensor
+) -> Tensor:
+    """(N, C, H, W) the slices beside the reference on their planes and the parallel ones.
+
+    Args:
+        refiner: A stage of the refiner (input size, spacing and plane offsets along the normal).
+        images: (N, H, W) the slices on the refiner's grid (:func:`slices_on_grid`).
+        reference: The reference volume in the poses' frame (:func:`atlas_reference`).
+        poses: (N, 4, 4) the slices' current poses (slice plane about the array centre -> mm).
+
+    Returns:
+        Channel 0 the slice, then the reference at each offset of ``plane_offsets_mm``; float32.
+    """
+    config = refiner.config
+    offsets = torch.tensor(config.plane_offsets_mm, dtype=torch.float64)
+    shifts = torch.eye(4, dtype=torch.float64).repeat(len(offsets), 1, 1)
+    shifts[:, 2, 3] = offsets
+    planes = se3_compose(poses.double()[:, None], shifts[None].to(poses.device)).reshape(-1, 4, 4)
+    thin = SliceConfig(size=config.size, spacing_mm=config.spacing_mm)
+    sampled = sample_slices(reference, planes.to(reference.data.device), thin)
+    sampled = sampled.reshape(len(poses), len(offsets), *config.size).to(images)
+    return torch.cat([images[:, None], sampled], dim=1).float()
+
+
+@torch.no_grad()
+def refine_poses(
+    stages: Sequence[tuple[SliceRefinerNet, int]], slices: SliceSet, reference: Image
+) -> Tensor:
+    """Each slice's pose moved by the refiner's stages, each applied its number of steps.
+
+    Every step moves every slice by its predicted residual, ``T <- T o D`` (``D`` in the
+    slice's frame), and resamples the reference at the new pose for the next.
+
+    Args:
+        stages: ``(refiner, steps)`` in the order applied; refiners of one input size and
+            spacing, in eval mode (``context="none"``).
+        slices: The slices at their current poses, in the reference's frame.
+        reference: The reference (:func:`atlas_reference`).
+
+    Returns:
+        (N, 4, 4) float64 the refined poses, on ``slices.device``.
+    """
+    poses = slices.poses.to(torch.float64).clone()
+    if not stages or not len(slices):
+        return poses
+    images = slices_on_grid(slices, stages[0][0])
+    for refiner, steps in stages:
+        device = next(refiner.parameters()).device
+        for _ in range(steps):
+            for start in range(0, len(poses), BATCH):
+                part = slice(start, start + BATCH)
+                inputs = refiner_inputs(refiner, images[part], reference, poses[part])
+                residual = refiner.to_pose(refiner(inputs.to(device))).double()
+                poses[part] = se3_compose(poses[part], vector_to_se3(residual).to(poses))
+    return poses
+
+
+class SlicePlacement(NamedTuple):
+    """What :func:`place_slices` did.
+
+    Attributes:
+        poses: (N, 4, 4) float64 the slices' poses: refined where kept, else as they were.
+        kept: (N,) bool, the slices whose refined pose was kept.
+        ncc_before: (N,) each slice's NCC with the other stacks' volume, at the start.
+        ncc_after: (N,) the same at the refined poses (every slice refined).
+    """
+
+    poses: Tensor
+    kept: Tensor
+    ncc_before: Tensor
+    ncc_after: Tensor
+
+
+def _volume(slices: SliceSet, members: Tensor, resolution_mm: float) -> Image:
+    """The scattered-data volume of the slices in ``members`` (bool, N), on their own grid."""
+    subset = slices.subset(members)
+    grid = output_grid(subset, resolution_mm)
+    projector = SliceProjector(grid, subset)
+    observed = projector.gather(subset.images)
+    volume = scattered_data_approximation(
+        projector, projector.grid_points(subset.poses), observed, torch.ones_like(observed)
+    )
+    return grid.image(volume)
+
+
+def _agreement(slices: SliceSet, volume: Image) -> Tensor:
+    """(N,) float64 each slice's NCC with its simulation from ``volume`` at its pose."""
+    grid = VolumeGrid(tuple(volume.shape), volume.affine.to(torch.float64))  # type: ignore[arg-type]
+    projector = SliceProjector(grid, slices)
+    simulated = projector.forward(volume.data.float(), projector.grid_points(slices.poses))
+    return slice_ncc(projector, simulated, projector.gather(slices.images)).double()
+
+
+def place_slices(
+    slices: SliceSet,
+    atlas: CanonicalVolume,
+    stages: Sequence[tuple[SliceRefinerNet, int]],
+    resolution_mm: float,
+) -> SlicePlacement:
+    """Every slice refined against the atlas, kept where the other stacks agree better.
+
+    Args:
+        slices: All slices at their starting canonical poses (two stacks or more for any to be
+            kept: one stack has no other to agree with).
+        atlas: A brain of about the fetus's age in canonical space.
+        stages: ``(refiner, steps)`` in the order applied (:func:`refine_poses`).
+        resolution_mm: Voxel size of the other stacks' volumes (mm).
+
+    Returns:
+        The poses, which slices kept their refined pose, and each slice's NCC before and after.
+    """
+    n = len(slices)
+    start = slices.poses.to(torch.float64)
+    zeros = torch.zeros(n, dtype=torch.float64, device=slices.device)
+    if not stages or len(slices.stack_names) < 2:
+        return SlicePlacement(
+            start.clone(), torch.zeros_like(zeros, dtype=torch.bool), zeros, zeros
+        )
+    refined = refine_poses(stages, slices, atlas_reference(atlas))
+    moved = slices.with_poses(refined.to(slices.poses))
+    before, after = zeros.clone(), zeros.clone()
+    for sid in range(len(slices.stack_names)):
+        mine = slices.stack_ids == sid
+        if not bool(mine.any()) or bool(mine.all()):
+            continue
+        before[mine] = _agreement(slices.subset(mine), _volume(slices, ~mine, resolution_mm))
+        after[mine] = _agreement(moved.subset(mine), _volume(moved, ~mine, resolution_mm))
+    kept = after > before + KEEP_MARGIN
+    poses = torch.where(kept[:, None, None], refined.to(start), start)
+    return SlicePlacement(poses, kept, before, after)
