@@ -176,7 +176,8 @@ def kept_per_stack(log: Path) -> str:
     for line in lines[at + 1 :]:
         if not line.startswith("  "):
             break
-        kept.append(line.rsplit(":", 1)[-1].strip())
+        if not line.startswith("    "):  # a stack's note is indented under it
+            kept.append(line.rsplit(":", 1)[-1].strip())
     return ",".join(kept)
 
 

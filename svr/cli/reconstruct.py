@@ -249,10 +249,12 @@ def _summary(args: argparse.Namespace, job: ReconstructionJob, result: Reconstru
     lines += [f"  {name}: {seconds:.2f}" for name, seconds in result.timings_s.items()]
     lines.append(f"  total: {sum(result.timings_s.values()):.2f}")
     lines.append("initialisation per stack:")
-    lines += [
-        f"  {name}: {init}"
-        for name, init in zip(result.slices.stack_names, result.initialisation, strict=True)
-    ]
+    notes = result.initialisation_notes or ("",) * len(result.initialisation)
+    for name, init, note in zip(
+        result.slices.stack_names, result.initialisation, notes, strict=True
+    ):
+        lines.append(f"  {name}: {init}")
+        lines += [f"    {note}"] if note else []
     lines.append(f"frame: {result.slices.frame}")
     if result.atlas_chosen is not None:
         volumes = [volume for volume, _ in job.atlases]
