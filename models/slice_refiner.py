@@ -202,7 +202,8 @@ class SliceRefinerNet(nn.Module):
         width = self.backbone.out_features
         self.coords = nn.Conv2d(width, 4, 1)
         nn.init.zeros_(self.coords.weight)
-        nn.init.zeros_(self.coords.bias)
+        if self.coords.bias is not None:
+            nn.init.zeros_(self.coords.bias)
         h, w = config.size
         for _ in range(config.backbone.depth + 1):
             h, w = (h + 1) // 2, (w + 1) // 2

@@ -248,7 +248,7 @@ def _export_network(
     model = load(source)
     export_config = {
         "architecture": architecture,
-        "model": model.config.to_dict(),  # type: ignore[operator]
+        "model": model.config.to_dict(),  # type: ignore[union-attr, operator]
         "provenance": provenance,
         "export": {
             "source_checkpoint": str(source),
