@@ -133,13 +133,17 @@ def test_a_right_estimate_is_kept_and_a_wrong_one_is_not(scene):
 
 
 def test_one_stack_has_nothing_to_agree_with(scene):
-    volume, _stacks, _, slices = scene
-    one = slices.subset(slices.stack_ids == 0)
+    """Even the exact correction is not kept: no other stack can say it agrees better."""
+    volume, stacks, truth, slices = scene
+    true = true_array_poses(slices, truth, stacks)
+    residual = rigid((0.0, 0.2, 0.1), (1.0, -2.0, 0.5))
+    mine = slices.stack_ids == 0
+    one = slices.subset(mine).with_poses(
+        se3_compose(true[mine], se3_inverse(residual)[None]), "canonical"
+    )
     one = type(one)(**{**one.__dict__, "stack_names": one.stack_names[:1]})
     config = tiny_config()
-    placed = place_slices(
-        one, _atlas(volume), [(ConstantRefiner(torch.eye(4, dtype=F64), config), 1)], 2.5
-    )
+    placed = place_slices(one, _atlas(volume), [(ConstantRefiner(residual, config), 1)], 2.5)
     assert not bool(placed.kept.any())
 
 

@@ -1,21 +1,19 @@
 """Every slice placed by the slice refiner against the atlas, kept where the other stacks agree.
 
 After the learned start (:mod:`~svr.reconstruction.initialisation.learned`) every slice sits
-where its stack's or packet's transform put it, not where the fetus was when it was acquired:
-under severe motion within a stack, 18 degrees median from its truth. Here each slice is moved by
-the slice refiner (:class:`svr.models.slice_refiner.SliceRefinerNet`): it sees the slice beside a
-reference volume resampled on the slice's current plane and on parallel planes and predicts the
-residual rigid pose, applied and iterated, one stage after another (the shipped ``wide`` stage,
-trained on residual rotations up to 30 degrees, then ``fine``, up to 10:
-:func:`svr.models.slice_refiner.shipped_slice_refiners`).
+where its stack's or packet's transform put it, not where the fetus was when it was acquired.
+Here each slice is moved by the slice refiner (:class:`svr.models.slice_refiner.SliceRefinerNet`):
+it sees the slice beside a reference volume resampled on the slice's current plane and on
+parallel planes and predicts the residual rigid pose, applied and iterated, one stage after
+another (the shipped ``wide`` stage, trained on residual rotations up to 30 degrees, then
+``fine``, up to 10: :func:`svr.models.slice_refiner.shipped_slice_refiners`).
 
 The reference is the atlas of the fetus's age in canonical space (brain-masked, at the
-refiner's training scale), not the subject's own slices: a volume from slices 18 degrees off is
-too blurred to register to (measured in ``benchmarks/results/slice-refiner.md``). The atlas is not
-the fetus, and an atlas of another anatomy pulls slices toward its own shape, so a slice keeps its
-refined pose only where it agrees better with the *other* stacks' slices at their refined poses
-than it did at its start with the other stacks at theirs (NCC with a scattered-data volume of
-them): the subject's own data decides, never the atlas (:func:`place_slices`).
+refiner's training scale): a sharp brain, unlike a volume of the subject's own roughly placed
+slices. The atlas is not the fetus, so a slice keeps its refined pose only where it agrees better
+with the *other* stacks' slices at their refined poses than it did at its start with the other
+stacks at theirs (NCC with a scattered-data volume of them): the subject's own data decides,
+never the atlas (:func:`place_slices`).
 
 Frames: every pose is a slice array's pose (slice-plane mm about the array centre -> canonical
 mm), as :class:`~svr.reconstruction.slices.SliceSet` holds it; the atlas is in canonical mm.
