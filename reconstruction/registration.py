@@ -42,6 +42,7 @@ __all__ = [
     "SVR_PSF_SAMPLES",
     "RegistrationConfig",
     "register_rigid",
+    "slice_agreement",
     "slice_ncc",
     "stack_ncc",
     "stack_registration",
@@ -313,14 +314,14 @@ def stack_registration(
     return poses, template
 
 
-def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:
-    """(S,) mean NCC of each stack's slices with their simulation from a volume of the slices.
+def slice_agreement(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:
+    """(N,) each slice's NCC with its simulation from a volume of the slices.
 
     The volume is the scattered-data approximation of the slices on a grid of ``grid_mm``. With
-    ``leave_out`` (and at least two stacks), each stack is simulated from the volume of the *other*
-    stacks' slices only, so that a stack cannot agree with itself: a stack whose packets are placed
-    apart, one of them the wrong twin, fits its own volume better the more freely it is placed, but
-    fits the other stacks only where it is right.
+    ``leave_out`` (and at least two stacks), each stack's slices are simulated from the volume of
+    the *other* stacks' slices only, so that a stack cannot agree with itself: a stack whose
+    packets are placed apart, one of them the wrong twin, fits its own volume better the more
+    freely it is placed, but fits the other stacks only where it is right.
 
     Args:
         slices: The slices at the poses to score.
@@ -328,7 +329,7 @@ def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tens
         leave_out: Score each stack against the other stacks only.
 
     Returns:
-        (S,) mean slice NCC per stack.
+        (N,) float32 slice NCC (0 for a slice with no modelled pixels).
     """
     grid = output_grid(slices, grid_mm)
     num_stacks = len(slices.stack_names)
@@ -346,7 +347,7 @@ def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tens
         points = projector.grid_points(mine.poses)
         covered = coverage(projector, points, torch.ones_like(observed))
         parts[sid] = (projector, observed, points, projector.adjoint(observed, points), covered)
-    out = torch.zeros(num_stacks, dtype=torch.float32, device=slices.images.device)
+    out = torch.zeros(len(slices), dtype=torch.float32, device=slices.images.device)
     if not parts:
         return out
     total_numerator = torch.stack([part[3] for part in parts.values()]).sum(0)
@@ -356,5 +357,30 @@ def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tens
             volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
         else:
             volume = sda_ratio(total_numerator, total_coverage)
-        out[sid] = slice_ncc(projector, projector.forward(volume, points), observed).mean()
+        ncc = slice_ncc(projector, projector.forward(volume, points), observed)
+        out[slices.stack_ids == sid] = ncc.to(out)
+    return out
+
+
+def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:
+    """(S,) mean NCC of each stack's slices with their simulation from a volume of the slices.
+
+    The mean over each stack of :func:`slice_agreement` (``leave_out``: against the *other*
+    stacks' volume only).
+
+    Args:
+        slices: The slices at the poses to score.
+        grid_mm: The grid spacing (mm).
+        leave_out: Score each stack against the other stacks only.
+
+    Returns:
+        (S,) mean slice NCC per stack (0 for a stack without slices).
+    """
+    ncc = slice_agreement(slices, grid_mm, leave_out)
+    num_stacks = len(slices.stack_names)
+    out = torch.zeros(num_stacks, dtype=torch.float32, device=slices.images.device)
+    for sid in range(num_stacks):
+        mine = slices.stack_ids == sid
+        if bool(mine.any()):
+            out[sid] = ncc[mine].mean()
     return out

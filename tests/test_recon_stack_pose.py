@@ -192,21 +192,23 @@ def test_best_atlas_transform_takes_the_frame_of_the_atlas_the_volume_fits_best(
     small = torch.eye(4, dtype=F64)
     small[:3, :3] = so3_exp(torch.tensor([0.1, 0.12, -0.08], dtype=F64))
     moved = Image(atlas.image.data, small @ atlas.image.affine)
+    to_other = atlas_transform(moved, atlas.mask, other).final["none"]
     for atlases, right in (([other, atlas], 1), ([atlas, other], 0)):
         index, found, ncc = best_atlas_transform(moved, atlas.mask, atlases)
         assert index == right and ncc[right] == max(ncc) == found.final[found.start]
         assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) < 1.0
-        assert found.final[found.start] > atlas_transform(moved, atlas.mask, other).final["none"]
+        assert found.final[found.start] > to_other
+    own_fit = found  # the last loop's pick: the atlas's own fit
     # The first atlas is kept unless another fits better by more than the margin.
     index, found, ncc = best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=2.0)
     assert index == 0 and ncc[1] > ncc[0]
     assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) > 0.0
     with pytest.raises(ValueError, match="'keep_margin' must be >= 0"):
         best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=-0.1)
-    # One atlas: the same as atlas_transform.
+    # One atlas: the same fit as that atlas gave among others.
     index, found, ncc = best_atlas_transform(moved, atlas.mask, atlas)
     assert index == 0 and len(ncc) == 1
-    torch.testing.assert_close(found.transform, atlas_transform(moved, atlas.mask, atlas).transform)
+    torch.testing.assert_close(found.transform, own_fit.transform)
     with pytest.raises(ValueError, match="'atlases' must hold at least one atlas"):
         best_atlas_transform(moved, atlas.mask, [])
 
@@ -379,6 +381,42 @@ def test_stack_ncc_with_leave_out_scores_each_stack_against_the_others(turned_sc
     # With one stack there is nothing to leave it out from: the plain score.
     single = extract_slices(stacks[:1])
     torch.testing.assert_close(stack_ncc(single, 2.5, leave_out=True), stack_ncc(single, 2.5))
+
+
+def test_slice_agreement_is_each_slice_against_an_explicit_volume_of_the_other_stacks(
+    turned_scene,
+) -> None:
+    """The leave-one-stack-out sums give what a volume made of the other stacks alone gives."""
+    from svr.reconstruction.operators import SliceProjector
+    from svr.reconstruction.registration import (
+        SVR_PSF_SAMPLES,
+        slice_agreement,
+        slice_ncc,
+        stack_ncc,
+    )
+    from svr.reconstruction.superres import output_grid, scattered_data_approximation
+
+    _, stacks, _ = turned_scene
+    slices = extract_slices(stacks)
+    got = slice_agreement(slices, 2.5, leave_out=True)
+    grid = output_grid(slices, 2.5)
+    for sid in range(len(slices.stack_names)):
+        mine, others = (
+            slices.subset(slices.stack_ids == sid),
+            slices.subset(slices.stack_ids != sid),
+        )
+        projector = SliceProjector(grid, others, psf_samples=SVR_PSF_SAMPLES)
+        observed = projector.gather(others.images)
+        points = projector.grid_points(others.poses)
+        volume = scattered_data_approximation(
+            projector, points, observed, torch.ones_like(observed)
+        )
+        own = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
+        simulated = own.forward(volume, own.grid_points(mine.poses))
+        expected = slice_ncc(own, simulated, own.gather(mine.images))
+        torch.testing.assert_close(got[slices.stack_ids == sid], expected, atol=1e-4, rtol=0)
+    means = torch.stack([got[slices.stack_ids == s].mean() for s in range(len(stacks))])
+    torch.testing.assert_close(stack_ncc(slices, 2.5, leave_out=True), means)
 
 
 def test_the_output_frame_follows_the_larger_group_of_agreeing_stacks() -> None:

@@ -63,6 +63,12 @@ def main() -> None:
     parser.add_argument(
         "--shift-mm", type=float, default=0.0, help="with --pure-rotation: shifts too (std, mm)"
     )
+    parser.add_argument(
+        "--other-reference",
+        type=float,
+        default=0.0,
+        help="probability that a packet's reference is a training brain 1-3 weeks apart",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -71,11 +77,16 @@ def main() -> None:
 
     if args.train_on == ["fidon"]:
         # the shipped refiner: the atlas whose licence allows shipping weights, bench ages out
-        train = [fidon(w) for w in range(21, 35) if w not in (24, 28, 32)]
+        weeks = [("fidon", w) for w in range(21, 35) if w not in (24, 28, 32)]
     else:
-        train = [fidon(w) for w in (21, 23, 25, 27, 29, 31, 33)] if "fidon" in args.train_on else []
+        weeks = (
+            [("fidon", w) for w in (21, 23, 25, 27, 29, 31, 33)] if "fidon" in args.train_on else []
+        )
         if "crl" in args.train_on:
-            train += [args.crl / f"GA{w}_crl" for w in (22, 24, 26, 28, 30, 32, 34, 36)]
+            weeks += [("crl", w) for w in (22, 24, 26, 28, 30, 32, 34, 36)]
+    train = [fidon(w) if family == "fidon" else args.crl / f"GA{w}_crl" for family, w in weeks]
+    # a brain's references may come from any training brain 1-3 weeks apart (either family)
+    partners = [[j for j, (_, v) in enumerate(weeks) if 1 <= abs(v - w) <= 3] for _, w in weeks]
     held_out = [args.wu / f"GA{w}_wu" for w in (24, 28, 32)]
     model = SliceRefinerConfig(context=args.context, head=args.head)
     residuals = {
@@ -89,6 +100,7 @@ def main() -> None:
         learning_rate=args.lr,
         # without shifts the data's metric is singular: the default one (L = 20 mm) instead
         metric="default" if args.pure_rotation else "data",
+        other_reference=args.other_reference,
         **residuals,
     )
     validation = draw_packets(
@@ -129,7 +141,13 @@ def main() -> None:
 
     training.SliceRefinerNet = Watched  # type: ignore[misc]
     train_slice_refiner(
-        _volumes(train), model, config, args.out, minutes=args.minutes, progress=progress
+        _volumes(train),
+        model,
+        config,
+        args.out,
+        minutes=args.minutes,
+        progress=progress,
+        partners=partners,
     )
     print(f"steps/s {len(losses) / (time.time() - began):.2f}")
 

@@ -86,6 +86,10 @@ class RefinerTrainingConfig:
             residual is a rotation alone.
         pure_rotation_shift_mm: With ``pure_rotation``, also shift each slice by a random
             offset (per-axis standard deviation, mm, in the slice's frame).
+        other_reference: Probability that a packet's reference is another brain (one of the
+            slices' brain's ``partners``, e.g. a neighbouring age), as in a reconstruction whose
+            reference is an atlas rather than the fetus: the label stays the slices' true pose in
+            the shared canonical frame, so the network learns to match anatomy that differs.
 
     Raises:
         ConfigFieldError: On construction, naming the field.
@@ -107,6 +111,7 @@ class RefinerTrainingConfig:
     seed: int = 0
     pure_rotation: bool = False
     pure_rotation_shift_mm: float = 0.0
+    other_reference: float = 0.0
 
     def __post_init__(self) -> None:
         owner = "RefinerTrainingConfig"
@@ -121,6 +126,7 @@ class RefinerTrainingConfig:
         for name in ("thickness_mm", "noise", "gamma"):
             check_range(owner, name, getattr(self, name), ge=0)
         check_choice(owner, "metric", self.metric, ("data", "default"))
+        check_number(owner, "other_reference", self.other_reference, ge=0, le=1)
 
 
 class RefinerBrain(NamedTuple):
@@ -300,6 +306,7 @@ def draw_packets(
     config: RefinerTrainingConfig,
     generator: torch.Generator,
     scenes: list[PacketScene] | None = None,
+    partners: Sequence[Sequence[int]] | None = None,
 ) -> PacketBatch:
     """``config.packets_per_step`` packets of ``config.packet_length`` slices (module docstring).
 
@@ -309,6 +316,8 @@ def draw_packets(
         config: The draws' ranges.
         generator: The batch's random generator.
         scenes: If given, each packet's :class:`PacketScene` is appended to it.
+        partners: For each brain, the indices of the brains its references may come from with
+            ``config.other_reference`` (``None``: always its own).
 
     Returns:
         The batch.
@@ -316,7 +325,8 @@ def draw_packets(
     parts: list[tuple[Tensor, ...]] = []
     size, spacing = model.size, model.spacing_mm
     for _ in range(config.packets_per_step):
-        brain = brains[int(torch.randint(len(brains), (1,), generator=generator))]
+        index = int(torch.randint(len(brains), (1,), generator=generator))
+        brain = brains[index]
         low, high = config.thickness_mm
         thickness = low + (high - low) * float(torch.rand(1, generator=generator))
         true, current = _packet_poses(brain, config, thickness, generator)
@@ -324,7 +334,13 @@ def draw_packets(
         thin = SliceConfig(size=size, spacing_mm=spacing)
         slices = sample_slices(brain.sharp, true, thick)
         mask = sample_slices(brain.mask, true, thin) > 0.5
-        reference = brain.blurred[int(torch.randint(len(BLUR_MM), (1,), generator=generator))]
+        blur = int(torch.randint(len(BLUR_MM), (1,), generator=generator))
+        reference = brain.blurred[blur]
+        if partners and partners[index] and config.other_reference > 0:
+            other = float(torch.rand(1, generator=generator)) < config.other_reference
+            pick = int(torch.randint(len(partners[index]), (1,), generator=generator))
+            if other:
+                reference = brains[partners[index][pick]].blurred[blur]
         noise = config.noise[0] + (config.noise[1] - config.noise[0]) * torch.rand(
             1, generator=generator
         )
@@ -401,6 +417,7 @@ def train_slice_refiner(
     device: str | torch.device = "cpu",
     minutes: float | None = None,
     progress: Callable[[int, float], None] | None = None,
+    partners: Sequence[Sequence[int]] | None = None,
 ) -> SliceRefinerNet:
     """Train (or resume training) a slice refiner.
 
@@ -413,6 +430,8 @@ def train_slice_refiner(
         device: Where the network trains.
         minutes: Stop (after a checkpoint) once this much wall time has passed, or ``None``.
         progress: Called with ``(step, loss)`` after every step.
+        partners: For each volume, the volumes its references may come from
+            (``config.other_reference``; :func:`draw_packets`).
 
     Returns:
         The trained network, in eval mode.
@@ -431,7 +450,7 @@ def train_slice_refiner(
     net.train()
     for step in range(start, config.steps):
         generator = torch.Generator().manual_seed(config.seed * 1_000_003 + step)
-        batch = draw_packets(brains, model, config, generator)
+        batch = draw_packets(brains, model, config, generator, partners=partners)
         on_device = PacketBatch(*(part.to(device) for part in batch))
         outputs = _outputs(net, on_device)
         valid = on_device.valid

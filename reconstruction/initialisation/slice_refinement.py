@@ -32,10 +32,8 @@ from torch.nn import functional
 from svr.geometry import se3_compose, vector_to_se3
 from svr.image import Image
 from svr.models.slice_refiner import SliceRefinerNet
-from svr.reconstruction.operators import SliceProjector, VolumeGrid
-from svr.reconstruction.registration import slice_ncc
+from svr.reconstruction.registration import slice_agreement
 from svr.reconstruction.slices import SliceSet
-from svr.reconstruction.superres import output_grid, scattered_data_approximation
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume, downsample_volume
 
@@ -194,26 +192,6 @@ class SlicePlacement(NamedTuple):
     ncc_after: Tensor
 
 
-def _volume(slices: SliceSet, members: Tensor, resolution_mm: float) -> Image:
-    """The scattered-data volume of the slices in ``members`` (bool, N), on their own grid."""
-    subset = slices.subset(members)
-    grid = output_grid(subset, resolution_mm)
-    projector = SliceProjector(grid, subset)
-    observed = projector.gather(subset.images)
-    volume = scattered_data_approximation(
-        projector, projector.grid_points(subset.poses), observed, torch.ones_like(observed)
-    )
-    return grid.image(volume)
-
-
-def _agreement(slices: SliceSet, volume: Image) -> Tensor:
-    """(N,) float64 each slice's NCC with its simulation from ``volume`` at its pose."""
-    grid = VolumeGrid(tuple(volume.shape), volume.affine.to(torch.float64))  # type: ignore[arg-type]
-    projector = SliceProjector(grid, slices)
-    simulated = projector.forward(volume.data.float(), projector.grid_points(slices.poses))
-    return slice_ncc(projector, simulated, projector.gather(slices.images)).double()
-
-
 def place_slices(
     slices: SliceSet,
     atlas: CanonicalVolume,
@@ -241,13 +219,8 @@ def place_slices(
         )
     refined = refine_poses(stages, slices, atlas_reference(atlas))
     moved = slices.with_poses(refined.to(slices.poses))
-    before, after = zeros.clone(), zeros.clone()
-    for sid in range(len(slices.stack_names)):
-        mine = slices.stack_ids == sid
-        if not bool(mine.any()) or bool(mine.all()):
-            continue
-        before[mine] = _agreement(slices.subset(mine), _volume(slices, ~mine, resolution_mm))
-        after[mine] = _agreement(moved.subset(mine), _volume(moved, ~mine, resolution_mm))
+    before = slice_agreement(slices, resolution_mm, leave_out=True).to(zeros)
+    after = slice_agreement(moved, resolution_mm, leave_out=True).to(zeros)
     kept = after > before + KEEP_MARGIN
     poses = torch.where(kept[:, None, None], refined.to(start), start)
     return SlicePlacement(poses, kept, before, after)
