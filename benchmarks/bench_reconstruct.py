@@ -120,6 +120,8 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
         options += ["--atlas-mask", *(str(mask) for _, mask in pairs)]
     if args.no_slice_refinement:
         options.append("--no-slice-refinement")
+    if args.slice_refiner_steps:
+        options += ["--slice-refiner-steps", *map(str, args.slice_refiner_steps)]
     return options
 
 
@@ -233,6 +235,13 @@ def main() -> int:
         "--no-slice-refinement",
         action="store_true",
         help="cnn runs leave the slices at their packets' poses (the refiner's baseline)",
+    )
+    parser.add_argument(
+        "--slice-refiner-steps",
+        type=int,
+        nargs=2,
+        default=None,
+        help="cnn runs: the slice refiner's wide and fine steps (default: svr reconstruct's)",
     )
     parser.add_argument(
         "--converged",

@@ -127,7 +127,13 @@ class InitialisationConfig:
         "moving it by the shipped slice refiner against the atlas (kept only where the other "
         "stacks agree)",
     )
-    slice_refiner_steps: tuple[int, ...] = (4, 3)
+    slice_refiner_steps: tuple[int, ...] = option(
+        (4, 3),
+        "--slice-refiner-steps",
+        "--registration cnn with an atlas: steps of the slice refiner's wide stage, then its "
+        "fine stage (more: slower, each step about 3 ms per slice on one core)",
+        metavar="N",
+    )
     slice_max_deviation_deg: float = 30.0
     slice_max_deviation_mm: float = 20.0
     slice_min_support: float = 0.5

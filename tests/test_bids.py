@@ -439,8 +439,9 @@ def test_tissue_labels_are_derivatives_and_the_group_tabulates_them(dataset, tmp
     study = tmp_path / "study"
     shutil.copytree(bids_dir, study)
     (study / "participants.tsv").write_text("participant_id\tga\nsub-01\t20\nsub-02\t21\n")
-    # An atlas folder of the subjects' own phantom brain at three ages, its labels cut from its
-    # intensities (the bright core "ventricles", the rest "white matter", the rim "cortex").
+    # An atlas folder of the subjects' own phantom brain at two ages (two atlases to fuse), its
+    # labels cut from its intensities (the bright core "ventricles", the rest "white matter", the
+    # rim "cortex").
     volume, mask = small_phantom()
     inside = mask.data > 0.5
     labels = torch.zeros(volume.shape)
@@ -449,7 +450,7 @@ def test_tissue_labels_are_derivatives_and_the_group_tabulates_them(dataset, tmp
     rim = inside & ~torch.from_numpy(ndimage.binary_erosion(inside.numpy(), iterations=2))
     labels[rim] = 5.0
     atlas = tmp_path / "atlas"
-    for age in (19, 20, 21):
+    for age in (20, 21):
         (atlas / f"GA{age}_phantom").mkdir(parents=True)
         save_nifti(volume, atlas / f"GA{age}_phantom" / "srr.nii.gz")
         save_nifti(mask, atlas / f"GA{age}_phantom" / "mask.nii.gz")
