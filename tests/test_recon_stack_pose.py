@@ -198,17 +198,16 @@ def test_best_atlas_transform_takes_the_frame_of_the_atlas_the_volume_fits_best(
         assert index == right and ncc[right] == max(ncc) == found.final[found.start]
         assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) < 1.0
         assert found.final[found.start] > to_other
-    own_fit = found  # the last loop's pick: the atlas's own fit
     # The first atlas is kept unless another fits better by more than the margin.
     index, found, ncc = best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=2.0)
     assert index == 0 and ncc[1] > ncc[0]
     assert _angle_deg(se3_compose(found.transform, small), torch.eye(4, dtype=F64)) > 0.0
     with pytest.raises(ValueError, match="'keep_margin' must be >= 0"):
         best_atlas_transform(moved, atlas.mask, [other, atlas], keep_margin=-0.1)
-    # One atlas: the same fit as that atlas gave among others.
+    # One atlas: the same as atlas_transform.
     index, found, ncc = best_atlas_transform(moved, atlas.mask, atlas)
     assert index == 0 and len(ncc) == 1
-    torch.testing.assert_close(found.transform, own_fit.transform)
+    torch.testing.assert_close(found.transform, atlas_transform(moved, atlas.mask, atlas).transform)
     with pytest.raises(ValueError, match="'atlases' must hold at least one atlas"):
         best_atlas_transform(moved, atlas.mask, [])
 
@@ -390,11 +389,12 @@ def test_slice_agreement_is_each_slice_against_an_explicit_volume_of_the_other_s
     from svr.reconstruction.operators import SliceProjector
     from svr.reconstruction.registration import (
         SVR_PSF_SAMPLES,
+        _sda,
         slice_agreement,
         slice_ncc,
         stack_ncc,
     )
-    from svr.reconstruction.superres import output_grid, scattered_data_approximation
+    from svr.reconstruction.superres import output_grid
 
     _, stacks, _ = turned_scene
     slices = extract_slices(stacks)
@@ -405,12 +405,7 @@ def test_slice_agreement_is_each_slice_against_an_explicit_volume_of_the_other_s
             slices.subset(slices.stack_ids == sid),
             slices.subset(slices.stack_ids != sid),
         )
-        projector = SliceProjector(grid, others, psf_samples=SVR_PSF_SAMPLES)
-        observed = projector.gather(others.images)
-        points = projector.grid_points(others.poses)
-        volume = scattered_data_approximation(
-            projector, points, observed, torch.ones_like(observed)
-        )
+        volume = _sda(others, grid)  # a volume of the other stacks' slices alone
         own = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
         simulated = own.forward(volume, own.grid_points(mine.poses))
         expected = slice_ncc(own, simulated, own.gather(mine.images))
