@@ -26,7 +26,8 @@ rather than from a look. The output's last turns are shown beside it.
 Run from the repository root (about 2-4 minutes per run on one core)::
 
     python benchmarks/bench_real_frame.py [--threads 1 2] [--out runs/real-frame] [--fabian] \
-        [--auto-masks] [--write-reference] [--results benchmarks/results/real-scan-frame.md]
+        [--auto-masks] [--write-reference] [--polish F] \
+        [--results benchmarks/results/real-scan-frame.md]
 """
 
 from __future__ import annotations
@@ -126,8 +127,13 @@ def nearest_atlas(mask: Path) -> Path:
     return min(folders, key=lambda f: abs(_mask_ml(f / "mask.nii.gz") - ml))
 
 
-def fabian_rows(model: str, threads: list[int], out: Path) -> list[str]:
-    """One row per FaBiAN subject and thread count: its output frame vs the files' frame."""
+def fabian_rows(
+    model: str, threads: list[int], out: Path, options: tuple[str, ...] = ()
+) -> list[str]:
+    """One row per FaBiAN subject and thread count: its output frame vs the files' frame.
+
+    ``options``: more ``svr reconstruct`` options for every run.
+    """
     subjects: dict[str, list[str]] = {}
     for name in FABIAN_STACKS:
         subjects.setdefault(name.split("_")[0], []).append(name)
@@ -139,7 +145,7 @@ def fabian_rows(model: str, threads: list[int], out: Path) -> list[str]:
         for n in threads:
             output = out / f"fabian-{subject}-cnn-{n}t.nii.gz"
             log, seconds = _reconstruct(
-                stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2")
+                stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2", *options)
             )
             angle = frame_angle_deg(np.eye(4), scanner_from_canonical(_beside(output, ".csv")))
             turns = frame_angle_deg(np.eye(4), nib.load(output).affine)
@@ -177,6 +183,9 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "runs" / "real-frame")
     parser.add_argument("--results", type=Path, help="also write the table here (markdown)")
     parser.add_argument(
+        "--polish", type=float, help="svr reconstruct's --polish (default: its own)"
+    )
+    parser.add_argument(
         "--fabian", action="store_true", help="also the FaBiAN subjects' output frames"
     )
     args = parser.parse_args()
@@ -190,10 +199,17 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows, frames = [], []
     tag = "auto" if args.auto_masks else "manual"
+    options = () if args.polish is None else ("--polish", str(args.polish))
     for threads in args.threads:
         output = args.out / f"real-cnn-{tag}-{threads}t.nii.gz"
         log, seconds = _reconstruct(
-            stacks, [] if args.auto_masks else masks, args.atlas, args.model, output, threads
+            stacks,
+            [] if args.auto_masks else masks,
+            args.atlas,
+            args.model,
+            output,
+            threads,
+            options,
         )
         match = FRAME_LINE.search(log)
         start, detail = (match.group(3), match.group(4)) if match else ("?", "")
@@ -235,7 +251,7 @@ def main() -> int:
             "| subject | stacks | atlas | threads | frame vs files' frame (deg) | last turns of "
             "the output (deg) | stacks' frames | wall (s) |",
             "|---|---:|---|---:|---:|---:|---|---:|",
-            *fabian_rows(args.model, args.threads, args.out),
+            *fabian_rows(args.model, args.threads, args.out, options),
         ]
     text = "\n".join(lines)
     print(text)

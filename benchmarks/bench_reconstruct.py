@@ -126,7 +126,7 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
 
 
 def schedule_options(args: argparse.Namespace) -> list[str]:
-    """``svr reconstruct``'s --converged-deg/-mm and --iterations where the bench sets them."""
+    """``svr reconstruct``'s schedule options where the bench sets them."""
     options = []
     if args.converged is not None:
         options += [
@@ -135,6 +135,8 @@ def schedule_options(args: argparse.Namespace) -> list[str]:
             "--converged-mm",
             str(args.converged[1]),
         ]
+    if args.polish is not None:
+        options += ["--polish", str(args.polish)]
     if args.iterations is not None:
         options += ["--iterations", str(args.iterations)]
     return options
@@ -249,6 +251,9 @@ def main() -> int:
         nargs=2,
         metavar=("DEG", "MM"),
         help="--converged-deg and --converged-mm of every run (default: svr reconstruct's)",
+    )
+    parser.add_argument(
+        "--polish", type=float, help="--polish of every run (default: svr reconstruct's)"
     )
     parser.add_argument(
         "--iterations", type=int, help="--iterations of every run (default: svr reconstruct's)"

@@ -181,8 +181,12 @@ class ScheduleConfig:
         converged_deg: ``"adaptive"``: a slice whose rotation changed by more than this (degrees)
             in a round is still moving.
         converged_mm: ``"adaptive"``: likewise for the displacement of its centre (mm).
-        converged_fraction: ``"adaptive"``: the rounds stop once at most this fraction of the
-            registrable slices is still moving, in [0, 1).
+        converged_fraction: ``"adaptive"``: the slices have converged once at most this
+            fraction of the registrable slices is still moving, in [0, 1).
+        polish: ``"adaptive"``: the rounds go on after convergence until the slices also settle
+            at the thresholds times this factor, in (0, 1] (or the cap ``rounds``); 1 stops at
+            convergence. Whether the slices converged is still judged at the thresholds
+            themselves, in the last registration round.
         recapture: ``"adaptive"``: from the second one-by-one round on, slices whose NCC is far
             below the others' get a wider search, at most twice each.
     """
@@ -229,6 +233,15 @@ class ScheduleConfig:
         default_text="0.15; 0.075 with --registration cnn or atlas",
     )
     converged_fraction: float = 0.1
+    polish: float = option(
+        1.0,
+        "--polish",
+        "adaptive schedule: once converged, the rounds go on until the slices also settle at the "
+        "thresholds times this factor, up to --iterations (1: stop at convergence); whether they "
+        "converged is still judged at the thresholds themselves",
+        metavar="F",
+        default_text="1; 0.5 with --registration cnn or atlas",
+    )
     recapture: bool = True
 
     def __post_init__(self) -> None:
@@ -241,13 +254,17 @@ class ScheduleConfig:
         for name in ("converged_deg", "converged_mm"):
             check_number(owner, name, getattr(self, name), ge=0)
         check_fraction(owner, "converged_fraction", self.converged_fraction, include_one=False)
+        check_number(owner, "polish", self.polish, gt=0, le=1)
         check_bool(owner, "recapture", self.recapture)
 
 
-LEARNED_START_SCHEDULE = ScheduleConfig(rounds=24, converged_deg=0.15, converged_mm=0.075)
+LEARNED_START_SCHEDULE = ScheduleConfig(
+    rounds=24, converged_deg=0.15, converged_mm=0.075, polish=0.5
+)
 """The adaptive schedule for starts near the final poses (:data:`LEARNED_STARTS`): the slices
 reach "at most 10 % still moving" at the default thresholds early, before the slow last alignment
-that is still worth having, so the thresholds are halved and the cap raised."""
+that is still worth having, so the thresholds are halved, the rounds polish on to half of those
+and the cap is raised."""
 
 FIXED_SCHEDULE = ScheduleConfig(kind="fixed", rounds=5)
 """The fixed schedule of release 0.1.0: five rounds."""

@@ -5,9 +5,11 @@ The adaptive schedule (:func:`svr.reconstruction.pipeline.reconstruct` with
 slice-to-volume registration pass, every registered slice's pose change is measured (the angle of
 its rotation change in degrees and the displacement of its centre in mm, the same measures as
 :func:`svr.metrics.rotation_error_rad` and :func:`svr.metrics.translation_error_mm`), and the
-rounds stop once at most ``converged_fraction`` of the registrable slices moved more than
-``converged_deg`` or ``converged_mm``. Each round leaves a :class:`RoundRecord` for the log, the
-QA figure and the ``--output-log`` summary, so that a user sees whether a run converged.
+slices have converged once at most ``converged_fraction`` of the registrable slices moved more
+than ``converged_deg`` or ``converged_mm``; the rounds stop there, or with ``polish`` < 1 once
+they also settle at those thresholds times ``polish``. Each round leaves a :class:`RoundRecord`
+for the log, the QA figure and the ``--output-log`` summary, so that a user sees whether a run
+converged.
 """
 
 from __future__ import annotations

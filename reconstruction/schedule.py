@@ -47,9 +47,15 @@ log = logging.getLogger(__name__)
 QUIET_ROUNDS = 2
 
 
-def _thresholds(config: ReconstructionConfig) -> tuple[float, float]:
-    """The (degrees, mm) change above which a slice is still moving."""
-    return config.schedule.converged_deg, config.schedule.converged_mm
+def _thresholds(config: ReconstructionConfig, polished: bool = False) -> tuple[float, float]:
+    """The (degrees, mm) change above which a slice still moves (``polished``: is unsettled)."""
+    factor = config.schedule.polish if polished else 1.0
+    return factor * config.schedule.converged_deg, factor * config.schedule.converged_mm
+
+
+def _few(count: int, activity: _Activity, config: ReconstructionConfig) -> bool:
+    """At most ``converged_fraction`` of the slices registered one by one: ``count`` is few."""
+    return count <= config.schedule.converged_fraction * int(activity.single.sum())
 
 
 def _group_size(config: ReconstructionConfig, round_index: int) -> int:
@@ -267,7 +273,12 @@ def _alignment_round(
     index: int,
     outliers: OutlierWeights,
 ) -> tuple[RoundRecord, OutlierWeights, bool]:
-    """Adaptive round ``index``: (recapture,) registration, weights, volume; converged?"""
+    """Adaptive round ``index``: (recapture,) registration, weights, volume; settled?
+
+    The slices have settled when few of them moved more than the thresholds times
+    ``config.schedule.polish`` (the rounds stop); the record counts those that moved more than the
+    thresholds themselves (the verdict).
+    """
     started, before = time.perf_counter(), state.excluded
     size = _group_size(config, index)
     if config.schedule.recapture and size == 1 and _group_size(config, index - 1) == 1:
@@ -280,14 +291,15 @@ def _alignment_round(
         acquisition, state, config, timer, index, _alignment_settings(config, index)
     )
     record = _record(index, _stage(size), changes, registered, config, outliers, before, started)
-    if record.moving <= config.schedule.converged_fraction * int(activity.single.sum()):
+    settle_deg, settle_mm = _thresholds(config, polished=True)
+    rotation, translation = changes
+    unsettled = ((rotation > settle_deg) | (translation > settle_mm)) & registered
+    if _few(int(unsettled.sum()), activity, config):
         return record, outliers, True
     if size == 1:
         # A slice that moved less than half the thresholds in two rounds in a row sits out the
         # next round and is registered again after it: the volume keeps changing around it.
-        still_deg, still_mm = _thresholds(config)
-        rotation, translation = changes
-        still = (rotation <= still_deg / 2) & (translation <= still_mm / 2)
+        still = (rotation <= settle_deg / 2) & (translation <= settle_mm / 2)
         quiet = activity.quiet
         activity.quiet = torch.where(still & registered, quiet + 1, torch.zeros_like(quiet))
         activity.active = activity.single & (activity.quiet < QUIET_ROUNDS)
@@ -297,11 +309,15 @@ def _alignment_round(
 def _log_verdict(
     records: list[RoundRecord],
     index: int,
-    converged: bool,
-    single: Tensor,
+    settled: bool,
+    activity: _Activity,
     config: ReconstructionConfig,
 ) -> bool | None:
-    """Log how the registration rounds ended; the verdict (``None``: nothing ran to judge by)."""
+    """Log how the registration rounds ended; the verdict (``None``: nothing ran to judge by).
+
+    The slices converged when few of them still moved more than the thresholds in the last
+    registration round, whether or not the polish after it settled before the cap.
+    """
     cap = config.schedule.rounds
     if index == 1:
         log.info(
@@ -310,14 +326,25 @@ def _log_verdict(
             cap,
         )
         return None
+    converged = _few(records[-1].moving, activity, config)
     if converged:
         log.info(
             "converged after round %d: %d of %d slices still moved (at most %.0f%% allowed)",
             index - 1,
             records[-1].moving,
-            int(single.sum()),
+            int(activity.single.sum()),
             100 * config.schedule.converged_fraction,
         )
+        polish = config.schedule.polish
+        if polish < 1 and settled:
+            log.info("the slices also settled at %g times the thresholds (--polish)", polish)
+        elif polish < 1:
+            log.info(
+                "the polish (%g times the thresholds, --polish) reached the cap of %d rounds "
+                "(--iterations); the final round registers every slice once more",
+                polish,
+                cap,
+            )
     else:
         log.warning(
             "not converged: %d slices still moved in round %d, the last before the cap of %d "
@@ -336,14 +363,14 @@ def _final_round(
     timer: PhaseTimer,
     single: Tensor,
     index: int,
-    converged: bool,
+    settled: bool,
 ) -> RoundRecord:
-    """Register every slice once more unless converged; reconstruct the volume anew."""
+    """Register every slice once more unless settled; reconstruct the volume anew."""
     started, before = time.perf_counter(), state.excluded
     last = single & ~state.excluded.cpu()
-    # Converged slices would not move: the final round only reconstructs the volume anew.
+    # Settled slices would not move: the final round only reconstructs the volume anew.
     final: tuple[Tensor, Tensor] | None = None
-    if not converged:
+    if not settled:
         final = _register(acquisition, state, config, timer, 1, single)
     with timer.phase("super-resolution"):
         state.volume = initial_volume(acquisition, state.points)
@@ -370,8 +397,10 @@ def _adaptive_rounds(
     and slices that fit badly get a wider search: :func:`~svr.reconstruction.recapture.recapture`),
     then updates the outlier weights and the volume. The rounds stop once at most
     ``config.schedule.converged_fraction`` of the registrable slices moved more than the
-    thresholds, or one round before the cap ``config.schedule.rounds``. The final round registers
-    every slice once more if they had not converged, and reconstructs the volume anew at the
+    thresholds times ``config.schedule.polish`` (the slices have settled), or one round before the
+    cap ``config.schedule.rounds``; the verdict is whether few moved more than the thresholds
+    themselves in the last of them. The final round registers
+    every slice once more if they had not settled, and reconstructs the volume anew at the
     final poses with the last regularisation and CG iterations, so that the output does not carry
     the blur of the rough volumes of the first rounds. The progress bar ends full at the round the
     schedule stopped, whether it converged or reached the cap.
@@ -387,23 +416,21 @@ def _adaptive_rounds(
         bar.close()
         return records, None
     activity = _Activity.of(_registrable(acquisition, config, 1), state.poses)
-    converged, index = False, 1
+    settled, index = False, 1
     while index < cap - 1:
-        record, outliers, converged = _alignment_round(
+        record, outliers, settled = _alignment_round(
             acquisition, state, config, timer, activity, index, outliers
         )
         records.append(record)
         bar.update()
         bar.set_postfix(moving=record.moving, ncc=f"{record.ncc:.3f}")
         index += 1
-        if converged:
+        if settled:
             break
-    verdict = _log_verdict(records, index, converged, activity.single, config)
+    verdict = _log_verdict(records, index, settled, activity, config)
     # The final round is the last: a bar that stopped early ends full, not at a fraction.
     bar.total = index + 1
-    records.append(
-        _final_round(acquisition, state, config, timer, activity.single, index, converged)
-    )
+    records.append(_final_round(acquisition, state, config, timer, activity.single, index, settled))
     bar.update()
     bar.close()
     return records, verdict

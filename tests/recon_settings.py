@@ -24,6 +24,7 @@ GROUP = {
     "converged_deg": "schedule",
     "converged_mm": "schedule",
     "converged_fraction": "schedule",
+    "polish": "schedule",
     "recapture": "schedule",
     "iterations": "superres",
     "regularization": "superres",

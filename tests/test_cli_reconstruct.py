@@ -384,6 +384,8 @@ def test_options_resolve_once_into_the_job() -> None:
     learned = job("--registration", "cnn")
     assert learned.config.initialisation.kind == "learned" and learned.model == "stack-pose"
     assert (learned.config.schedule.rounds, learned.config.schedule.converged_deg) == (24, 0.15)
+    assert learned.config.schedule.polish == 0.5
+    assert job("--registration", "cnn", "--polish", "1").config.schedule.polish == 1.0
     assert job("--registration", "cnn", "--iterations", "3").config.schedule.rounds == 3
     slices = job("--registration", "cnn", "--model", "slice-pose")
     assert slices.config.initialisation.kind == "learned-slices"

@@ -46,6 +46,8 @@ BAD = [
     (ScheduleConfig, "converged_deg", -0.1, "a finite number >= 0"),
     (ScheduleConfig, "converged_mm", float("nan"), "a finite number >= 0"),
     (ScheduleConfig, "converged_fraction", 1.0, "in [0, 1)"),
+    (ScheduleConfig, "polish", 0.0, "in (0, 1]"),
+    (ScheduleConfig, "polish", 1.5, "in (0, 1]"),
     (ScheduleConfig, "recapture", 1, "a bool"),
     (ScheduleConfig, "svr_levels", 0, "an integer >= 1"),
     (ScheduleConfig, "svr_iterations", 0, "an integer >= 1"),
@@ -104,7 +106,7 @@ def test_presets_choose_the_schedule_by_start_once():
         learned = ReconstructionConfig.preset(kind)
         assert learned.initialisation.kind == kind
         assert (learned.schedule.rounds, learned.schedule.converged_deg) == (24, 0.15)
-        assert learned.schedule.converged_mm == 0.075
+        assert (learned.schedule.converged_mm, learned.schedule.polish) == (0.075, 0.5)
     for kind in INITIALISATIONS:
         fixed = ReconstructionConfig.preset(kind, "fixed").schedule
         assert (fixed.kind, fixed.rounds) == ("fixed", 5)

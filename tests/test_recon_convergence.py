@@ -229,6 +229,34 @@ def test_the_rule_stops_when_nothing_moves_and_not_before_the_cap_otherwise(monk
     assert reconstruct(stacks, strict, progress=False).converged is False
 
 
+def test_the_polish_goes_on_after_convergence_and_the_verdict_keeps_the_thresholds(
+    monkeypatch, caplog
+):
+    stacks = tiny_case(0.0, 0.0)
+    config = recon_config(**FAST, rounds=6, polish=0.5)
+    # 0.2 deg a round: converged at 0.3 deg, never settled at 0.15: the rounds run to the cap and
+    # the final round registers once more, yet the verdict is "converged".
+    still(monkeypatch, 0.2)
+    with caplog.at_level(logging.INFO, logger="svr.reconstruction"):
+        result = reconstruct(stacks, config, progress=False)
+    stages = [r.stage for r in result.rounds]
+    assert stages == ["first", "groups of 3", "slices", "slices", "slices", "final"]
+    assert result.converged is True
+    assert all(r.moving == 0 for r in result.rounds[1:]) and result.rounds[-1].registered > 0
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("the polish (0.5 times the thresholds") for m in messages)
+    assert not any("not converged" in m for m in messages)
+    # 0.1 deg settles at once: no more rounds, and the final round registers nothing.
+    still(monkeypatch, 0.1)
+    result = reconstruct(stacks, config, progress=False)
+    assert [r.stage for r in result.rounds] == ["first", "groups of 3", "final"]
+    assert result.converged is True and result.rounds[-1].registered == 0
+    # Without the polish 0.2 deg stops at once.
+    still(monkeypatch, 0.2)
+    plain = dataclasses.replace(config, schedule=dataclasses.replace(config.schedule, polish=1.0))
+    assert len(reconstruct(stacks, plain, progress=False).rounds) == 3
+
+
 def test_the_thresholds_follow_the_start_and_given_values_win():
     """A learned start's slices start near their place: half the thresholds."""
     thresholds = lambda c: (c.schedule.converged_deg, c.schedule.converged_mm)  # noqa: E731
