@@ -203,9 +203,13 @@ def test_registered_fusion_finds_a_moved_stack(stacks):
     inputs = [images[0], moved, images[2], images[3]]
     unregistered = fuse_masks(inputs, own, _scanner_slices(inputs, own), [SLICE_MM] * 4)
     result = fuse_stack_masks(inputs, own, SLICE_MM)
-    assert dice(result.masks[0], truth[0]) > dice(unregistered.masks[0], truth[0])
-    assert dice(result.masks[0], truth[0]) > 0.95
-    assert dice(result.masks[1], truth[1]) > 0.9
+    # The moved stack's mask is voted in its own place (unregistered, its votes land 6 mm off:
+    # Dice 0.94) and the others' stay good. The first stack's mask with and without registration
+    # differ by float noise (Dice 0.9849 against 0.9850 on one CPU, the other way round on
+    # another), so they are not compared.
+    assert dice(result.masks[1], truth[1]) > dice(unregistered.masks[1], truth[1]) + 0.03
+    assert dice(result.masks[1], truth[1]) > 0.95
+    assert all(dice(m, t) > 0.95 for m, t in zip(result.masks, truth, strict=True))
 
 
 def _world(image: Image) -> np.ndarray:

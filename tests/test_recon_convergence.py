@@ -8,9 +8,9 @@ with and without motion; the background term by its effect on the volume outside
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +18,7 @@ import torch
 from recon_settings import recon_config
 from scipy.spatial.transform import Rotation
 
+from svr.geometry import rotation_angle
 from svr.reconstruction.acquisition import acquisition_model, background_pixels
 from svr.reconstruction.convergence import RoundRecord, pose_change, round_summary, verdict
 from svr.reconstruction.pipeline import reconstruct
@@ -288,33 +289,32 @@ def test_one_round_is_the_final_volume_at_the_initial_poses():
     assert torch.equal(result.slices.poses, extract_slices(stacks).poses)
 
 
-# SHA-256 of fetal-svr 0.1.0's output (commit 5a69538, before the adaptive schedule existed) on
-# tiny_case(2.0, 1.0) with FAST and 3 rounds, one torch thread: the volume's float32 array, its
-# affine (float64) and the slices' final poses (float64), each as C-ordered bytes.
-VERSION_0_1_0 = {
-    "volume": "44dd4a2f4c9e5db8681e92f0fd3e47ffdf77d92f897395678457b7937f2d4726",
-    "affine": "77cdf5e14f2c37c718c32b43f381ec933bdae0c2c61b715c085fa49a5ca2a0f9",
-    "poses": "649d54cde10358d728bf4bf95a12fdec8e8c58af6cff37cfc74f3b984061adc3",
-}
+# fetal-svr 0.1.0's output (commit 5a69538, before the adaptive schedule existed) on
+# tiny_case(2.0, 1.0) with FAST and 3 rounds, one torch thread. Until 2026-12-07 this test compared
+# SHA-256 digests; the same code gives other bits on other CPUs (AVX-512 kernels, for one), so the
+# file holds the arrays (written by the code that reproduced the digests) and the test compares
+# them within what float rounding moves: poses by ~0.002 deg, and a voxel at the coverage's edge
+# (measured by perturbing the stacks' intensities by 1e-7 to 1e-5 relative: 1 voxel of 38,912).
+VERSION_0_1_0 = Path(__file__).parent / "data" / "fixed_schedule_0_1_0.npz"
 
 
-def sha256(tensor: torch.Tensor) -> str:
-    return hashlib.sha256(np.ascontiguousarray(tensor.detach().cpu().numpy()).tobytes()).hexdigest()
-
-
-def test_fixed_schedule_reproduces_version_0_1_0_bit_for_bit():
+def test_fixed_schedule_reproduces_version_0_1_0():
     stacks = tiny_case(2.0, 1.0)
     config = recon_config(**FAST, schedule="fixed", rounds=3)
     result = reconstruct(stacks, config, progress=False)
     assert [r.stage for r in result.rounds] == ["first", "groups of 3", "slices"]
     assert result.converged is None
     assert result.volume.data.dtype == torch.float32
-    digests = {
-        "volume": sha256(result.volume.data),
-        "affine": sha256(result.volume.affine),
-        "poses": sha256(result.slices.poses),
-    }
-    assert digests == VERSION_0_1_0
+    reference = np.load(VERSION_0_1_0)
+    np.testing.assert_array_equal(result.volume.affine.numpy(), reference["affine"])
+    volume = result.volume.data.numpy()
+    assert volume.shape == reference["volume"].shape
+    assert np.mean(np.abs(volume - reference["volume"]) <= 1e-3) >= 0.999
+    poses = result.slices.poses.double()
+    expected = torch.from_numpy(reference["poses"])
+    assert poses.shape == expected.shape
+    assert float(rotation_angle(poses, expected).rad2deg().max()) < 0.02
+    assert float((poses[:, :3, 3] - expected[:, :3, 3]).norm(dim=1).max()) < 0.005
 
 
 # --- slices that stopped moving sit out a round ----------------------------------------------
