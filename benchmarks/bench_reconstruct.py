@@ -120,6 +120,8 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
         options += ["--atlas-mask", *(str(mask) for _, mask in pairs)]
     if args.no_slice_refinement:
         options.append("--no-slice-refinement")
+    if args.no_slice_trajectory:
+        options.append("--no-slice-trajectory")
     if args.slice_refiner_steps:
         options += ["--slice-refiner-steps", *map(str, args.slice_refiner_steps)]
     return options
@@ -237,6 +239,11 @@ def main() -> int:
         "--no-slice-refinement",
         action="store_true",
         help="cnn runs leave the slices at their packets' poses (the refiner's baseline)",
+    )
+    parser.add_argument(
+        "--no-slice-trajectory",
+        action="store_true",
+        help="cnn runs leave the refined slices off their packets' trajectories (its baseline)",
     )
     parser.add_argument(
         "--slice-refiner-steps",

@@ -88,6 +88,9 @@ class InitialisationConfig:
             (:mod:`~svr.reconstruction.initialisation.slice_refinement`).
         slice_refiner_steps: Steps of each shipped refiner stage, in
             :data:`~svr.models.pretrained.SLICE_REFINER_STAGES`' order (``wide``, ``fine``), >= 0.
+        slice_trajectory: With ``slice_refinement``: where the head was calm, the slices' poses
+            are then put on their packets' motion trajectories
+            (:mod:`~svr.reconstruction.initialisation.slice_refinement`).
         slice_max_deviation_deg: ``"learned-slices"``: a slice whose predicted rotation is
             farther than this (degrees) from its stack's consensus takes the consensus pose.
         slice_max_deviation_mm: ``"learned-slices"``: likewise for its slice centre (mm). Both
@@ -134,6 +137,13 @@ class InitialisationConfig:
         "fine stage (more: slower, each step about 3 ms per slice on one core)",
         metavar="N",
     )
+    slice_trajectory: bool = option(
+        True,
+        "--no-slice-trajectory",
+        "--registration cnn with an atlas: leave the refined slices where the refiner put them "
+        "even where the head was calm (by default, when the stiffest motion trajectory predicts "
+        "a left-out slice best, each packet's slices are put on theirs)",
+    )
     slice_max_deviation_deg: float = 30.0
     slice_max_deviation_mm: float = 20.0
     slice_min_support: float = 0.5
@@ -145,6 +155,7 @@ class InitialisationConfig:
         check_number(owner, "grid_mm", self.grid_mm, gt=0, allow_none=True)
         check_number(owner, "restart_deg", self.restart_deg, ge=0)
         check_bool(owner, "slice_refinement", self.slice_refinement)
+        check_bool(owner, "slice_trajectory", self.slice_trajectory)
         steps = check_int_tuple(
             owner,
             "slice_refiner_steps",

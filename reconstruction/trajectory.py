@@ -41,7 +41,7 @@ Slices marked unknown (``known``) are not fitted and get the trajectory's pose a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -53,12 +53,23 @@ from svr.reconstruction.slices import SliceSet
 from svr.validation import check_int, check_number
 
 __all__ = [
+    "SMOOTHNESS_GRID",
     "TrajectoryConfig",
     "TrajectoryFit",
+    "cross_validated_trajectory",
     "fit_slice_trajectory",
     "fit_trajectory",
+    "leave_one_out_deg",
     "packet_times",
 ]
+
+SMOOTHNESS_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
+"""Smoothness values :func:`cross_validated_trajectory` chooses from (0.05, the default, is for
+known noise; these span from motion that follows every estimate to nearly constant packets)."""
+
+LOO_CAP_DEG = 30.0
+"""A left-out slice's prediction error counts at most this (degrees): a slice the refiner sent
+far away must not decide the smoothness alone."""
 
 _WEIGHT_FLOOR = 1e-9  # a known slice's least weight, so that every system stays solvable
 _RIDGE = 1e-12  # relative ridge on the normal equations (coinciding times)
@@ -393,3 +404,83 @@ def fit_slice_trajectory(
     return fit_trajectory(
         slices.poses, packet, time, config, known=known, nominal=slices.scanner_poses
     )
+
+
+def leave_one_out_deg(
+    slices: SliceSet,
+    packets: int,
+    grid: tuple[float, ...] = SMOOTHNESS_GRID,
+    config: TrajectoryConfig | None = None,
+) -> Tensor:
+    """Each slice's pose predicted by its packet's other slices, at each smoothness of ``grid``.
+
+    Each slice is left out in turn (the slices of one time in every packet at once) and its pose
+    predicted by its packet's trajectory through the others (:func:`fit_slice_trajectory`).
+
+    Args:
+        slices: The slices with their current poses (estimates), scanner poses as nominal.
+        packets: Interleaved packets per stack (:func:`packet_times`).
+        grid: The smoothness values, each >= 0.
+        config: The fit's other settings (its ``smoothness`` is replaced); default
+            :class:`TrajectoryConfig()`.
+
+    Returns:
+        (G, N) float64 the rotation angle (degrees) between each slice's pose and its prediction
+        at each ``grid`` value, capped at :data:`LOO_CAP_DEG`, on ``slices.device``.
+
+    Raises:
+        ValueError: If ``grid`` is empty (and as :func:`fit_slice_trajectory`).
+    """
+    if not grid:
+        raise ValueError("leave_one_out_deg(): 'grid' must hold at least one value")
+    config = TrajectoryConfig() if config is None else config
+    _, time = packet_times(slices, packets)
+    poses = slices.poses.to(torch.float64)
+    errors = poses.new_zeros(len(grid), len(slices))
+    for i, smoothness in enumerate(grid):
+        trial = replace(config, smoothness=float(smoothness))
+        for value in torch.unique(time):
+            out = time == value
+            fit = fit_slice_trajectory(slices, packets, trial, known=~out)
+            angle = rotation_angle(fit.poses[out], poses[out]).rad2deg()
+            errors[i, out] = angle.clamp(max=LOO_CAP_DEG)
+    return errors
+
+
+def cross_validated_trajectory(
+    slices: SliceSet,
+    packets: int,
+    grid: tuple[float, ...] = SMOOTHNESS_GRID,
+    config: TrajectoryConfig | None = None,
+) -> tuple[TrajectoryFit, float, Tensor]:
+    """:func:`fit_slice_trajectory` at the smoothness that best predicts a left-out slice.
+
+    The smoothness of ``grid`` with the least mean :func:`leave_one_out_deg` over all slices is
+    chosen for all packets together. Pose estimates that scatter about a calm head choose the
+    stiffest trajectories, which average them; a head that moved between slices more than the
+    estimates scatter chooses more flexible ones (though not the most flexible: a cubic spline
+    through a left-out slice of a random walk overshoots, so some smoothing predicts best even
+    for exact estimates).
+
+    Args:
+        slices: The slices with their current poses (estimates), scanner poses as nominal.
+        packets: Interleaved packets per stack (:func:`packet_times`).
+        grid: The smoothness values to choose from, each >= 0.
+        config: The fit's other settings (its ``smoothness`` is replaced); default
+            :class:`TrajectoryConfig()`.
+
+    Returns:
+        ``(fit, smoothness, errors)``: the fit of every slice at the chosen smoothness, that
+        smoothness, and (G,) float64 the mean leave-one-out error (degrees) of each ``grid``
+        value.
+
+    Raises:
+        ValueError: If ``grid`` is empty (and as :func:`fit_slice_trajectory`).
+    """
+    if not grid:
+        raise ValueError("cross_validated_trajectory(): 'grid' must hold at least one value")
+    config = TrajectoryConfig() if config is None else config
+    errors = leave_one_out_deg(slices, packets, grid, config).mean(1).cpu()
+    best = float(grid[int(errors.argmin())])
+    fit = fit_slice_trajectory(slices, packets, replace(config, smoothness=best))
+    return fit, best, errors

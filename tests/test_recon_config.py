@@ -37,6 +37,7 @@ BAD = [
     (InitialisationConfig, "template", 1.5, "None or an integer >= 0"),
     (InitialisationConfig, "grid_mm", 0.0, "None or a finite number > 0"),
     (InitialisationConfig, "restart_deg", -1.0, "a finite number >= 0"),
+    (InitialisationConfig, "slice_trajectory", 1, "a bool"),
     (InitialisationConfig, "slice_max_deviation_deg", 0.0, "a finite number > 0"),
     (InitialisationConfig, "slice_max_deviation_mm", float("inf"), "a finite number > 0"),
     (InitialisationConfig, "slice_min_support", 1.2, "in [0, 1]"),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 
 import pytest
@@ -15,6 +17,7 @@ from svr.models.network import loss_function
 from svr.models.pretrained import MAX_MODEL_BYTES, SLICE_REFINER_STAGES, slice_refiner_paths
 from svr.models.slice_refiner import SliceRefinerConfig, SliceRefinerNet, shipped_slice_refiners
 from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation import slice_refinement
 from svr.reconstruction.initialisation.choice import Start
 from svr.reconstruction.initialisation.learned import refined_slices
 from svr.reconstruction.initialisation.slice_refinement import (
@@ -24,6 +27,7 @@ from svr.reconstruction.initialisation.slice_refinement import (
     refiner_inputs,
     slices_on_grid,
 )
+from svr.reconstruction.trajectory import SMOOTHNESS_GRID, cross_validated_trajectory
 from svr.sampling.poses import pose_labels
 from svr.sampling.volume import CanonicalVolume
 
@@ -132,6 +136,29 @@ def test_a_right_estimate_is_kept_and_a_wrong_one_is_not(scene):
     torch.testing.assert_close(wrong.poses, true)
 
 
+def test_with_packets_a_calm_heads_slices_are_put_on_their_trajectories(scene, monkeypatch):
+    volume, stacks, truth, slices = scene
+    true = true_array_poses(slices, truth, stacks)
+    residual = rigid((0.0, 0.2, 0.1), (1.0, -2.0, 0.5))
+    off = slices.with_poses(se3_compose(true, se3_inverse(residual)[None]), "canonical")
+    stages = [(ConstantRefiner(residual, tiny_config()), 1)]
+    plain = place_slices(off, _atlas(volume), stages, 2.5)
+    assert plain.smoothness is None and not plain.on_trajectory
+    fit, smoothness, _ = cross_validated_trajectory(off.with_poses(plain.poses), 2)
+    for chosen, calm in (
+        (smoothness, smoothness == max(SMOOTHNESS_GRID)),
+        (3.0, True),
+        (0.3, False),
+    ):
+        monkeypatch.setattr(
+            slice_refinement, "cross_validated_trajectory", lambda *_, c=chosen: (fit, c, None)
+        )
+        placed = place_slices(off, _atlas(volume), stages, 2.5, packets=2)
+        assert placed.smoothness == chosen and placed.on_trajectory == calm
+        assert torch.equal(placed.kept, plain.kept)
+        torch.testing.assert_close(placed.poses, fit.poses if calm else plain.poses)
+
+
 def test_one_stack_has_nothing_to_agree_with(scene):
     """Even the exact correction is not kept: no other stack can say it agrees better."""
     volume, stacks, truth, slices = scene
@@ -147,7 +174,7 @@ def test_one_stack_has_nothing_to_agree_with(scene):
     assert not bool(placed.kept.any())
 
 
-def test_the_shipped_stages_load_and_the_start_says_what_moved(scene):
+def test_the_shipped_stages_load_and_the_start_says_what_moved(scene, caplog):
     paths = slice_refiner_paths()
     assert [p.name for p in paths] == list(SLICE_REFINER_STAGES)
     for path in paths:
@@ -161,6 +188,18 @@ def test_the_shipped_stages_load_and_the_start_says_what_moved(scene):
     refined = refined_slices(start, _atlas(volume), config)
     assert len(refined.notes) == len(stacks)
     assert all("slice refiner:" in note for note in refined.notes)
+    # The log says whether the slices were put on their packets' trajectories, and why.
+    with caplog.at_level(logging.INFO, logger="svr.reconstruction"):
+        refined_slices(start, _atlas(volume), config)
+    assert "slice trajectories: the " in caplog.text
+    caplog.clear()
+    off = dataclasses.replace(config.initialisation, slice_trajectory=False)
+    with caplog.at_level(logging.INFO, logger="svr.reconstruction"):
+        plain = refined_slices(
+            start, _atlas(volume), dataclasses.replace(config, initialisation=off)
+        )
+    assert "slice trajectories" not in caplog.text
+    assert not any("trajectories" in note for note in plain.notes)
     moved = torch.rad2deg(rotation_angle(refined.slices.poses, true))
     assert math.isfinite(float(moved.max()))
 
@@ -186,13 +225,13 @@ def test_a_tiny_refiner_learns_a_residual_and_refine_poses_applies_it_on_the_rig
     labels = pose_labels(se3_to_vector(residual)[None], "se3").float().expand(len(inputs), -1)
     loss_of = loss_function("se3")
     optimiser = torch.optim.Adam(net.parameters(), lr=1e-2)
-    first = float(loss_of(net(inputs), labels))
+    first = float(loss_of(net(inputs), labels).detach())
     for _ in range(150):
         optimiser.zero_grad()
         loss = loss_of(net(inputs), labels)
         loss.backward()
         optimiser.step()
-    assert float(loss) < first / 20
+    assert float(loss.detach()) < first / 20
     net.eval()
     moved = refine_poses([(net, 1)], off, reference)
     before = torch.rad2deg(rotation_angle(off.poses, true))

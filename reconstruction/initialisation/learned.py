@@ -19,7 +19,9 @@
    stack registration and brought into canonical space, and per stack the candidate that agrees
    best with the other stacks, stack registration included.
 5. **Every slice** (with an atlas, ``config.initialisation.slice_refinement``): each slice moved
-   by the shipped slice refiner against the atlas, kept where the other stacks agree better
+   by the shipped slice refiner against the atlas, kept where the other stacks agree better,
+   then put on its packet's motion trajectory where the head was calm
+   (``config.initialisation.slice_trajectory``)
    (:func:`~svr.reconstruction.initialisation.slice_refinement.place_slices`).
 """
 
@@ -200,14 +202,30 @@ def refined_slices(start: Start, atlas: CanonicalVolume, config: ReconstructionC
     slices = start.slices
     refiners = shipped_slice_refiners(str(slices.device))
     stages = list(zip(refiners, config.initialisation.slice_refiner_steps, strict=True))
-    placed = place_slices(slices, atlas, stages, config.initialisation_grid_mm)
+    packets = config.packets if config.initialisation.slice_trajectory else None
+    placed = place_slices(slices, atlas, stages, config.initialisation_grid_mm, packets)
+    if placed.smoothness is not None:
+        log.info(
+            "slice trajectories: the %s trajectory predicts a left-out slice best (smoothness "
+            "%g): %s",
+            "stiffest" if placed.on_trajectory else "a more flexible",
+            placed.smoothness,
+            "a calm head, the slices put on their packets' trajectories"
+            if placed.on_trajectory
+            else "the head moved between slices, the slices left as estimated",
+        )
     moved = torch.rad2deg(rotation_angle(placed.poses, slices.poses.to(placed.poses)))
     notes = list(start.notes) or [""] * len(slices.stack_names)
     for sid, name in enumerate(slices.stack_names):
         mine = slices.stack_ids == sid
         kept = placed.kept & mine
         text = f"slice refiner: {int(kept.sum())} of {int(mine.sum())} slices moved"
-        if bool(kept.any()):
+        if placed.on_trajectory:
+            text += (
+                ", then all put on their packets' motion trajectories (median "
+                f"{float(moved[mine].median()):.1f} deg from the packets' start)"
+            )
+        elif bool(kept.any()):
             text += f" (median {float(moved[kept].median()):.1f} deg)"
         log.info("%s: %s", name, text)
         notes[sid] = f"{notes[sid]}; {text}" if notes[sid] else text

@@ -15,6 +15,16 @@ with the *other* stacks' slices at their refined poses than it did at its start 
 stacks at theirs (NCC with a scattered-data volume of them): the subject's own data decides,
 never the atlas (:func:`place_slices`).
 
+The refiner's estimates scatter by several degrees about the truth, and a packet's slices were
+acquired one after another. Where the head was calm, the kept poses are therefore put on their
+packets' motion trajectories: when the stiffest trajectory of
+:data:`~svr.reconstruction.trajectory.SMOOTHNESS_GRID` predicts a left-out slice best
+(:func:`svr.reconstruction.trajectory.cross_validated_trajectory`), the estimates' scatter is
+what varies from slice to slice, and averaging it away helps. Where a more flexible trajectory
+predicts better, the head moved between slices and the poses stay as estimated (smoothing there
+moved the slices' start away from the truth on every case measured: ``benchmarks/results/
+slice-refiner.md``, section 10).
+
 Frames: every pose is a slice array's pose (slice-plane mm about the array centre -> canonical
 mm), as :class:`~svr.reconstruction.slices.SliceSet` holds it; the atlas is in canonical mm.
 """
@@ -34,6 +44,7 @@ from svr.image import Image
 from svr.models.slice_refiner import SliceRefinerNet
 from svr.reconstruction.registration import slice_agreement
 from svr.reconstruction.slices import SliceSet
+from svr.reconstruction.trajectory import SMOOTHNESS_GRID, cross_validated_trajectory
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import CanonicalVolume, downsample_volume
 
@@ -184,12 +195,18 @@ class SlicePlacement(NamedTuple):
         kept: (N,) bool, the slices whose refined pose was kept.
         ncc_before: (N,) each slice's NCC with the other stacks' volume, at the start.
         ncc_after: (N,) the same at the refined poses (every slice refined).
+        smoothness: The smoothness that predicted a left-out slice best, or ``None`` without
+            ``packets`` (or nothing refined).
+        on_trajectory: Whether the poses were put on their packets' trajectories (the head was
+            calm: ``smoothness`` is the grid's stiffest).
     """
 
     poses: Tensor
     kept: Tensor
     ncc_before: Tensor
     ncc_after: Tensor
+    smoothness: float | None = None
+    on_trajectory: bool = False
 
 
 def place_slices(
@@ -197,8 +214,12 @@ def place_slices(
     atlas: CanonicalVolume,
     stages: Sequence[tuple[SliceRefinerNet, int]],
     resolution_mm: float,
+    packets: int | None = None,
 ) -> SlicePlacement:
     """Every slice refined against the atlas, kept where the other stacks agree better.
+
+    With ``packets``, the poses (kept or not) are then put on their packets' motion
+    trajectories where the head was calm (module docstring).
 
     Args:
         slices: All slices at their starting canonical poses (two stacks or more for any to be
@@ -206,6 +227,7 @@ def place_slices(
         atlas: A brain of about the fetus's age in canonical space.
         stages: ``(refiner, steps)`` in the order applied (:func:`refine_poses`).
         resolution_mm: Voxel size of the other stacks' volumes (mm).
+        packets: Interleaved packets per stack for the trajectories, or ``None`` for none.
 
     Returns:
         The poses, which slices kept their refined pose, and each slice's NCC before and after.
@@ -223,4 +245,10 @@ def place_slices(
     after = slice_agreement(moved, resolution_mm, leave_out=True).to(zeros)
     kept = after > before + KEEP_MARGIN
     poses = torch.where(kept[:, None, None], refined.to(start), start)
-    return SlicePlacement(poses, kept, before, after)
+    if packets is None:
+        return SlicePlacement(poses, kept, before, after)
+    fit, smoothness, _ = cross_validated_trajectory(slices.with_poses(poses), packets)
+    calm = smoothness == max(SMOOTHNESS_GRID)
+    if calm:
+        poses = fit.poses.to(start)
+    return SlicePlacement(poses, kept, before, after, smoothness, calm)
