@@ -451,9 +451,10 @@ def leave_one_out_deg(
     """Each slice's pose predicted by its packet's other slices, at each smoothness of ``grid``.
 
     Each slice is left out in turn (the slices of one time in every packet at once) and its pose
-    predicted by its packet's trajectory through the others (:func:`fit_slice_trajectory`, each
-    packet's chart centred once on the robust mean of all its slices: leaving one out would move
-    it by a fraction of a degree, at twice the cost).
+    predicted by its packet's trajectory through the others (:func:`fit_slice_trajectory`, with
+    the transport and each packet's chart centre computed once, from all its slices: leaving a
+    slice out would move the centre by a fraction of a degree, and sharing both makes the fits
+    four times faster).
 
     Args:
         slices: The slices with their current poses (estimates), scanner poses as nominal.
