@@ -26,7 +26,7 @@ rather than from a look. The output's last turns are shown beside it.
 Run from the repository root (about 2-4 minutes per run on one core)::
 
     python benchmarks/bench_real_frame.py [--threads 1 2] [--out runs/real-frame] [--fabian] \
-        [--auto-masks] [--write-reference] [--polish F] [--no-slice-trajectory] \
+        [--auto-masks] [--write-reference] [--polish F] [--slice-trajectory] \
         [--results benchmarks/results/real-scan-frame.md]
 """
 
@@ -189,9 +189,9 @@ def main() -> int:
         "--fabian", action="store_true", help="also the FaBiAN subjects' output frames"
     )
     parser.add_argument(
-        "--no-slice-trajectory",
+        "--slice-trajectory",
         action="store_true",
-        help="svr reconstruct's --no-slice-trajectory (the baseline of the slice trajectories)",
+        help="svr reconstruct's --slice-trajectory (a calm head's slices on their trajectories)",
     )
     args = parser.parse_args()
     recorded = json.loads(args.reference.read_text(encoding="utf-8"))
@@ -205,8 +205,8 @@ def main() -> int:
     rows, frames = [], []
     tag = "auto" if args.auto_masks else "manual"
     options = () if args.polish is None else ("--polish", str(args.polish))
-    if args.no_slice_trajectory:
-        options += ("--no-slice-trajectory",)
+    if args.slice_trajectory:
+        options += ("--slice-trajectory",)
     for threads in args.threads:
         output = args.out / f"real-cnn-{tag}-{threads}t.nii.gz"
         log, seconds = _reconstruct(

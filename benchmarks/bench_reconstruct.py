@@ -120,8 +120,8 @@ def cnn_options(registration: str, case: Path, args: argparse.Namespace) -> list
         options += ["--atlas-mask", *(str(mask) for _, mask in pairs)]
     if args.no_slice_refinement:
         options.append("--no-slice-refinement")
-    if args.no_slice_trajectory:
-        options.append("--no-slice-trajectory")
+    if args.slice_trajectory:
+        options.append("--slice-trajectory")
     if args.slice_refiner_steps:
         options += ["--slice-refiner-steps", *map(str, args.slice_refiner_steps)]
     return options
@@ -241,9 +241,9 @@ def main() -> int:
         help="cnn runs leave the slices at their packets' poses (the refiner's baseline)",
     )
     parser.add_argument(
-        "--no-slice-trajectory",
+        "--slice-trajectory",
         action="store_true",
-        help="cnn runs leave the refined slices off their packets' trajectories (its baseline)",
+        help="cnn runs put a calm head's refined slices on their packets' trajectories",
     )
     parser.add_argument(
         "--slice-refiner-steps",

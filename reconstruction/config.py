@@ -90,7 +90,8 @@ class InitialisationConfig:
             :data:`~svr.models.pretrained.SLICE_REFINER_STAGES`' order (``wide``, ``fine``), >= 0.
         slice_trajectory: With ``slice_refinement``: where the head was calm, the slices' poses
             are then put on their packets' motion trajectories
-            (:mod:`~svr.reconstruction.initialisation.slice_refinement`).
+            (:mod:`~svr.reconstruction.initialisation.slice_refinement`; off by default: measured
+            in ``benchmarks/results/slice-refiner.md``, section 10).
         slice_max_deviation_deg: ``"learned-slices"``: a slice whose predicted rotation is
             farther than this (degrees) from its stack's consensus takes the consensus pose.
         slice_max_deviation_mm: ``"learned-slices"``: likewise for its slice centre (mm). Both
@@ -138,11 +139,12 @@ class InitialisationConfig:
         metavar="N",
     )
     slice_trajectory: bool = option(
-        True,
-        "--no-slice-trajectory",
-        "--registration cnn with an atlas: leave the refined slices where the refiner put them "
-        "even where the head was calm (by default, when the stiffest motion trajectory predicts "
-        "a left-out slice best, each packet's slices are put on theirs)",
+        False,
+        "--slice-trajectory",
+        "--registration cnn with an atlas: where the head was calm (the stiffest motion "
+        "trajectory predicts a left-out slice best), put each packet's refined slices on its "
+        "trajectory (a closer start on six cases of six, a better volume on three: off by "
+        "default)",
     )
     slice_max_deviation_deg: float = 30.0
     slice_max_deviation_mm: float = 20.0

@@ -386,9 +386,9 @@ def test_options_resolve_once_into_the_job() -> None:
     assert (learned.config.schedule.rounds, learned.config.schedule.converged_deg) == (24, 0.15)
     assert learned.config.schedule.polish == 0.5
     assert job("--registration", "cnn", "--polish", "1").config.schedule.polish == 1.0
-    assert learned.config.initialisation.slice_trajectory
-    off = job("--registration", "cnn", "--no-slice-trajectory").config.initialisation
-    assert off.slice_refinement and not off.slice_trajectory
+    assert not learned.config.initialisation.slice_trajectory
+    on = job("--registration", "cnn", "--slice-trajectory").config.initialisation
+    assert on.slice_refinement and on.slice_trajectory
     assert job("--registration", "cnn", "--iterations", "3").config.schedule.rounds == 3
     slices = job("--registration", "cnn", "--model", "slice-pose")
     assert slices.config.initialisation.kind == "learned-slices"

@@ -184,7 +184,9 @@ def test_the_shipped_stages_load_and_the_start_says_what_moved(scene, caplog):
     volume, stacks, truth, slices = scene
     true = true_array_poses(slices, truth, stacks)
     start = Start(slices.with_poses(true, "canonical"), ("packets",) * len(stacks))
-    config = ReconstructionConfig.preset("learned")
+    learned = ReconstructionConfig.preset("learned")
+    on = dataclasses.replace(learned.initialisation, slice_trajectory=True)
+    config = dataclasses.replace(learned, initialisation=on)
     refined = refined_slices(start, _atlas(volume), config)
     assert len(refined.notes) == len(stacks)
     assert all("slice refiner:" in note for note in refined.notes)
@@ -193,11 +195,8 @@ def test_the_shipped_stages_load_and_the_start_says_what_moved(scene, caplog):
         refined_slices(start, _atlas(volume), config)
     assert "slice trajectories: the " in caplog.text
     caplog.clear()
-    off = dataclasses.replace(config.initialisation, slice_trajectory=False)
     with caplog.at_level(logging.INFO, logger="svr.reconstruction"):
-        plain = refined_slices(
-            start, _atlas(volume), dataclasses.replace(config, initialisation=off)
-        )
+        plain = refined_slices(start, _atlas(volume), learned)  # the default: off
     assert "slice trajectories" not in caplog.text
     assert not any("trajectories" in note for note in plain.notes)
     moved = torch.rad2deg(rotation_angle(refined.slices.poses, true))

@@ -16,14 +16,15 @@ stacks at theirs (NCC with a scattered-data volume of them): the subject's own d
 never the atlas (:func:`place_slices`).
 
 The refiner's estimates scatter by several degrees about the truth, and a packet's slices were
-acquired one after another. Where the head was calm, the kept poses are therefore put on their
-packets' motion trajectories: when the stiffest trajectory of
+acquired one after another. With ``packets`` (``--slice-trajectory``), where the head was calm,
+the kept poses are put on their packets' motion trajectories: when the stiffest trajectory of
 :data:`~svr.reconstruction.trajectory.SMOOTHNESS_GRID` predicts a left-out slice best
 (:func:`svr.reconstruction.trajectory.cross_validated_trajectory`), the estimates' scatter is
 what varies from slice to slice, and averaging it away helps. Where a more flexible trajectory
 predicts better, the head moved between slices and the poses stay as estimated (smoothing there
-moved the slices' start away from the truth on every case measured: ``benchmarks/results/
-slice-refiner.md``, section 10).
+moved the slices' start away from the truth on every case measured). The starts improve on every
+calm case measured, the volumes on half of them: ``benchmarks/results/slice-refiner.md``,
+section 10.
 
 Frames: every pose is a slice array's pose (slice-plane mm about the array centre -> canonical
 mm), as :class:`~svr.reconstruction.slices.SliceSet` holds it; the atlas is in canonical mm.
