@@ -90,8 +90,7 @@ class InitialisationConfig:
             :data:`~svr.models.pretrained.SLICE_REFINER_STAGES`' order (``wide``, ``fine``), >= 0.
         slice_trajectory: With ``slice_refinement``: where the head was calm, the slices' poses
             are then put on their packets' motion trajectories
-            (:mod:`~svr.reconstruction.initialisation.slice_refinement`; off by default: measured
-            in ``benchmarks/results/slice-refiner.md``, section 10).
+            (:mod:`~svr.reconstruction.initialisation.slice_refinement`).
         slice_max_deviation_deg: ``"learned-slices"``: a slice whose predicted rotation is
             farther than this (degrees) from its stack's consensus takes the consensus pose.
         slice_max_deviation_mm: ``"learned-slices"``: likewise for its slice centre (mm). Both
@@ -120,8 +119,7 @@ class InitialisationConfig:
         0.0,
         "--restart-deg",
         "--registration cnn: the turn of six restarts of the stack-pose network about each "
-        "stack's chosen pose, averaged (0: none; more accurate stack poses, lower "
-        "reconstructions measured on four of six bench cases)",
+        "stack's chosen pose, averaged (0: none)",
         metavar="DEG",
     )
     slice_refinement: bool = option(
@@ -143,8 +141,7 @@ class InitialisationConfig:
         "--slice-trajectory",
         "--registration cnn with an atlas: where the head was calm (the stiffest motion "
         "trajectory predicts a left-out slice best), put each packet's refined slices on its "
-        "trajectory (a closer start on six cases of six, a better volume on three: off by "
-        "default)",
+        "trajectory",
     )
     slice_max_deviation_deg: float = 30.0
     slice_max_deviation_mm: float = 20.0

@@ -452,9 +452,8 @@ def leave_one_out_deg(
 
     Each slice is left out in turn (the slices of one time in every packet at once) and its pose
     predicted by its packet's trajectory through the others (:func:`fit_slice_trajectory`, with
-    the transport and each packet's chart centre computed once, from all its slices: leaving a
-    slice out would move the centre by a fraction of a degree, and sharing both makes the fits
-    four times faster).
+    the transport and each packet's chart centre computed once, from all its slices, and shared
+    by every fit: leaving one slice out would move the centre by a fraction of a degree).
 
     Args:
         slices: The slices with their current poses (estimates), scanner poses as nominal.

@@ -292,9 +292,12 @@ def test_one_round_is_the_final_volume_at_the_initial_poses():
 # fetal-svr 0.1.0's output (commit 5a69538, before the adaptive schedule existed) on
 # tiny_case(2.0, 1.0) with FAST and 3 rounds, one torch thread. Until 2026-12-07 this test compared
 # SHA-256 digests; the same code gives other bits on other CPUs (AVX-512 kernels, for one), so the
-# file holds the arrays (written by the code that reproduced the digests) and the test compares
-# them within what float rounding moves: poses by ~0.002 deg, and a voxel at the coverage's edge
-# (measured by perturbing the stacks' intensities by 1e-7 to 1e-5 relative: 1 voxel of 38,912).
+# file (40 KB, made from the phantom: no shared data) holds the arrays that code (commit b71994b,
+# whose CI reproduced the digests) wrote on an AVX-512 CPU: `reconstruct(tiny_case(2.0, 1.0),
+# recon_config(**FAST, schedule="fixed", rounds=3))`, its volume's data and affine and its slices'
+# poses, saved with numpy.savez_compressed. The test compares them within what float rounding
+# moves: poses by ~0.002 deg, and a voxel at the coverage's edge (measured by perturbing the
+# stacks' intensities by 1e-7 to 1e-5 relative: 1 voxel of 38,912).
 VERSION_0_1_0 = Path(__file__).parent / "data" / "fixed_schedule_0_1_0.npz"
 
 

@@ -21,10 +21,8 @@ the kept poses are put on their packets' motion trajectories: when the stiffest 
 :data:`~svr.reconstruction.trajectory.SMOOTHNESS_GRID` predicts a left-out slice best
 (:func:`svr.reconstruction.trajectory.cross_validated_trajectory`), the estimates' scatter is
 what varies from slice to slice, and averaging it away helps. Where a more flexible trajectory
-predicts better, the head moved between slices and the poses stay as estimated (smoothing there
-moved the slices' start away from the truth on every case measured). The starts improve on every
-calm case measured, the volumes on half of them: ``benchmarks/results/slice-refiner.md``,
-section 10.
+predicts better, the head moved between slices, smoothing would pull the slices away from
+where they were, and the poses stay as estimated.
 
 Frames: every pose is a slice array's pose (slice-plane mm about the array centre -> canonical
 mm), as :class:`~svr.reconstruction.slices.SliceSet` holds it; the atlas is in canonical mm.
