@@ -27,12 +27,16 @@ from pathlib import Path
 import torch
 from bench_common import SHARED, load_case_stacks
 
+from svr.models.slice_refiner import shipped_slice_refiners
 from svr.models.stack_pose import StackPoseNet, load_stack_pose_model
 from svr.reconstruction.config import ReconstructionConfig
+from svr.reconstruction.initialisation import initialise
 from svr.reconstruction.initialisation.learned import learned_start, network_placement
+from svr.reconstruction.initialisation.slice_refinement import place_slices
 from svr.reconstruction.initialisation.stack_pose import estimate_stack_pose
 from svr.reconstruction.registration import stack_registration
-from svr.reconstruction.slices import extract_slices
+from svr.reconstruction.slices import SliceSet, extract_slices
+from svr.sampling.volume import load_canonical_volume
 
 
 def timed(repeats: int, work: Callable[..., object], *args: object) -> float:
@@ -51,6 +55,28 @@ def estimates(model: StackPoseNet, stacks: list) -> None:
         estimate_stack_pose(model, stack.image, stack.mask.data > 0.5, restart_deg=10.0)
 
 
+def refiner_time(
+    repeats: int,
+    slices: SliceSet,
+    stacks: list,
+    model: StackPoseNet,
+    config: ReconstructionConfig,
+    atlas_folder: Path,
+) -> float:
+    """Median seconds per slice of the slice refiner with its keep rule, from the learned start.
+
+    The first call is left out of the median (once per process: the refiner's first
+    convolutions); ``repeats`` calls are timed after it.
+    """
+    start = initialise(slices, stacks, config, model)
+    atlas = load_canonical_volume(atlas_folder / "srr.nii.gz", atlas_folder / "mask.nii.gz")
+    steps = config.initialisation.slice_refiner_steps
+    stages = list(zip(shipped_slice_refiners(), steps, strict=True))
+    grid = config.initialisation_grid_mm
+    place_slices(start.slices, atlas, stages, grid)
+    return timed(repeats, place_slices, start.slices, atlas, stages, grid) / len(slices)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="stack-pose")
@@ -61,16 +87,25 @@ def main() -> int:
         default=[Path("sb24-large"), Path("sb28-moderate")],
         help="bench case names, or case folders",
     )
+    parser.add_argument(
+        "--atlases",
+        nargs="*",
+        type=Path,
+        default=[],
+        help="one atlas age folder per case: also time the slice refiner against it",
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--results", type=Path, help="also write the table here (markdown)")
     parser.add_argument(
         "--repeats", type=int, default=3, help="time each step this many times, keep the median"
     )
     args = parser.parse_args()
+    if args.atlases and len(args.atlases) != len(args.cases):
+        parser.error(f"--atlases: one per case ({len(args.cases)}), got {len(args.atlases)}")
     torch.set_num_threads(args.threads)
     model = load_stack_pose_model(args.model)
     rows = []
-    for name in args.cases:
+    for index, name in enumerate(args.cases):
         case = name if name.exists() else SHARED / "data" / "bench" / str(name)
         stacks = load_case_stacks(case)
         slices = extract_slices(stacks)
@@ -95,17 +130,25 @@ def main() -> int:
             )
             per_slice_ms = 1000.0 * placement / len(slices)
             added = (full - registration) / len(stacks)
+            refiner = "" if not args.atlases else "-"
+            if args.atlases and label == "model":
+                refiner_ms = 1000.0 * refiner_time(
+                    args.repeats, slices, stacks, model, settings, args.atlases[index]
+                )
+                refiner = f"{refiner_ms:.1f} ms ({args.atlases[index].name})"
             rows.append(
                 f"| {case.name} ({len(stacks)} stacks, {len(slices)} slices) | {label} | "
                 f"{registration:.1f} s | {full:.1f} s (x{full / registration:.2f}) | "
                 f"{per_slice_ms:.1f} ms | {alone:.2f} s | {added:.2f} s |"
+                + (f" {refiner} |" if args.atlases else "")
             )
             print(
                 f"{case.name}, {label} ({args.threads} threads): "
                 f"stack registration {registration:.1f} s, "
                 f"learned initialisation {full:.1f} s (x{full / registration:.2f}); "
                 f"network placement {per_slice_ms:.1f} ms per slice; "
-                f"estimate {alone:.2f} s per stack; added {added:.2f} s per stack",
+                f"estimate {alone:.2f} s per stack; added {added:.2f} s per stack"
+                + (f"; slice refiner {refiner} per slice" if refiner not in ("", "-") else ""),
                 flush=True,
             )
     if args.results is not None:
@@ -116,6 +159,7 @@ def main() -> int:
                 f"--repeats {args.repeats}",
                 "--cases",
                 *map(str, args.cases),
+                *(["--atlases", *map(str, args.atlases)] if args.atlases else []),
             ]
         )
         lines = [
@@ -126,8 +170,9 @@ def main() -> int:
             f"time the median of {args.repeats} runs.",
             "",
             "| case | learned initialisation | stack registration | learned (ratio) | "
-            "network placement per slice | estimate per stack | added per stack |",
-            "|---|---|---:|---:|---:|---:|---:|",
+            "network placement per slice | estimate per stack | added per stack |"
+            + (" slice refiner per slice (atlas) |" if args.atlases else ""),
+            "|---|---|---:|---:|---:|---:|---:|" + ("---:|" if args.atlases else ""),
             *rows,
             "",
         ]

@@ -86,6 +86,8 @@ def _reconstruct(
 ) -> tuple[str, float]:
     """``svr reconstruct --registration cnn`` in a fresh process; its log and wall seconds.
 
+    The log (``-v``) is also written beside the output (``.stderr.txt``).
+
     ``atlas``: one atlas folder (``srr.nii.gz``, ``mask.nii.gz``) or several (the output takes
     the first's frame unless another fits clearly better).
     """
@@ -105,6 +107,7 @@ def _reconstruct(
     seconds = time.perf_counter() - began
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
+    _beside(output, ".stderr.txt").write_text(done.stderr, encoding="utf-8")
     return done.stderr, seconds
 
 
@@ -120,19 +123,24 @@ def _mask_ml(path: Path) -> float:
     return voxels * abs(float(np.linalg.det(image.affine[:3, :3]))) / 1000.0
 
 
-def nearest_atlas(mask: Path) -> Path:
-    """The atlas folder whose brain mask's volume is nearest the given mask's."""
-    folders = sorted(p.parent for p in ATLAS.glob("GA*/mask.nii.gz"))
+def nearest_atlas(mask: Path, family: Path = ATLAS) -> Path:
+    """The age folder of an atlas ``family`` whose brain mask's volume is nearest ``mask``'s."""
+    folders = sorted(p.parent for p in family.glob("GA*/mask.nii.gz"))
     ml = _mask_ml(mask)
     return min(folders, key=lambda f: abs(_mask_ml(f / "mask.nii.gz") - ml))
 
 
 def fabian_rows(
-    model: str, threads: list[int], out: Path, options: tuple[str, ...] = ()
+    model: str,
+    threads: list[int],
+    out: Path,
+    options: tuple[str, ...] = (),
+    family: Path = ATLAS,
 ) -> list[str]:
     """One row per FaBiAN subject and thread count: its output frame vs the files' frame.
 
-    ``options``: more ``svr reconstruct`` options for every run.
+    ``options``: more ``svr reconstruct`` options for every run; ``family``: the atlas family
+    (a folder of ``GA*`` age folders) whose nearest age is each subject's atlas.
     """
     subjects: dict[str, list[str]] = {}
     for name in FABIAN_STACKS:
@@ -141,9 +149,10 @@ def fabian_rows(
     for subject, names in subjects.items():
         stacks = [str(FABIAN / n) for n in names]
         masks = [str(FABIAN / FABIAN_STACKS[n]) for n in names]
-        atlas = nearest_atlas(FABIAN / FABIAN_STACKS[names[0]])
+        atlas = nearest_atlas(FABIAN / FABIAN_STACKS[names[0]], family)
         for n in threads:
-            output = out / f"fabian-{subject}-cnn-{n}t.nii.gz"
+            tag = "" if family == ATLAS else f"-{atlas.name}"
+            output = out / f"fabian-{subject}{tag}-cnn-{n}t.nii.gz"
             log, seconds = _reconstruct(
                 stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2", *options)
             )
@@ -189,6 +198,13 @@ def main() -> int:
         "--fabian", action="store_true", help="also the FaBiAN subjects' output frames"
     )
     parser.add_argument(
+        "--fabian-atlas-family",
+        type=Path,
+        default=ATLAS,
+        help="the atlas family (GA* age folders) whose age nearest each FaBiAN subject's brain "
+        "volume is its atlas (default: the spina bifida atlas)",
+    )
+    parser.add_argument(
         "--slice-trajectory",
         action="store_true",
         help="svr reconstruct's --slice-trajectory (a calm head's slices on their trajectories)",
@@ -208,7 +224,8 @@ def main() -> int:
     if args.slice_trajectory:
         options += ("--slice-trajectory",)
     for threads in args.threads:
-        output = args.out / f"real-cnn-{tag}-{threads}t.nii.gz"
+        other = "" if args.atlas == [ATLAS / "GA28_operated"] else f"-{args.atlas[0].name}"
+        output = args.out / f"real-cnn-{tag}{other}-{threads}t.nii.gz"
         log, seconds = _reconstruct(
             stacks,
             [] if args.auto_masks else masks,
@@ -258,7 +275,7 @@ def main() -> int:
             "| subject | stacks | atlas | threads | frame vs files' frame (deg) | last turns of "
             "the output (deg) | stacks' frames | wall (s) |",
             "|---|---:|---|---:|---:|---:|---|---:|",
-            *fabian_rows(args.model, args.threads, args.out, options),
+            *fabian_rows(args.model, args.threads, args.out, options, args.fabian_atlas_family),
         ]
     text = "\n".join(lines)
     print(text)

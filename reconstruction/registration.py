@@ -314,7 +314,9 @@ def stack_registration(
     return poses, template
 
 
-def slice_agreement(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:
+def slice_agreement(
+    slices: SliceSet, grid_mm: float, leave_out: bool = False, at: Tensor | None = None
+) -> Tensor:
     """(N,) each slice's NCC with its simulation from a volume of the slices.
 
     The volume is the scattered-data approximation of the slices on a grid of ``grid_mm``. With
@@ -324,13 +326,23 @@ def slice_agreement(slices: SliceSet, grid_mm: float, leave_out: bool = False) -
     freely it is placed, but fits the other stacks only where it is right.
 
     Args:
-        slices: The slices at the poses to score.
+        slices: The slices at the poses the volume is made from.
         grid_mm: The grid spacing (mm).
         leave_out: Score each stack against the other stacks only.
+        at: (N, 4, 4) other poses to score the slices at (slice array -> ``slices``' frame),
+            the volume still made from ``slices`` at their own: how well a moved slice agrees
+            with the other stacks as they are. Default: the slices' own poses.
 
     Returns:
         (N,) float32 slice NCC (0 for a slice with no modelled pixels).
+
+    Raises:
+        ValueError: If ``at`` is not (N, 4, 4).
     """
+    if at is not None and tuple(at.shape) != (len(slices), 4, 4):
+        raise ValueError(
+            f"slice_agreement(): 'at' must be ({len(slices)}, 4, 4), got {tuple(at.shape)}"
+        )
     grid = output_grid(slices, grid_mm)
     num_stacks = len(slices.stack_names)
     leave = leave_out and num_stacks > 1
@@ -357,6 +369,8 @@ def slice_agreement(slices: SliceSet, grid_mm: float, leave_out: bool = False) -
             volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
         else:
             volume = sda_ratio(total_numerator, total_coverage)
+        if at is not None:
+            points = projector.grid_points(at[slices.stack_ids == sid].to(slices.poses))
         ncc = slice_ncc(projector, projector.forward(volume, points), observed)
         out[slices.stack_ids == sid] = ncc.to(out)
     return out

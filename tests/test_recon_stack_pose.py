@@ -414,6 +414,29 @@ def test_slice_agreement_is_each_slice_against_an_explicit_volume_of_the_other_s
     torch.testing.assert_close(stack_ncc(slices, 2.5, leave_out=True), means)
 
 
+def test_slice_agreement_at_other_poses_scores_them_against_the_volume_as_it_is(turned_scene):
+    """``at``: the slices scored at other poses, the other stacks' volume made at their own."""
+    from svr.geometry import so3_exp
+    from svr.reconstruction.registration import slice_agreement
+
+    _, stacks, _ = turned_scene
+    slices = extract_slices(stacks)
+    own = slice_agreement(slices, 2.5, leave_out=True)
+    torch.testing.assert_close(slice_agreement(slices, 2.5, True, at=slices.poses), own)
+    turn = torch.eye(4, dtype=slices.poses.dtype)
+    turn[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, 0.3], dtype=turn.dtype))
+    first = slices.stack_ids == 0
+    moved = slices.poses.clone()
+    moved[first] = moved[first] @ turn  # stack 0's slices turned 17 deg in their planes
+    got = slice_agreement(slices, 2.5, True, at=moved)
+    # The other stacks are scored where they are, against a volume that does not move with
+    # stack 0's scores (they come from their own stacks' sums at their own poses).
+    torch.testing.assert_close(got[~first], own[~first])
+    assert float(got[first].mean()) < float(own[first].mean()) - 0.05
+    with pytest.raises(ValueError, match="'at' must be"):
+        slice_agreement(slices, 2.5, at=slices.poses[:2])
+
+
 def test_the_output_frame_follows_the_larger_group_of_agreeing_stacks() -> None:
     """Three stacks in a frame and three in its front-back twin: the robust mean of all slices
     lands far from both, so the frame comes from the group with the larger vote."""

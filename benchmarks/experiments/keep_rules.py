@@ -6,8 +6,10 @@ shipped stack-pose network), every slice is refined once by the shipped stages
 (:func:`~svr.reconstruction.initialisation.slice_refinement.refine_poses`, 4 + 3 steps), and each
 rule decides which refined poses to keep. Scores are leave-one-stack-out NCCs on the
 initialisation grid: ``before`` (the slice at its start, the other stacks at theirs), ``after``
-(refined, the others refined: the shipped rule keeps ``after > before + 0.01``) and ``mixed``
-(refined, the others at their start). Printed per rule: slices kept, how many of them improved,
+(refined, the others refined) and ``mixed`` (refined, the others at their start); the shipped
+rule keeps ``mixed > before + 0.01`` where the start's median ``before`` exceeds
+:data:`~svr.reconstruction.initialisation.slice_refinement.TRUSTED_START_NCC`, else
+``after > before + 0.01``. Printed per rule: slices kept, how many of them improved,
 and the per-slice rotation error median and 90th percentile against the truth (up to one global
 rigid transform); "improved" keeps exactly the slices whose error fell (the best any rule can do).
 Then the packets' motion trajectories of the kept poses (``slice-refiner.md`` section 10): at
@@ -37,11 +39,13 @@ from svr.models.slice_refiner import shipped_slice_refiners
 from svr.models.stack_pose import load_stack_pose_model
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.initialisation import initialise
-from svr.reconstruction.initialisation.slice_refinement import atlas_reference, refine_poses
-from svr.reconstruction.operators import SliceProjector
-from svr.reconstruction.registration import SVR_PSF_SAMPLES, slice_agreement, slice_ncc
+from svr.reconstruction.initialisation.slice_refinement import (
+    TRUSTED_START_NCC,
+    atlas_reference,
+    refine_poses,
+)
+from svr.reconstruction.registration import slice_agreement
 from svr.reconstruction.slices import SliceSet, extract_slices
-from svr.reconstruction.superres import coverage, output_grid, sda_ratio
 from svr.reconstruction.trajectory import (
     SMOOTHNESS_GRID,
     TrajectoryConfig,
@@ -53,29 +57,6 @@ from svr.reconstruction.trajectory import (
 from svr.sampling.volume import load_canonical_volume
 
 MARGIN = 0.01
-
-
-def mixed_agreement(start: SliceSet, moved: SliceSet, grid_mm: float) -> torch.Tensor:
-    """(N,) each moved slice's NCC with the volume of the *other* stacks at their start poses."""
-    grid = output_grid(start, grid_mm)
-    parts = {}
-    for sid in range(len(start.stack_names)):
-        chosen = start.stack_ids == sid
-        mine = start.subset(chosen)
-        projector = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
-        observed = projector.gather(mine.images)
-        points = projector.grid_points(mine.poses)
-        covered = coverage(projector, points, torch.ones_like(observed))
-        numerator = projector.adjoint(observed, points)
-        parts[sid] = (projector, observed, numerator, covered, chosen)
-    total_numerator = torch.stack([p[2] for p in parts.values()]).sum(0)
-    total_coverage = torch.stack([p[3] for p in parts.values()]).sum(0)
-    out = torch.zeros(len(start), dtype=torch.float64)
-    for projector, observed, numerator, covered, chosen in parts.values():
-        volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
-        points = projector.grid_points(moved.subset(chosen).poses)
-        out[chosen] = slice_ncc(projector, projector.forward(volume, points), observed).double()
-    return out
 
 
 def per_packet_smoothness(
@@ -128,18 +109,24 @@ def main() -> int:
         moved = start.with_poses(refined.to(start.poses))
         before = slice_agreement(start, grid_mm, leave_out=True).double().cpu()
         after = slice_agreement(moved, grid_mm, leave_out=True).double().cpu()
-        mixed = mixed_agreement(start, moved, grid_mm).cpu()
+        mixed = slice_agreement(start, grid_mm, True, at=refined).double().cpu()
         start_error, _ = relative_errors(truth, start.poses)
         refined_error, _ = relative_errors(truth, refined)
         better = torch.from_numpy(refined_error < start_error)
+        trusted = float(before.median()) > TRUSTED_START_NCC
         rules = {
-            "shipped (after)": after > before + MARGIN,
+            "shipped (mixed where the start agrees, else after)": (
+                (mixed if trusted else after) > before + MARGIN
+            ),
+            "after only": after > before + MARGIN,
             "mixed only": mixed > before + MARGIN,
             "both": (after > before + MARGIN) & (mixed > before + MARGIN),
             "improved": better,
         }
         shipped = torch.where(
-            rules["shipped (after)"][:, None, None], refined.cpu(), start.poses.double().cpu()
+            rules["shipped (mixed where the start agrees, else after)"][:, None, None],
+            refined.cpu(),
+            start.poses.double().cpu(),
         )
         candidates = {name: (kept, None) for name, kept in rules.items()}
         for smoothness in args.smoothness:

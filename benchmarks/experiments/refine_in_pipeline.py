@@ -13,6 +13,9 @@ The reference is ``--atlas`` (an age folder with ``srr.nii.gz`` and ``mask.nii.g
 ``--oracle-reference`` the case's true volume (the slices first moved into the truth's frame by
 one rigid transform: what the refiner does given a perfect reference). The stages are the shipped
 ones (``--steps`` each), or saved ones (``--stage NAME=PATH ... --schedule NAME ...``).
+``--subject-pass`` then refines the kept poses once more (the shipped ``fine`` stage, 3 steps)
+against the subject's own volume: the scattered-data volume of the brain-masked slices at their
+kept poses, each stack against the other stacks' only, on the refiner's reference grid.
 
     python benchmarks/experiments/refine_in_pipeline.py --cases ../shared/data/bench/sb32-severe
         --atlas ../shared/data/atlas/sb-fidon2021/GA33_operated --reconstruct
@@ -21,6 +24,7 @@ ones (``--steps`` each), or saved ones (``--stage NAME=PATH ... --schedule NAME 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -34,16 +38,22 @@ from bench_packet_refinement import describe, relative_errors, true_canonical
 
 from svr.geometry import se3_compose, se3_inverse
 from svr.geometry.averaging import robust_mean_pose
-from svr.image import save_nifti
+from svr.image import Image, save_nifti
 from svr.models.pretrained import stack_pose_model_path
 from svr.models.slice_refiner import load_slice_refiner, shipped_slice_refiners
 from svr.models.stack_pose import load_stack_pose_model
 from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.initialisation import initialise
 from svr.reconstruction.initialisation.case_evaluation import load_case
-from svr.reconstruction.initialisation.slice_refinement import place_slices
+from svr.reconstruction.initialisation.slice_refinement import (
+    REFERENCE_VOXEL_MM,
+    place_slices,
+    refine_poses,
+)
 from svr.reconstruction.pipeline import reconstruct_from_poses
-from svr.reconstruction.slices import extract_slices
+from svr.reconstruction.registration import _sda
+from svr.reconstruction.slices import SliceSet, extract_slices
+from svr.reconstruction.superres import output_grid
 from svr.sampling.volume import load_canonical_volume
 
 
@@ -57,6 +67,21 @@ def _stages(args: argparse.Namespace) -> list:
     return [(saved[name], 1) for name in args.schedule]
 
 
+def subject_pass(slices: SliceSet) -> torch.Tensor:
+    """(N, 4, 4) each stack's slices refined by ``fine`` x 3 against the other stacks' volume."""
+    fine = shipped_slice_refiners()[-1]
+    masked = dataclasses.replace(slices, images=slices.images * slices.masks)
+    poses = slices.poses.to(torch.float64).clone()
+    for sid in range(len(slices.stack_names)):
+        mine = slices.stack_ids == sid
+        others = masked.subset(~mine)
+        grid = output_grid(others, REFERENCE_VOXEL_MM)
+        data = _sda(others, grid).float()
+        reference = Image(data / float(data[data > 0].quantile(0.99)), grid.affine)
+        poses[mine] = refine_poses([(fine, 3)], slices.subset(mine), reference)
+    return poses
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", type=Path, nargs="+", required=True)
@@ -66,6 +91,11 @@ def main() -> int:
     parser.add_argument("--stage", action="append", default=[], help="NAME=PATH, saved stages")
     parser.add_argument("--schedule", nargs="*", default=[], help="saved stage names, in order")
     parser.add_argument("--resolution-mm", type=float, default=2.0)
+    parser.add_argument(
+        "--subject-pass",
+        action="store_true",
+        help="then refine the kept poses against the other stacks' own volume",
+    )
     parser.add_argument("--reconstruct", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("runs/refine-in-pipeline"))
     parser.add_argument("--scorer", type=Path, default=SHARED / "tools" / "score_recon.py")
@@ -104,6 +134,12 @@ def main() -> int:
             rot, cen = relative_errors(truth, poses)
             print(f"- {label}: {describe(rot, cen)}", flush=True)
         print(f"- placement {seconds:.1f} s ({1000 * seconds / len(kept):.1f} ms per slice)")
+        if args.subject_pass:
+            again = subject_pass(placed_in.with_poses(placed.poses.to(placed_in.poses)))
+            rot, cen = relative_errors(truth, again)
+            print(
+                f"- then against the other stacks' own volume (every slice): {describe(rot, cen)}"
+            )
         if not args.reconstruct:
             continue
         for label, poses in (("start", placed_in.poses), ("kept", placed.poses)):

@@ -204,6 +204,13 @@ def refined_slices(start: Start, atlas: CanonicalVolume, config: ReconstructionC
     stages = list(zip(refiners, config.initialisation.slice_refiner_steps, strict=True))
     packets = config.packets if config.initialisation.slice_trajectory else None
     placed = place_slices(slices, atlas, stages, config.initialisation_grid_mm, packets)
+    if len(slices.stack_names) > 1 and len(slices):
+        log.info(
+            "slice refiner: the start's median slice NCC with the other stacks is %.3f, so each "
+            "move is judged against the other stacks %s",
+            float(placed.ncc_before.median()),
+            "at their start" if placed.start_trusted else "at their refined poses",
+        )
     if placed.smoothness is not None:
         log.info(
             "slice trajectories: the %s trajectory predicts a left-out slice best (smoothness "

@@ -11,9 +11,16 @@ another (the shipped ``wide`` stage, trained on residual rotations up to 30 degr
 The reference is the atlas of the fetus's age in canonical space (brain-masked, at the
 refiner's training scale): a sharp brain, unlike a volume of the subject's own roughly placed
 slices. The atlas is not the fetus, so a slice keeps its refined pose only where it agrees better
-with the *other* stacks' slices at their refined poses than it did at its start with the other
-stacks at theirs (NCC with a scattered-data volume of them): the subject's own data decides,
-never the atlas (:func:`place_slices`).
+with the *other* stacks' slices than it did at its start (NCC with a scattered-data volume of
+them): the subject's own data decides, never the atlas (:func:`place_slices`). Which poses of the
+other stacks it is judged against depends on how well the start already agrees:
+
+- where the start's slices agree with the other stacks (median leave-one-stack-out NCC above
+  :data:`TRUSTED_START_NCC`), the other stacks *at their start*: the refined slices all carry the
+  same pull towards the atlas's anatomy, so against each other they agree better even where each
+  moved away from the fetus's, and only a move that fits the other stacks as they are is kept;
+- otherwise (motion within the stacks has scattered the start), the other stacks *at their
+  refined poses*: their start is itself too wrong to judge a move by.
 
 The refiner's estimates scatter by several degrees about the truth, and a packet's slices were
 acquired one after another. With ``packets`` (``--slice-trajectory``), where the head was calm,
@@ -49,6 +56,7 @@ from svr.sampling.volume import CanonicalVolume, downsample_volume
 
 __all__ = [
     "KEEP_MARGIN",
+    "TRUSTED_START_NCC",
     "SlicePlacement",
     "atlas_reference",
     "place_slices",
@@ -62,6 +70,11 @@ log = logging.getLogger(__name__)
 KEEP_MARGIN = 0.01
 """NCC by which a slice's agreement with the other stacks must rise for its refined pose to be
 kept."""
+
+TRUSTED_START_NCC = 0.35
+"""Median leave-one-stack-out slice NCC of the start above which the keep rule judges a refined
+slice against the other stacks at their start rather than at their refined poses (module
+docstring)."""
 
 REFERENCE_VOXEL_MM = 1.6
 """Voxel size (mm) of the references the shipped refiner was trained on (atlases at 0.8 mm,
@@ -193,11 +206,14 @@ class SlicePlacement(NamedTuple):
         poses: (N, 4, 4) float64 the slices' poses: refined where kept, else as they were.
         kept: (N,) bool, the slices whose refined pose was kept.
         ncc_before: (N,) each slice's NCC with the other stacks' volume, at the start.
-        ncc_after: (N,) the same at the refined poses (every slice refined).
+        ncc_after: (N,) each slice's NCC at its refined pose (every slice refined) with the other
+            stacks' volume at their start (``start_trusted``) or at their refined poses.
         smoothness: The smoothness that predicted a left-out slice best, or ``None`` without
             ``packets`` (or nothing refined).
         on_trajectory: Whether the poses were put on their packets' trajectories (the head was
             calm: ``smoothness`` is the grid's stiffest).
+        start_trusted: Whether the start agreed well enough (:data:`TRUSTED_START_NCC`) for the
+            refined slices to be judged against the other stacks at their start.
     """
 
     poses: Tensor
@@ -206,6 +222,7 @@ class SlicePlacement(NamedTuple):
     ncc_after: Tensor
     smoothness: float | None = None
     on_trajectory: bool = False
+    start_trusted: bool = False
 
 
 def place_slices(
@@ -217,8 +234,11 @@ def place_slices(
 ) -> SlicePlacement:
     """Every slice refined against the atlas, kept where the other stacks agree better.
 
-    With ``packets``, the poses (kept or not) are then put on their packets' motion
-    trajectories where the head was calm (module docstring).
+    A refined pose is kept where the slice's NCC with the other stacks' volume rises by more than
+    :data:`KEEP_MARGIN`: the other stacks at their start where the start agrees well
+    (:data:`TRUSTED_START_NCC`), else at their refined poses (module docstring). With
+    ``packets``, the poses (kept or not) are then put on their packets' motion trajectories where
+    the head was calm.
 
     Args:
         slices: All slices at their starting canonical poses (two stacks or more for any to be
@@ -239,15 +259,20 @@ def place_slices(
             start.clone(), torch.zeros_like(zeros, dtype=torch.bool), zeros, zeros
         )
     refined = refine_poses(stages, slices, atlas_reference(atlas))
-    moved = slices.with_poses(refined.to(slices.poses))
     before = slice_agreement(slices, resolution_mm, leave_out=True).to(zeros)
-    after = slice_agreement(moved, resolution_mm, leave_out=True).to(zeros)
+    trusted = float(before.median()) > TRUSTED_START_NCC
+    if trusted:
+        after = slice_agreement(slices, resolution_mm, leave_out=True, at=refined)
+    else:
+        moved = slices.with_poses(refined.to(slices.poses))
+        after = slice_agreement(moved, resolution_mm, leave_out=True)
+    after = after.to(zeros)
     kept = after > before + KEEP_MARGIN
     poses = torch.where(kept[:, None, None], refined.to(start), start)
     if packets is None:
-        return SlicePlacement(poses, kept, before, after)
+        return SlicePlacement(poses, kept, before, after, start_trusted=trusted)
     fit, smoothness, _ = cross_validated_trajectory(slices.with_poses(poses), packets)
     calm = smoothness == max(SMOOTHNESS_GRID)
     if calm:
         poses = fit.poses.to(start)
-    return SlicePlacement(poses, kept, before, after, smoothness, calm)
+    return SlicePlacement(poses, kept, before, after, smoothness, calm, trusted)
