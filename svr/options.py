@@ -106,12 +106,16 @@ def option_values(config: Any) -> dict[str, Any]:
 
     Returns:
         The flag of each field made with :func:`option` and the field's value in ``config``
-        (tuples as lists, for JSON).
+        (tuples as lists, for JSON); a flag that turns a field off (a bool field whose default
+        is ``True``, ``"--no-robust"``) is ``True`` where it was given: the field's negation, so
+        a log never reads ``--no-robust: True`` for a run that used the outlier weights.
     """
     out: dict[str, Any] = {}
-    for path, _, spec in option_fields(type(config)):
+    for path, item, spec in option_fields(type(config)):
         value: Any = config
         for name in path:
             value = getattr(value, name)
+        if isinstance(value, bool) and item.default is True:
+            value = not value
         out[spec.flag] = list(value) if isinstance(value, tuple) else value
     return out

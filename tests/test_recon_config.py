@@ -155,7 +155,9 @@ def test_every_option_is_generated_from_its_field():
     untouched = config_from_options(parser.parse_args([]), ReconstructionConfig())
     assert untouched == ReconstructionConfig()
     values = option_values(config)
-    assert values["--ncc-threshold"] == 0.3 and values["--no-robust"] is False
+    # A flag that turns a field off reads True where it was given (robust is False).
+    assert values["--ncc-threshold"] == 0.3 and values["--no-robust"] is True
+    assert option_values(untouched)["--no-robust"] is False
     assert values["--sr-iterations"] == [2, 3]
 
 
