@@ -21,12 +21,16 @@ every run lands on that frame (a few degrees) rather than its twin (150-180 degr
 another atlas family; ``bench_real_stacks.py``) with the atlas whose brain volume is nearest its
 mask's, and measures ``G`` against the identity: the files' world frame is the simulated brain's
 anatomical frame, a second brain unlike the training atlas's, with a reference from the files
-rather than from a look. The output's last turns are shown beside it.
+rather than from a look; and against the files' frame levelled on the brain's mid-sagittal plane
+as measured on the raw stacks (only the files' pitch is then the reference: one subject's files'
+``x = 0`` is 5-6 degrees from its brain's symmetry plane). The output's last turns are shown
+beside it. ``--fabian-atlas-family`` takes each subject's atlas from another family.
 
 Run from the repository root (about 2-4 minutes per run on one core)::
 
     python benchmarks/bench_real_frame.py [--threads 1 2] [--out runs/real-frame] [--fabian] \
-        [--auto-masks] [--write-reference] [--polish F] [--slice-trajectory] \
+        [--auto-masks] [--atlas AGE_FOLDER ...] [--fabian-atlas-family FOLDER] \
+        [--write-reference] [--polish F] [--slice-trajectory] \
         [--results benchmarks/results/real-scan-frame.md]
 """
 
@@ -54,6 +58,7 @@ from bench_common import (
     scanner_from_canonical,
     write_results,
 )
+from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "benchmarks" / "results" / "real-scan-frame-reference.json"
@@ -130,6 +135,21 @@ def nearest_atlas(mask: Path, family: Path = ATLAS) -> Path:
     return min(folders, key=lambda f: abs(_mask_ml(f / "mask.nii.gz") - ml))
 
 
+def levelled_frame(normals: Sequence[np.ndarray]) -> np.ndarray:
+    """(4, 4) the world frame turned, by the least rotation, so that its x axis is the normal.
+
+    ``normals``: (3,) mid-sagittal normals in the world frame (x component > 0), averaged.
+    """
+    normal = np.mean([n / np.linalg.norm(n) for n in normals], axis=0)
+    normal = normal / np.linalg.norm(normal)
+    axis = np.cross([1.0, 0.0, 0.0], normal)
+    sine, cosine = float(np.linalg.norm(axis)), float(normal[0])
+    frame = np.eye(4)
+    if sine > 1e-12:
+        frame[:3, :3] = Rotation.from_rotvec(axis / sine * math.atan2(sine, cosine)).as_matrix()
+    return frame
+
+
 def fabian_rows(
     model: str,
     threads: list[int],
@@ -139,9 +159,16 @@ def fabian_rows(
 ) -> list[str]:
     """One row per FaBiAN subject and thread count: its output frame vs the files' frame.
 
+    Also against the files' frame levelled on the brain's own mid-sagittal plane, measured on
+    each raw stack (:func:`midplane_oracle.midplane_in_world`, SimpleITK, no library code): the
+    canonical frame's ``x = 0`` is that plane, and where the files' frame is tilted from it only
+    its pitch is a reference.
+
     ``options``: more ``svr reconstruct`` options for every run; ``family``: the atlas family
     (a folder of ``GA*`` age folders) whose nearest age is each subject's atlas.
     """
+    from midplane_oracle import midplane_in_world  # it imports this module
+
     subjects: dict[str, list[str]] = {}
     for name in FABIAN_STACKS:
         subjects.setdefault(name.split("_")[0], []).append(name)
@@ -150,18 +177,23 @@ def fabian_rows(
         stacks = [str(FABIAN / n) for n in names]
         masks = [str(FABIAN / FABIAN_STACKS[n]) for n in names]
         atlas = nearest_atlas(FABIAN / FABIAN_STACKS[names[0]], family)
+        planes = [midplane_in_world(FABIAN / n, FABIAN / FABIAN_STACKS[n]) for n in names]
+        levelled = levelled_frame([plane.normal for plane in planes])
+        tilts = ", ".join(f"{plane.tilt_deg:.1f}" for plane in planes)
         for n in threads:
             tag = "" if family == ATLAS else f"-{atlas.name}"
             output = out / f"fabian-{subject}{tag}-cnn-{n}t.nii.gz"
             log, seconds = _reconstruct(
                 stacks, masks, atlas, model, output, n, ("--thicknesses", "3.2", *options)
             )
-            angle = frame_angle_deg(np.eye(4), scanner_from_canonical(_beside(output, ".csv")))
+            frame = scanner_from_canonical(_beside(output, ".csv"))
+            angle = frame_angle_deg(np.eye(4), frame)
             turns = frame_angle_deg(np.eye(4), nib.load(output).affine)
             split = "split" if "stacks disagree" in log else "agree"
             rows.append(
                 f"| {subject.removeprefix('sub-')} | {len(names)} | {atlas.name} | {n} | "
-                f"**{angle:.1f}** | {turns:.1f} | {split} | {seconds:.0f} |"
+                f"**{angle:.1f}** | {tilts} | **{frame_angle_deg(levelled, frame):.1f}** | "
+                f"{turns:.1f} | {split} | {seconds:.0f} |"
             )
             print(rows[-1], flush=True)
     return rows
@@ -272,9 +304,10 @@ def main() -> int:
             "",
             "FaBiAN subjects (output frame against the files' world frame):",
             "",
-            "| subject | stacks | atlas | threads | frame vs files' frame (deg) | last turns of "
-            "the output (deg) | stacks' frames | wall (s) |",
-            "|---|---:|---|---:|---:|---:|---|---:|",
+            "| subject | stacks | atlas | threads | frame vs files' frame (deg) | the brain's "
+            "mid-sagittal plane vs the files' x = 0, per stack (deg) | frame vs the files' frame "
+            "levelled on it (deg) | last turns of the output (deg) | stacks' frames | wall (s) |",
+            "|---|---:|---|---:|---:|---|---:|---:|---|---:|",
             *fabian_rows(args.model, args.threads, args.out, options, args.fabian_atlas_family),
         ]
     text = "\n".join(lines)

@@ -20,8 +20,9 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
 from bench_real_frame import rotation_part
+from scipy.ndimage import affine_transform
 
-__all__ = ["MidplaneEstimate", "midplane_of_array", "midplane_of_file"]
+__all__ = ["MidplaneEstimate", "midplane_in_world", "midplane_of_array", "midplane_of_file"]
 
 STARTS_DEG = ((0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (0.0, 30.0), (0.0, -30.0))
 """Starting turns (about the second and third axes, degrees) of the mirror registration.
@@ -137,3 +138,37 @@ def midplane_of_file(path: Path, threads: int = 1) -> tuple[MidplaneEstimate, np
     spacing = np.linalg.norm(image.affine[:3, :3], axis=0)
     estimate = midplane_of_array(np.clip(data, 0, None), spacing, threads)
     return estimate, rotation_part(image.affine) @ estimate.normal
+
+
+def midplane_in_world(
+    image_path: Path, mask_path: Path, spacing_mm: float = 1.1, threads: int = 1
+) -> MidplaneEstimate:
+    """The mid-sagittal plane of the brain in a stack, in the file's own world frame.
+
+    The brain-masked stack is resampled (trilinear) onto a grid of the world's axes at
+    ``spacing_mm`` and measured there, so the normal is in world coordinates: for files whose
+    world is the brain's anatomical frame (simulated stacks), how far that frame's ``x = 0``
+    lies from the brain's own symmetry plane.
+
+    Args:
+        image_path: A stack (NIfTI).
+        mask_path: Its brain mask, on the same grid.
+        spacing_mm: The resampling grid's spacing (mm).
+        threads: SimpleITK's threads.
+
+    Returns:
+        The estimate; its ``normal`` and ``tilt_deg`` are in the world's axes.
+    """
+    image = nib.load(str(image_path))
+    data = np.asarray(image.dataobj, dtype=np.float32)
+    data = data * (np.asarray(nib.load(str(mask_path)).dataobj) > 0.5)
+    affine = image.affine
+    world = np.argwhere(data > 0) @ affine[:3, :3].T + affine[:3, 3]
+    low = world.min(axis=0) - 5.0
+    shape = tuple(int(n) + 1 for n in np.ceil((world.max(axis=0) + 5.0 - low) / spacing_mm))
+    inverse = np.linalg.inv(affine)
+    # grid voxel v -> world low + spacing v -> the stack's voxel
+    matrix = inverse[:3, :3] * spacing_mm
+    offset = inverse[:3, :3] @ low + inverse[:3, 3]
+    resampled = affine_transform(data, matrix, offset=offset, output_shape=shape, order=1)
+    return midplane_of_array(resampled, np.full(3, spacing_mm), threads)
