@@ -41,6 +41,7 @@ __all__ = [
     "STACK_REGISTRATION",
     "SVR_PSF_SAMPLES",
     "RegistrationConfig",
+    "SliceAgreement",
     "register_rigid",
     "slice_agreement",
     "slice_ncc",
@@ -339,41 +340,74 @@ def slice_agreement(
     Raises:
         ValueError: If ``at`` is not (N, 4, 4).
     """
-    if at is not None and tuple(at.shape) != (len(slices), 4, 4):
-        raise ValueError(
-            f"slice_agreement(): 'at' must be ({len(slices)}, 4, 4), got {tuple(at.shape)}"
-        )
-    grid = output_grid(slices, grid_mm)
-    num_stacks = len(slices.stack_names)
-    leave = leave_out and num_stacks > 1
-    # Each stack's SDA sums once: the volume of all stacks is the ratio of their totals, the
-    # volume without stack s that of the totals less s's, so leaving every stack out in turn
-    # still costs one pass over the pixels.
-    parts: dict[int, tuple[SliceProjector, Tensor, Tensor, Tensor, Tensor]] = {}
-    for sid in range(num_stacks):
-        mine = slices.subset(slices.stack_ids == sid)
-        if len(mine) == 0:
-            continue
-        projector = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
-        observed = projector.gather(mine.images)
-        points = projector.grid_points(mine.poses)
-        covered = coverage(projector, points, torch.ones_like(observed))
-        parts[sid] = (projector, observed, points, projector.adjoint(observed, points), covered)
-    out = torch.zeros(len(slices), dtype=torch.float32, device=slices.images.device)
-    if not parts:
+    return SliceAgreement(slices, grid_mm, leave_out)(at)
+
+
+class SliceAgreement:
+    """The volumes of :func:`slice_agreement`, made once, to score the slices at several poses.
+
+    Args:
+        slices: The slices at the poses the volumes are made from.
+        grid_mm: The grid spacing (mm).
+        leave_out: Score each stack against the other stacks only.
+    """
+
+    def __init__(self, slices: SliceSet, grid_mm: float, leave_out: bool = False) -> None:
+        self.slices = slices
+        grid = output_grid(slices, grid_mm)
+        num_stacks = len(slices.stack_names)
+        leave = leave_out and num_stacks > 1
+        # Each stack's SDA sums once: the volume of all stacks is the ratio of their totals, the
+        # volume without stack s that of the totals less s's, so leaving every stack out in turn
+        # still costs one pass over the pixels.
+        parts: dict[int, tuple[SliceProjector, Tensor, Tensor, Tensor, Tensor]] = {}
+        for sid in range(num_stacks):
+            mine = slices.subset(slices.stack_ids == sid)
+            if len(mine) == 0:
+                continue
+            projector = SliceProjector(grid, mine, psf_samples=SVR_PSF_SAMPLES)
+            observed = projector.gather(mine.images)
+            points = projector.grid_points(mine.poses)
+            covered = coverage(projector, points, torch.ones_like(observed))
+            numerator = projector.adjoint(observed, points)
+            parts[sid] = (projector, observed, points, numerator, covered)
+        # Per stack: its projector, its pixels, their points at the slices' poses, its volume.
+        self._stacks: dict[int, tuple[SliceProjector, Tensor, Tensor, Tensor]] = {}
+        if not parts:
+            return
+        total_numerator = torch.stack([part[3] for part in parts.values()]).sum(0)
+        total_coverage = torch.stack([part[4] for part in parts.values()]).sum(0)
+        for sid, (projector, observed, points, numerator, covered) in parts.items():
+            if leave:
+                volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
+            else:
+                volume = sda_ratio(total_numerator, total_coverage)
+            self._stacks[sid] = (projector, observed, points, volume)
+
+    def __call__(self, at: Tensor | None = None) -> Tensor:
+        """(N,) float32 each slice's NCC at ``at`` (default its own pose).
+
+        Args:
+            at: (N, 4, 4) poses to score the slices at (:func:`slice_agreement`), or ``None``.
+
+        Returns:
+            (N,) float32 slice NCC (0 for a slice with no modelled pixels).
+
+        Raises:
+            ValueError: If ``at`` is not (N, 4, 4).
+        """
+        slices = self.slices
+        if at is not None and tuple(at.shape) != (len(slices), 4, 4):
+            raise ValueError(
+                f"slice_agreement(): 'at' must be ({len(slices)}, 4, 4), got {tuple(at.shape)}"
+            )
+        out = torch.zeros(len(slices), dtype=torch.float32, device=slices.images.device)
+        for sid, (projector, observed, points, volume) in self._stacks.items():
+            if at is not None:
+                points = projector.grid_points(at[slices.stack_ids == sid].to(slices.poses))
+            ncc = slice_ncc(projector, projector.forward(volume, points), observed)
+            out[slices.stack_ids == sid] = ncc.to(out)
         return out
-    total_numerator = torch.stack([part[3] for part in parts.values()]).sum(0)
-    total_coverage = torch.stack([part[4] for part in parts.values()]).sum(0)
-    for sid, (projector, observed, points, numerator, covered) in parts.items():
-        if leave:
-            volume = sda_ratio(total_numerator - numerator, total_coverage - covered)
-        else:
-            volume = sda_ratio(total_numerator, total_coverage)
-        if at is not None:
-            points = projector.grid_points(at[slices.stack_ids == sid].to(slices.poses))
-        ncc = slice_ncc(projector, projector.forward(volume, points), observed)
-        out[slices.stack_ids == sid] = ncc.to(out)
-    return out
 
 
 def stack_ncc(slices: SliceSet, grid_mm: float, leave_out: bool = False) -> Tensor:

@@ -34,10 +34,12 @@ __all__ = [
     "BlockGrid",
     "TrainingStack",
     "TrainingStackConfig",
+    "block_channels",
     "block_inputs",
     "coarsen_stack",
     "implied_stack_poses",
     "packet_index",
+    "sample_blocks",
     "simulate_training_stack",
     "stack_frame",
     "stack_pose_from_slices",
@@ -197,26 +199,25 @@ def coarsen_stack(image: Image, mask: Tensor, in_plane_mm: float) -> tuple[Image
     return Image(data.contiguous(), new), coarse_mask.contiguous()
 
 
-def block_inputs(
-    stack: Image,
-    mask: Tensor,
-    frames: Tensor,
-    grid: BlockGrid,
-    present: Tensor | None = None,
-    scale: float | None = None,
+def block_channels(
+    stack: Image, mask: Tensor, present: Tensor | None = None, scale: float | None = None
 ) -> Tensor:
-    """Sample a stack in candidate canonical frames.
+    """The three channels of :func:`block_inputs` on the stack's own grid, before sampling.
+
+    Made once per stack (and slice selection) when the same stack is sampled in many frames
+    (:func:`sample_blocks`).
 
     Args:
         stack: (I, J, K) stack, already at about ``grid.in_plane_mm`` (:func:`coarsen_stack`).
         mask: (I, J, K) brain mask (fractions in [0, 1]) on the stack's grid.
-        frames: (H, 4, 4) candidate frames ``E`` (scanner mm -> canonical mm).
-        grid: The block grid (centred on each frame's canonical origin).
         present: (K,) bool, the slices to use (default all).
         scale: Intensity divisor (default the 99th percentile inside the mask).
 
     Returns:
-        (H, 3, S, S, S) float32 blocks, ``S = grid.size``: intensities, mask, presence.
+        (3, I, J, K) float32: intensities / scale x mask x presence, mask x presence, presence.
+
+    Raises:
+        ValueError: If ``present`` does not have one entry per slice.
     """
     k = stack.shape[2]
     if present is None:
@@ -229,18 +230,58 @@ def block_inputs(
             intensity_scale(stack.data[mask > 0.5], "stack") if bool((mask > 0.5).any()) else 1.0
         )
     keep = present.to(torch.float32)[None, None, :].expand_as(mask)
-    data = torch.stack([stack.data.float() / scale * mask * keep, mask * keep, keep])
+    return torch.stack([stack.data.float() / scale * mask * keep, mask * keep, keep])
+
+
+def sample_blocks(channels: Tensor, stack: Image, frames: Tensor, grid: BlockGrid) -> Tensor:
+    """Sample a stack's :func:`block_channels` in candidate canonical frames.
+
+    Args:
+        channels: (3, I, J, K) the stack's channels (:func:`block_channels`).
+        stack: The (I, J, K) stack they were made from (its grid's affine).
+        frames: (H, 4, 4) candidate frames ``E`` (scanner mm -> canonical mm).
+        grid: The block grid (centred on each frame's canonical origin).
+
+    Returns:
+        (H, 3, S, S, S) float32 blocks, ``S = grid.size``: intensities, mask, presence.
+    """
     points = grid.points()  # canonical mm
     scanner = se3_compose(se3_inverse(frames.to(torch.float64)), torch.eye(4, dtype=torch.float64))
     to_grid = world_to_grid(stack)
     maps = to_grid[None, :, :3] @ scanner[:, :3, :3]  # (H, 3, 3)
     offsets = (to_grid[None, :, :3] @ scanner[:, :3, 3:])[..., 0] + to_grid[None, :, 3]
     coords = torch.einsum("hab,xyzb->hxyza", maps, points) + offsets[:, None, None, None, :]
-    sampled = sample_channels(data, coords.to(torch.float32))  # (3, H, S, S, S)
+    sampled = sample_channels(channels, coords.to(torch.float32))  # (3, H, S, S, S)
     presence = sampled[2].clamp(min=0.0)
     norm = presence.clamp(min=_MIN_PRESENCE)
     out = torch.stack([sampled[0] / norm, sampled[1] / norm, presence], dim=1)
     return out.contiguous()
+
+
+def block_inputs(
+    stack: Image,
+    mask: Tensor,
+    frames: Tensor,
+    grid: BlockGrid,
+    present: Tensor | None = None,
+    scale: float | None = None,
+) -> Tensor:
+    """Sample a stack in candidate canonical frames.
+
+    :func:`sample_blocks` of :func:`block_channels`.
+
+    Args:
+        stack: (I, J, K) stack, already at about ``grid.in_plane_mm`` (:func:`coarsen_stack`).
+        mask: (I, J, K) brain mask (fractions in [0, 1]) on the stack's grid.
+        frames: (H, 4, 4) candidate frames ``E`` (scanner mm -> canonical mm).
+        grid: The block grid (centred on each frame's canonical origin).
+        present: (K,) bool, the slices to use (default all).
+        scale: Intensity divisor (default the 99th percentile inside the mask).
+
+    Returns:
+        (H, 3, S, S, S) float32 blocks, ``S = grid.size``: intensities, mask, presence.
+    """
+    return sample_blocks(block_channels(stack, mask, present, scale), stack, frames, grid)
 
 
 @dataclass(frozen=True)

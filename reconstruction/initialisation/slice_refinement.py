@@ -48,7 +48,7 @@ from torch.nn import functional
 from svr.geometry import se3_compose, vector_to_se3
 from svr.image import Image
 from svr.models.slice_refiner import SliceRefinerNet
-from svr.reconstruction.registration import slice_agreement
+from svr.reconstruction.registration import SliceAgreement, slice_agreement
 from svr.reconstruction.slices import SliceSet
 from svr.reconstruction.trajectory import SMOOTHNESS_GRID, cross_validated_trajectory
 from svr.sampling.slicer import SliceConfig, sample_slices
@@ -259,10 +259,11 @@ def place_slices(
             start.clone(), torch.zeros_like(zeros, dtype=torch.bool), zeros, zeros
         )
     refined = refine_poses(stages, slices, atlas_reference(atlas))
-    before = slice_agreement(slices, resolution_mm, leave_out=True).to(zeros)
+    at_start = SliceAgreement(slices, resolution_mm, leave_out=True)
+    before = at_start().to(zeros)
     trusted = float(before.median()) > TRUSTED_START_NCC
     if trusted:
-        after = slice_agreement(slices, resolution_mm, leave_out=True, at=refined)
+        after = at_start(refined)
     else:
         moved = slices.with_poses(refined.to(slices.poses))
         after = slice_agreement(moved, resolution_mm, leave_out=True)

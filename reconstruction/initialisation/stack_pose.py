@@ -34,7 +34,7 @@ from svr.reconstruction.atlas_fit import (
     atlas_agreement,
     fit_to_atlas,
 )
-from svr.sampling.blocks import block_inputs, coarsen_stack, stack_frame
+from svr.sampling.blocks import block_channels, coarsen_stack, sample_blocks, stack_frame
 from svr.sampling.volume import CanonicalVolume
 from svr.validation import check_number
 
@@ -168,8 +168,9 @@ def refine_transforms(
     grid = model.config.grid
     transforms = transforms.to(torch.float64)
     score = torch.zeros(transforms.shape[0])
+    channels = block_channels(stack, mask, present)
     for step in range(iterations + 1):
-        blocks = block_inputs(stack, mask, transforms, grid, present).to(device)
+        blocks = sample_blocks(channels, stack, transforms, grid).to(device)
         residual, logits, _, _ = model(blocks)
         score = logits.float().cpu()
         if step < iterations:
