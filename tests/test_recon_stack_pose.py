@@ -417,7 +417,7 @@ def test_slice_agreement_is_each_slice_against_an_explicit_volume_of_the_other_s
 def test_slice_agreement_at_other_poses_scores_them_against_the_volume_as_it_is(turned_scene):
     """``at``: the slices scored at other poses, the other stacks' volume made at their own."""
     from svr.geometry import so3_exp
-    from svr.reconstruction.registration import slice_agreement
+    from svr.reconstruction.registration import SliceAgreement, slice_agreement
 
     _, stacks, _ = turned_scene
     slices = extract_slices(stacks)
@@ -435,6 +435,9 @@ def test_slice_agreement_at_other_poses_scores_them_against_the_volume_as_it_is(
     assert float(got[first].mean()) < float(own[first].mean()) - 0.05
     with pytest.raises(ValueError, match="'at' must be"):
         slice_agreement(slices, 2.5, at=slices.poses[:2])
+    # One set of volumes scores both, exactly as two calls do.
+    volumes = SliceAgreement(slices, 2.5, leave_out=True)
+    assert torch.equal(volumes(), own) and torch.equal(volumes(moved), got)
 
 
 def test_the_output_frame_follows_the_larger_group_of_agreeing_stacks() -> None:
