@@ -47,6 +47,7 @@ from svr.reconstruction.initialisation import initialise
 from svr.reconstruction.initialisation.case_evaluation import load_case
 from svr.reconstruction.initialisation.slice_refinement import (
     REFERENCE_VOXEL_MM,
+    _normalised,
     place_slices,
     refine_poses,
 )
@@ -77,7 +78,7 @@ def subject_pass(slices: SliceSet) -> torch.Tensor:
         others = masked.subset(~mine)
         grid = output_grid(others, REFERENCE_VOXEL_MM)
         data = _sda(others, grid).float()
-        reference = Image(data / float(data[data > 0].quantile(0.99)), grid.affine)
+        reference = Image(_normalised(data, data > 0), grid.affine)  # as atlas_reference
         poses[mine] = refine_poses([(fine, 3)], slices.subset(mine), reference)
     return poses
 
