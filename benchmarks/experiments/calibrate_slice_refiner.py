@@ -27,7 +27,7 @@ from slice_refiner_train import (
     train_slice_refiner,
 )
 
-from svr.models.slice_refiner import SliceRefinerConfig
+from svr.models.slice_refiner import SliceRefinerConfig, load_slice_refiner
 from svr.sampling.volume import CanonicalVolume, load_canonical_volume
 
 
@@ -69,6 +69,13 @@ def main() -> None:
         default=0.0,
         help="probability that a packet's reference is a training brain 1-3 weeks apart",
     )
+    parser.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="warm start: a slice refiner model folder (e.g. models/pretrained/slice_refiner/wide)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of the training draws")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -101,6 +108,7 @@ def main() -> None:
         # without shifts the data's metric is singular: the default one (L = 20 mm) instead
         metric="default" if args.pure_rotation else "data",
         other_reference=args.other_reference,
+        seed=args.seed,
         **residuals,
     )
     validation = draw_packets(
@@ -148,6 +156,7 @@ def main() -> None:
         minutes=args.minutes,
         progress=progress,
         partners=partners,
+        init=None if args.init is None else load_slice_refiner(args.init),
     )
     print(f"steps/s {len(losses) / (time.time() - began):.2f}")
 

@@ -418,6 +418,7 @@ def train_slice_refiner(
     minutes: float | None = None,
     progress: Callable[[int, float], None] | None = None,
     partners: Sequence[Sequence[int]] | None = None,
+    init: SliceRefinerNet | None = None,
 ) -> SliceRefinerNet:
     """Train (or resume training) a slice refiner.
 
@@ -432,12 +433,16 @@ def train_slice_refiner(
         progress: Called with ``(step, loss)`` after every step.
         partners: For each volume, the volumes its references may come from
             (``config.other_reference``; :func:`draw_packets`).
+        init: A trained refiner of the same ``model`` whose weights the first step starts from
+            (a warm start; a resumed run's checkpoint takes precedence), or ``None``.
 
     Returns:
         The trained network, in eval mode.
     """
     brains = prepare_brains(volumes)
     net = SliceRefinerNet(model).to(device)
+    if init is not None:
+        net.load_state_dict(init.state_dict())  # a float16 export's values, as float32
     optimiser = torch.optim.Adam(net.parameters(), lr=config.learning_rate)
     schedule = cosine_schedule(optimiser, config.steps)
     start = resume_training(folder, net, optimiser, schedule, None, device)
@@ -462,7 +467,7 @@ def train_slice_refiner(
         optimiser.step()
         schedule.step()
         if progress is not None:
-            progress(step + 1, float(loss))
+            progress(step + 1, float(loss.detach()))
         done = step + 1
         late = minutes is not None and time.perf_counter() - began > 60.0 * minutes
         if folder is not None and (
