@@ -246,7 +246,7 @@ def sample_blocks(channels: Tensor, stack: Image, frames: Tensor, grid: BlockGri
         (H, 3, S, S, S) float32 blocks, ``S = grid.size``: intensities, mask, presence.
     """
     points = grid.points()  # canonical mm
-    scanner = se3_compose(se3_inverse(frames.to(torch.float64)), torch.eye(4, dtype=torch.float64))
+    scanner = se3_inverse(frames.to(torch.float64))
     to_grid = world_to_grid(stack)
     maps = to_grid[None, :, :3] @ scanner[:, :3, :3]  # (H, 3, 3)
     offsets = (to_grid[None, :, :3] @ scanner[:, :3, 3:])[..., 0] + to_grid[None, :, 3]
