@@ -585,6 +585,13 @@ def main() -> int:
     parser.add_argument("--cases-per-age", type=int, default=4)
     parser.add_argument("--stacks-per-case", type=int, default=3)
     parser.add_argument("--atlas-age-offset", type=float, default=1.0)
+    parser.add_argument(
+        "--fit-atlas",
+        type=Path,
+        default=None,
+        help="atlas family the atlas-based estimates use (default: --atlas, the cases' own "
+        "family; another family measures a user's atlas on a brain unlike it)",
+    )
     parser.add_argument("--iterations", type=int, default=3)
     parser.add_argument("--k", type=int, nargs="*", default=[])
     parser.add_argument("--k-start-deg", type=float, default=20.0)
@@ -609,7 +616,7 @@ def main() -> int:
     atlases: dict[tuple[Path, Path], CanonicalVolume] = {}
 
     def atlas_for(age: float) -> CanonicalVolume:
-        paths = neighbour_atlas(age, args.atlas_age_offset, args.atlas)
+        paths = neighbour_atlas(age, args.atlas_age_offset, args.fit_atlas or args.atlas)
         if paths not in atlases:
             atlases[paths] = load_canonical_volume(*paths)
         return atlases[paths]
