@@ -56,6 +56,11 @@ Run from the repository root::
 
     python benchmarks/bench_learned_stack_poses.py --model CHECKPOINT_OR_MODEL_FOLDER
         [--threads 2] [--cases-per-age 4] [--k 1 2 4 8 16] [--results PATH.md]
+        [--atlas FAMILY] [--fit-atlas ANOTHER_FAMILY] [--atlas-slices-min-ncc -1]
+
+``--atlas`` is the family the stacks are simulated from (and, by default, the atlas the
+atlas-based estimates use); ``--fit-atlas`` gives those estimates another family's atlas, as a
+user scanning a brain unlike any atlas would.
 """
 
 from __future__ import annotations
@@ -78,7 +83,11 @@ from svr.geometry.averaging import robust_mean_pose
 from svr.image import load_nifti, voxel_to_world
 from svr.models.stack_pose import load_stack_pose_model
 from svr.reconstruction.atlas_fit import atlas_agreement
-from svr.reconstruction.initialisation.atlas_slices import fit_slices_to_atlas
+from svr.reconstruction.initialisation.atlas_slices import (
+    ATLAS_SLICES_MIN_NCC,
+    AtlasSliceConfig,
+    fit_slices_to_atlas,
+)
 from svr.reconstruction.initialisation.stack_pose import (
     estimate_packet_poses,
     estimate_stack_pose,
@@ -362,7 +371,8 @@ def measure_stack(item: dict, model, args, atlas_for) -> dict:
         record("learned+atlas+fit", both.to_canonical)
     if "learned+atlas slices" in methods:
         began = time.perf_counter()
-        fitted = fit_slices_to_atlas(image, mask, estimate.to_canonical, atlas)
+        gate = AtlasSliceConfig(min_ncc=args.atlas_slices_min_ncc)
+        fitted = fit_slices_to_atlas(image, mask, estimate.to_canonical, atlas, config=gate)
         row["atlas_slices_seconds"] = time.perf_counter() - began
         record("learned+atlas slices", fitted.to_canonical)
         row["learned+atlas slices"].update(ncc=fitted.ncc, kept=fitted.kept)
@@ -591,6 +601,13 @@ def main() -> int:
         default=None,
         help="atlas family the atlas-based estimates use (default: --atlas, the cases' own "
         "family; another family measures a user's atlas on a brain unlike it)",
+    )
+    parser.add_argument(
+        "--atlas-slices-min-ncc",
+        type=float,
+        default=ATLAS_SLICES_MIN_NCC,
+        help="the NCC at or above which 'learned+atlas slices' keeps the fit (default: the "
+        "library's; -1 keeps every fit)",
     )
     parser.add_argument("--iterations", type=int, default=3)
     parser.add_argument("--k", type=int, nargs="*", default=[])

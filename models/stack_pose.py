@@ -30,8 +30,6 @@ from torch import Tensor, nn
 
 from svr.errors import ConfigFieldError
 from svr.geometry import vector_to_se3, weighted_rigid_fit
-from svr.geometry.averaging import robust_mean_pose
-from svr.geometry.mirror import SAGITTAL
 from svr.models.checkpoint import (
     CHECKPOINT_CONFIG,
     CheckpointError,
@@ -50,7 +48,6 @@ __all__ = [
     "StackPoseNet",
     "StackPoseOutput",
     "load_stack_pose_model",
-    "mirror_averaged",
 ]
 
 Head = Literal["regress", "coords"]
@@ -211,36 +208,6 @@ class StackPoseNet(nn.Module):
         weights = torch.sigmoid(raw[..., 3]) + 1e-4
         residual = weighted_rigid_fit(cells.expand_as(coords[..., :3]), coords[..., :3], weights)
         return StackPoseOutput(residual, score, coords, None)
-
-
-@torch.no_grad()
-def mirror_averaged(model: StackPoseNet, blocks: Tensor) -> tuple[Tensor, Tensor]:
-    """The network's residuals and scores, averaged with its reading of the mirrored blocks.
-
-    A fetal brain is nearly symmetric about its mid-sagittal plane, canonical ``x = 0``
-    (:data:`svr.geometry.mirror.SAGITTAL`, the reflection ``M``). A block flipped along its
-    first (canonical x) axis, whose grid is centred on the canonical origin, is a stack of the
-    mirrored brain in the mirrored candidate frame; if the network reads residual ``R'`` from it,
-    the same evidence says ``M R' M`` for the block itself (conjugation by ``M`` is proper again).
-    The residual returned is the geodesic midpoint of the two readings (rotation) and their mean
-    translation; the score is the mean of the two logits. The result is equivariant: the flipped
-    blocks give ``M R M`` and the same score.
-
-    Args:
-        model: The network (eval mode).
-        blocks: (B, 3, S, S, S) blocks (:func:`svr.sampling.blocks.sample_blocks`).
-
-    Returns:
-        (B, 4, 4) float64 residual transforms (canonical mm) and (B,) float32 logits, on the CPU.
-    """
-    out = model(torch.cat([blocks, blocks.flip(2)]))
-    count = blocks.shape[0]
-    residual = out.residual.double().cpu()
-    reflect = SAGITTAL.matrix()
-    mirrored = reflect @ residual[count:] @ reflect
-    pair = torch.stack([residual[:count], mirrored], dim=1)  # (B, 2, 4, 4)
-    logits = out.score.float().cpu()
-    return robust_mean_pose(pair), (logits[:count] + logits[count:]) / 2
 
 
 def _rename_legacy_pose_keys(state_dict: dict, prefix: str, *args: object) -> None:

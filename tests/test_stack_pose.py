@@ -22,7 +22,6 @@ from svr.models.stack_pose import (
     StackPoseNet,
     StackPoseOutput,
     load_stack_pose_model,
-    mirror_averaged,
 )
 from svr.models.stack_pose_batches import draw_samples, simulate_batch, step_seed
 from svr.models.stack_pose_loss import stack_pose_loss
@@ -440,8 +439,8 @@ def test_weighted_training_runs_on_cuda_and_its_checkpoint_loads_on_the_cpu(tmp_
 
 
 def test_a_block_flipped_along_x_is_the_stack_in_the_mirrored_frame() -> None:
-    # The premise of the network's mirror averaging: flipping a block's first axis is sampling
-    # the stack at M o E, M the reflection x -> -x of the canonical frame.
+    # Flipping a block's first axis is sampling the stack at M o E, M the reflection x -> -x of
+    # the canonical frame (the premise of benchmarks/experiments/stack_pose_mirror.py).
     _, case = _still_case(4)
     stack = case.stacks[0]
     frame = torch.eye(4, dtype=torch.float64)
@@ -452,55 +451,6 @@ def test_a_block_flipped_along_x_is_the_stack_in_the_mirrored_frame() -> None:
     blocks = block_inputs(stack.image, stack.mask.data, torch.stack([frame, reflect @ frame]), grid)
     assert blocks[0].abs().sum() > 0
     assert torch.allclose(blocks[0].flip(1), blocks[1], atol=1e-5)
-
-
-def _random_regress_net(seed: int) -> StackPoseNet:
-    torch.manual_seed(seed)
-    net = StackPoseNet(StackPoseConfig(width=4, grid_size=16, grid_spacing_mm=6.0))
-    with torch.no_grad():
-        for parameter in net.parameters():
-            parameter.add_(0.3 * torch.randn_like(parameter))
-    return net.eval()
-
-
-def test_mirror_averaging_is_the_midpoint_of_the_two_readings() -> None:
-    net = _random_regress_net(0)
-    blocks = torch.rand(3, 3, 16, 16, 16, generator=torch.Generator().manual_seed(1))
-    residual, score = mirror_averaged(net, blocks)
-    with torch.no_grad():
-        both = net(torch.cat([blocks, blocks.flip(2)]))  # one batch, as the function reads them
-    direct = StackPoseOutput(both.residual[:3], both.score[:3], None, None)
-    flipped = StackPoseOutput(both.residual[3:], both.score[3:], None, None)
-    reflect = np.diag([-1.0, 1.0, 1.0])
-    for b in range(3):
-        first = Rotation.from_matrix(direct.residual[b, :3, :3].double().numpy())
-        second = Rotation.from_matrix(
-            reflect @ flipped.residual[b, :3, :3].double().numpy() @ reflect
-        )
-        assert first.inv() * second != Rotation.identity()  # two distinct readings
-        midpoint = first * Rotation.from_rotvec(0.5 * (first.inv() * second).as_rotvec())
-        np.testing.assert_allclose(residual[b, :3, :3].numpy(), midpoint.as_matrix(), atol=1e-5)
-        shift = 0.5 * (
-            direct.residual[b, :3, 3] + flipped.residual[b, :3, 3] * torch.tensor([-1.0, 1, 1])
-        )
-        np.testing.assert_allclose(residual[b, :3, 3].numpy(), shift.double().numpy(), rtol=1e-5)
-        assert score[b] == pytest.approx(float(direct.score[b] + flipped.score[b]) / 2, rel=1e-5)
-    assert residual.dtype == torch.float64 and torch.allclose(
-        torch.linalg.det(residual[:, :3, :3]), torch.ones(3, dtype=torch.float64)
-    )
-
-
-def test_mirror_averaging_is_equivariant_under_the_flip() -> None:
-    net = _random_regress_net(2)
-    blocks = torch.rand(2, 3, 16, 16, 16, generator=torch.Generator().manual_seed(3))
-    residual, score = mirror_averaged(net, blocks)
-    mirrored, mirrored_score = mirror_averaged(net, blocks.flip(2))
-    reflect = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=torch.float64))
-    assert not torch.allclose(
-        residual, torch.eye(4, dtype=torch.float64).expand(2, 4, 4), atol=1e-3
-    )
-    assert torch.allclose(mirrored, reflect @ residual @ reflect, atol=1e-5)
-    assert torch.allclose(mirrored_score, score, rtol=1e-5)
 
 
 def test_estimate_returns_a_rigid_pose_for_every_hypothesis() -> None:

@@ -8,9 +8,7 @@ The global part of a stack's orientation comes from structure, the local part is
 2. **Refinement** (:func:`refine_transforms`): the stack resampled in a candidate canonical frame
    goes through the stack-pose network (:class:`svr.models.stack_pose.StackPoseNet`), which
    predicts the residual rigid transform to the true canonical frame and scores the candidate;
-   the residual is applied and the step iterated. Each block is read twice, as it is and
-   mirrored left-right, and the two readings averaged
-   (:func:`svr.models.stack_pose.mirror_averaged`): the brain's near-symmetry as a second view.
+   the residual is applied and the step iterated.
 3. **Choice**: the hypothesis whose refined transform scores highest; without a network, the one
    that agrees best with an atlas (:func:`svr.reconstruction.atlas_fit.atlas_agreement`).
 
@@ -30,7 +28,7 @@ from torch import Tensor
 from svr.geometry import half_turns, rotation_angle, se3_compose, se3_inverse, so3_exp
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, voxel_to_world
-from svr.models.stack_pose import StackPoseNet, mirror_averaged
+from svr.models.stack_pose import StackPoseNet
 from svr.reconstruction.atlas_fit import (
     AtlasFitConfig,
     atlas_agreement,
@@ -152,7 +150,6 @@ def refine_transforms(
     transforms: Tensor,
     iterations: int = 3,
     present: Tensor | None = None,
-    mirror: bool = True,
 ) -> tuple[Tensor, Tensor]:
     """Apply the network's residual to candidate transforms, ``iterations`` times, and score them.
 
@@ -163,9 +160,6 @@ def refine_transforms(
         transforms: (H, 4, 4) starting transforms (scanner -> canonical).
         iterations: Refinement steps, >= 0.
         present: (K,) bool slices to use (default all).
-        mirror: Average each reading with the network's reading of the left-right mirrored
-            block (:func:`svr.models.stack_pose.mirror_averaged`; twice the network's time);
-            ``False`` reads each block once.
 
     Returns:
         The (H, 4, 4) float64 refined transforms and (H,) float logits scored at them.
@@ -177,13 +171,10 @@ def refine_transforms(
     channels = block_channels(stack, mask, present)
     for step in range(iterations + 1):
         blocks = sample_blocks(channels, stack, transforms, grid).to(device)
-        if mirror:
-            residual, score = mirror_averaged(model, blocks)
-        else:
-            residual, logits, _, _ = model(blocks)
-            residual, score = residual.double().cpu(), logits.float().cpu()
+        residual, logits, _, _ = model(blocks)
+        score = logits.float().cpu()
         if step < iterations:
-            transforms = se3_compose(residual, transforms)
+            transforms = se3_compose(residual.double().cpu(), transforms)
     return transforms, score
 
 
