@@ -13,7 +13,8 @@ translations and of the two scores) at every step of the stack-pose inference an
         --atlas FAMILY --ages 24 28 32 --cases-per-age 6 --phantom-ages --bench --seed SEED \
         --methods learned --results OUT.md
 
-It changes no library code: it wraps the loaded network (the network's time doubles).
+It changes no library code: it wraps the loaded network (twice the blocks through it, in one
+batch).
 """
 
 from __future__ import annotations
