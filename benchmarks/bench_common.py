@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -258,6 +259,15 @@ def scanner_frame_copy(volume: Path, transforms: Path, out: Path) -> Path:
     relabelled = nib.Nifti1Image(np.asarray(image.dataobj), frame @ image.affine)
     nib.save(relabelled, out)
     return out
+
+
+VERDICT_LINE = re.compile(r"verdict: (.+)$", re.MULTILINE)
+
+
+def verdict_in(text: str) -> str:
+    """The last verdict an ``svr reconstruct`` log (``-v`` or ``--output-log``) states, or ""."""
+    found = VERDICT_LINE.findall(text)
+    return found[-1] if found else ""
 
 
 def true_frame_correction(case: Path, transforms: Path) -> torch.Tensor:

@@ -56,6 +56,7 @@ from bench_common import (
     FABIAN_STACKS,
     SHARED,
     scanner_from_canonical,
+    verdict_in,
     write_results,
 )
 from scipy.spatial.transform import Rotation
@@ -193,7 +194,7 @@ def fabian_rows(
             rows.append(
                 f"| {subject.removeprefix('sub-')} | {len(names)} | {atlas.name} | {n} | "
                 f"**{angle:.1f}** | {tilts} | **{frame_angle_deg(levelled, frame):.1f}** | "
-                f"{turns:.1f} | {split} | {seconds:.0f} |"
+                f"{turns:.1f} | {split} | {verdict_in(log)} | {seconds:.0f} |"
             )
             print(rows[-1], flush=True)
     return rows
@@ -285,7 +286,10 @@ def main() -> int:
             args.reference.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
         angle = frame_angle_deg(reference, frame)
         final = detail.split("; coarse")[0].removeprefix("final NCC ")
-        rows.append(f"| {tag} | {threads} | **{angle:.1f}** | {start} | {final} | {seconds:.0f} |")
+        rows.append(
+            f"| {tag} | {threads} | **{angle:.1f}** | {start} | {final} | {verdict_in(log)} | "
+            f"{seconds:.0f} |"
+        )
         print(rows[-1], flush=True)
     spread = max(
         (frame_angle_deg(a, b) for i, a in enumerate(frames) for b in frames[i + 1 :]),
@@ -293,8 +297,8 @@ def main() -> int:
     )
     lines = [
         "| masks | threads | frame vs reference (deg) | start kept | final NCC of the frames "
-        "compared | wall (s) |",
-        "|---|---:|---:|---|---|---:|",
+        "compared | verdict | wall (s) |",
+        "|---|---:|---:|---|---|---|---:|",
         *rows,
         "",
         f"Largest angle between two runs' frames: {spread:.1f} deg.",
@@ -306,8 +310,9 @@ def main() -> int:
             "",
             "| subject | stacks | atlas | threads | frame vs files' frame (deg) | the brain's "
             "mid-sagittal plane vs the files' x = 0, per stack (deg) | frame vs the files' frame "
-            "levelled on it (deg) | last turns of the output (deg) | stacks' frames | wall (s) |",
-            "|---|---:|---|---:|---:|---|---:|---:|---|---:|",
+            "levelled on it (deg) | last turns of the output (deg) | stacks' frames | verdict | "
+            "wall (s) |",
+            "|---|---:|---|---:|---:|---|---:|---:|---|---|---:|",
             *fabian_rows(args.model, args.threads, args.out, options, args.fabian_atlas_family),
         ]
     text = "\n".join(lines)

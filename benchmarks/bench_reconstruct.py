@@ -50,6 +50,7 @@ from bench_common import (
     scanner_frame_copy,
     simulate_cases,
     slice_pose_errors,
+    verdict_in,
 )
 
 from svr.reconstruction.config import SCHEDULES
@@ -196,9 +197,8 @@ def rounds_run(log: Path) -> str:
 
 
 def verdict_line(log: Path) -> str:
-    """The verdict of a ``--output-log`` (its last line), ``""`` if it has none."""
-    lines = log.read_text(encoding="utf-8").splitlines()
-    return lines[-1].removeprefix("verdict: ") if lines and lines[-1].startswith("verdict") else ""
+    """The verdict of a ``--output-log``, ``""`` if it has none."""
+    return verdict_in(log.read_text(encoding="utf-8"))
 
 
 def main() -> int:

@@ -8,12 +8,14 @@ Phases (each timed and logged):
     3. rounds: slice-to-volume registration, outlier weights and super-resolution, as the
        schedule runs them (:func:`svr.reconstruction.schedule.run_rounds`);
     4. atlas frame: for a start in canonical space with atlases given, the volume brought into
-       the frame of the atlas it fits (:func:`svr.reconstruction.atlas_frame.align_to_atlas`),
-       then levelled onto the brain's own mid-sagittal plane
-       (:func:`svr.reconstruction.midplane.level_to_midplane`);
-    5. verdict: whether the volume and its frame can be trusted
+       the frame of the atlas it fits (:func:`svr.reconstruction.atlas_frame.align_to_atlas`);
+    5. mid-sagittal plane: a canonical volume levelled onto the brain's own mirror plane
+       (:func:`svr.reconstruction.midplane.level_to_midplane`), any volume's mirror plane
+       measured (:func:`svr.reconstruction.midplane.measure_symmetry`);
+    6. verdict: whether the volume and its frame can be trusted
        (:func:`svr.reconstruction.verdict.assess`); a canonical frame that nothing tells apart from
-       another is not claimed: the volume is written in the scanner frame instead.
+       another, or whose mid-sagittal plane is not the brain's, is not claimed: the volume is
+       written in the scanner frame instead.
 
 :func:`reconstruct` is the entry point; :func:`reconstruct_from_poses` runs the rounds from poses
 found elsewhere (another tool's, or the truth of a simulation).
@@ -34,7 +36,7 @@ from svr.models.stack_pose import StackPoseNet
 from svr.reconstruction.atlas_frame import align_to_atlas
 from svr.reconstruction.config import LEARNED_STARTS, ReconstructionConfig
 from svr.reconstruction.initialisation import initialise
-from svr.reconstruction.midplane import level_to_midplane
+from svr.reconstruction.midplane import level_to_midplane, measure_symmetry
 from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.schedule import run_rounds
 from svr.reconstruction.slices import SliceSet, Stack, extract_slices, moved_from_stack
@@ -113,9 +115,7 @@ def reconstruct(
             result = align_to_atlas(
                 result, atlases, max_turn_deg=ATLAS_MAX_TURN_DEG if learned else None
             )
-    if result.slices.frame == "canonical":
-        with timer.phase("mid-sagittal plane"):
-            result, _ = level_to_midplane(result)
+    result = _mirror_plane(result, timer)
     _report_exclusions(result)
     return _judged(result)
 
@@ -171,8 +171,17 @@ def reconstruct_from_poses(
         )
     slices = slices.with_poses(poses.to(device), frame)
     result = run_rounds(slices, config, ("given",) * len(stacks), timer, progress)
+    result = _mirror_plane(result, timer)
     _report_exclusions(result)
     return _judged(result)
+
+
+def _mirror_plane(result: ReconstructionResult, timer: PhaseTimer) -> ReconstructionResult:
+    """A canonical result levelled onto its mirror plane; any result's plane recorded."""
+    with timer.phase("mid-sagittal plane"):
+        if result.slices.frame == "canonical":
+            return level_to_midplane(result)[0]
+        return measure_symmetry(result)
 
 
 def _slices(stacks: list[Stack], device: str | torch.device) -> SliceSet:

@@ -70,6 +70,11 @@ class ReconstructionResult:
             other, or ``None`` without an atlas.
         midplane_tilt_deg: The tilt (degrees) by which a canonical output was levelled onto the
             brain's own mid-sagittal plane (:mod:`svr.reconstruction.midplane`), or ``None``.
+        mirror_correlation: The correlation of the volume with its mirror image about the
+            brain's best mirror plane (:mod:`svr.reconstruction.midplane`; 1 for a perfectly
+            symmetric volume), or ``None`` where not measured.
+        mirror_tilt_deg: For a canonical output, that plane's angle (degrees) from the frame's
+            mid-sagittal plane ``x = 0`` as it was measured (before any levelling), or ``None``.
         verdict: Whether the volume and its frame can be trusted
             (:class:`Verdict`), ``None`` until assessed.
     """
@@ -92,6 +97,8 @@ class ReconstructionResult:
     frame_margin: float | None = None
     atlas_margin: float | None = None
     midplane_tilt_deg: float | None = None
+    mirror_correlation: float | None = None
+    mirror_tilt_deg: float | None = None
     verdict: Verdict | None = None
 
 

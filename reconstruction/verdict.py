@@ -19,6 +19,12 @@ The evidence for a canonical frame:
 A frame with neither margin above its threshold is uncertain (so is one whose evidence was not
 measured: the slice-pose start without an atlas); with every measured margin at or below zero it
 is untrusted, and the pipeline then writes the volume in the scanner frame instead.
+
+The brain's own mirror plane (:mod:`svr.reconstruction.midplane`) checks both. A clear mirror
+plane far from the canonical frame's mid-sagittal plane makes the frame untrusted whatever the
+margins say. A volume with no clear mirror plane in any orientation is not a recognisable brain:
+a warning alone, a failure with another sign (not converged, a poor fit, a stack apart), and its
+frame cannot be more than uncertain.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from svr.reconstruction.midplane import MIDPLANE_MAX_TILT_DEG, MIDPLANE_MIN_CORRELATION
 from svr.reconstruction.result import ReconstructionResult, Verdict
 from svr.validation import check_fraction, check_number
 
@@ -45,6 +52,10 @@ class VerdictConfig:
         frame_margin: The learned frame margin (summed logits) at or above which the frame is
             trusted, >= 0.
         atlas_margin: The atlas fit's NCC margin at or above which the frame is trusted, >= 0.
+        min_mirror_correlation: A volume whose best mirror plane correlates less than this has
+            no clear mirror plane, in [-1, 1].
+        max_mirror_tilt_deg: A clear mirror plane farther than this (degrees) from the canonical
+            ``x = 0`` makes the frame untrusted, in [0, 90].
 
     Raises:
         ConfigFieldError: On construction, naming the field.
@@ -55,6 +66,8 @@ class VerdictConfig:
     max_excluded: float = 0.5
     frame_margin: float = 4.0
     atlas_margin: float = 0.03
+    min_mirror_correlation: float = MIDPLANE_MIN_CORRELATION
+    max_mirror_tilt_deg: float = MIDPLANE_MAX_TILT_DEG
 
     def __post_init__(self) -> None:
         owner = "VerdictConfig"
@@ -63,6 +76,14 @@ class VerdictConfig:
         check_fraction(owner, "max_excluded", self.max_excluded)
         check_number(owner, "frame_margin", self.frame_margin, ge=0)
         check_number(owner, "atlas_margin", self.atlas_margin, ge=0)
+        check_number(owner, "min_mirror_correlation", self.min_mirror_correlation, ge=-1, le=1)
+        check_number(owner, "max_mirror_tilt_deg", self.max_mirror_tilt_deg, ge=0, le=90)
+
+
+def _asymmetric(result: ReconstructionResult, config: VerdictConfig) -> bool:
+    """Whether the volume has no clear mirror plane (as measured; ``False`` where not)."""
+    mirror = result.mirror_correlation
+    return mirror is not None and mirror < config.min_mirror_correlation
 
 
 def _volume_reasons(result: ReconstructionResult, config: VerdictConfig) -> tuple[list[str], bool]:
@@ -89,9 +110,16 @@ def _volume_reasons(result: ReconstructionResult, config: VerdictConfig) -> tupl
         reasons.append("stacks disagree with the volume: " + ", ".join(apart))
     if excluded > config.max_excluded:
         reasons.append(f"{100 * excluded:.0f}% of slices excluded")
+    asymmetric = _asymmetric(result, config)
+    if asymmetric:
+        reasons.append(
+            "no clear mirror plane, not a recognisable brain "
+            f"(mirror correlation {result.mirror_correlation:.2f})"
+        )
     failed = (
         excluded > config.max_excluded
         or (poor and (result.converged is False or bool(apart)))
+        or (asymmetric and (result.converged is False or poor or bool(apart)))
         or math.isnan(mean)  # nothing kept
     )
     return reasons, failed
@@ -101,6 +129,9 @@ def _frame(result: ReconstructionResult, config: VerdictConfig) -> tuple[str, li
     """The canonical frame's trust and its reasons (``"scanner"`` for a scanner output)."""
     if result.slices.frame != "canonical":
         return "scanner", []
+    tilt = result.mirror_tilt_deg
+    if not _asymmetric(result, config) and tilt is not None and tilt > config.max_mirror_tilt_deg:
+        return "untrusted", [f"the brain's mirror plane is {tilt:.0f} deg from the frame's x = 0"]
     learned, atlas = result.frame_margin, result.atlas_margin
     evidence = []
     if learned is not None:
@@ -110,6 +141,8 @@ def _frame(result: ReconstructionResult, config: VerdictConfig) -> tuple[str, li
     strong = (learned is not None and learned >= config.frame_margin) or (
         atlas is not None and atlas >= config.atlas_margin
     )
+    if strong and _asymmetric(result, config):
+        return "uncertain", ["no mirror plane to check the frame by" + _listed(evidence)]
     if strong:
         return "trusted", []
     if not evidence:

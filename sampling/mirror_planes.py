@@ -140,6 +140,93 @@ def measure_reflection_plane(
     return PlaneFit(best, corr, sagittal)
 
 
+def _hemisphere(count: int) -> np.ndarray:
+    """(count, 3) unit normals spread evenly over the half sphere z >= 0 (a Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    z = 1.0 - i / count
+    r = np.sqrt(1.0 - z**2)
+    phi = math.pi * (3.0 - math.sqrt(5.0)) * np.arange(count)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _tilted(normal: np.ndarray, centre: np.ndarray, params: np.ndarray) -> ReflectionPlane:
+    """The plane through ``centre`` + ``params[2]`` mm along ``normal``, tilted by two angles."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    n = normal + math.tan(params[0]) * u + math.tan(params[1]) * v
+    n /= np.linalg.norm(n)
+    return ReflectionPlane(
+        cast("tuple[float, float, float]", tuple(float(x) for x in n)),
+        float(n @ centre) + float(params[2]),
+    )
+
+
+def search_reflection_plane(
+    volume: CanonicalVolume,
+    normals: int = 100,
+    refine: int = 4,
+    max_points: int = 4000,
+    seed: int = 0,
+) -> PlaneFit:
+    """The plane about which a volume is most nearly mirror-symmetric, in any orientation.
+
+    :func:`measure_reflection_plane` searches near ``x = 0`` only; this scores the planes through
+    the brain's centroid with ``normals`` normals spread evenly over a half sphere (about
+    ``180 / sqrt(normals)`` degrees apart), then refines the ``refine`` best with Powell's method
+    over two tilts (up to 0.3 rad) and the offset (up to 8 mm). A brain in any frame has a plane
+    of high correlation (its mid-sagittal plane); a volume with none is not a recognisable
+    brain.
+
+    Args:
+        volume: A volume (brain-masked intensities; its frame need not be canonical).
+        normals: Normals of the coarse search, >= 1.
+        refine: Best coarse planes refined, in [1, normals].
+        max_points: Brain voxels used (a fixed random subset), >= 100.
+        seed: Seed of the subset.
+
+    Returns:
+        The best plane and its correlation, beside the correlation at ``x = 0``.
+
+    Raises:
+        ValueError: If ``normals``, ``refine`` or ``max_points`` is out of range.
+    """
+    if normals < 1 or not 1 <= refine <= normals:
+        raise ValueError(
+            "search_reflection_plane(): 'normals' must be >= 1 and 'refine' in [1, normals], "
+            f"got {normals} and {refine}"
+        )
+    if max_points < 100:
+        raise ValueError(
+            f"search_reflection_plane(): 'max_points' must be >= 100, got {max_points}"
+        )
+    points = _brain_points(volume, max_points, seed)
+    centre = points.mean(dim=0).numpy()
+    sagittal = mirror_correlation(volume, SAGITTAL, points)
+    coarse = [
+        (mirror_correlation(volume, _tilted(n, centre, np.zeros(3)), points), n)
+        for n in _hemisphere(normals)
+    ]
+    coarse.sort(key=lambda scored: -scored[0])
+    best, corr = SAGITTAL, sagittal
+    for _, normal in coarse[:refine]:
+
+        def cost(params: np.ndarray, normal: np.ndarray = normal) -> float:
+            return -mirror_correlation(volume, _tilted(normal, centre, params), points)
+
+        result = minimize(
+            cost,
+            np.zeros(3),
+            method="Powell",
+            bounds=[(-0.3, 0.3), (-0.3, 0.3), (-8.0, 8.0)],
+            options={"xtol": 1e-3, "ftol": 1e-5, "maxfev": 200},
+        )
+        if -float(result.fun) > corr:
+            best, corr = _tilted(normal, centre, result.x), -float(result.fun)
+    return PlaneFit(best, corr, sagittal)
+
+
 def mean_plane(planes: Sequence[ReflectionPlane]) -> ReflectionPlane:
     """Mean of planes with nearby normals (normals and offsets averaged)."""
     if not planes:

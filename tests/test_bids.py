@@ -141,6 +141,9 @@ def test_participant_level_writes_bids_derivatives(participant_run, dataset):
     assert len(svr_info["initialisation"]) == 3 and svr_info["slices"] > 0
     assert svr_info["device"] == "cpu" and "total_seconds" in svr_info
     assert set(svr_info["timings_s"]) and svr_info["model"] is None
+    # The brain's mirror plane, the verdict's evidence, searched in every orientation for a
+    # scanner-frame output (no tilt from a canonical x = 0).
+    assert -1 <= svr_info["mirror_correlation"] <= 1 and svr_info["mirror_tilt_deg"] is None
     # No temporary folders are left behind.
     assert not [p for p in out.rglob(".*")]
     volume = load_nifti(folder / names.volume)

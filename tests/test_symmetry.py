@@ -26,7 +26,12 @@ from svr.losses.orbit import orbit_min_loss, symmetric_se3_geodesic_loss
 from svr.metrics import nearest_orbit_member
 from svr.models.network import loss_function
 from svr.representation_registry import REPRESENTATIONS
-from svr.sampling.mirror_planes import mean_plane, measure_reflection_plane, resolve_symmetry
+from svr.sampling.mirror_planes import (
+    mean_plane,
+    measure_reflection_plane,
+    resolve_symmetry,
+    search_reflection_plane,
+)
 from svr.sampling.poses import pose_labels, random_slice_poses
 from svr.sampling.slicer import SliceConfig, sample_slices
 from svr.sampling.volume import canonicalize
@@ -300,6 +305,30 @@ def test_measure_reflection_plane_finds_a_shifted_and_tilted_plane():
     assert fit.plane.angle_to_deg(truth) < 0.5
     assert fit.plane.offset_mm == pytest.approx(truth.offset_mm, abs=0.4)
     assert fit.correlation > 0.99 > fit.sagittal_correlation
+
+
+def test_search_reflection_plane_finds_the_plane_in_any_orientation():
+    # The brain turned 70 deg about z and 30 deg about y: its mirror plane is far beyond the
+    # local search from x = 0, and the search over every orientation finds it (normal R e_x).
+    volume, mask = symmetric_volume(seed=4)
+    rot = torch.eye(4, dtype=F64)
+    rot[:3, :3] = torch.from_numpy(Rotation.from_euler("zy", [70, 30], degrees=True).as_matrix())
+    moved = canonicalize(
+        Image(volume.data, rot @ volume.affine), Image(mask.data, rot @ mask.affine)
+    )
+    truth = ReflectionPlane(tuple(rot[:3, 0].numpy()), 0.0)
+    fit = search_reflection_plane(moved)
+    assert fit.plane.angle_to_deg(truth) < 1.0
+    assert fit.correlation > 0.99 > 0.9 > fit.sagittal_correlation
+    # A volume of unmirrored texture has no clear plane anywhere.
+    rng = np.random.default_rng(5)
+    lopsided = gaussian_filter(rng.normal(size=volume.data.shape), 2.0) * mask.data.numpy()
+    noise = canonicalize(
+        Image(torch.from_numpy(lopsided).float().clamp(min=0), volume.affine), mask
+    )
+    assert search_reflection_plane(noise).correlation < 0.4
+    with pytest.raises(ValueError, match="'refine'"):
+        search_reflection_plane(moved, normals=3, refine=4)
 
 
 def test_resolve_symmetry_modes():

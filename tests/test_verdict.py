@@ -146,7 +146,66 @@ def test_a_brain_is_levelled_onto_its_own_mirror_plane():
     noise = torch.rand(volume.data.shape, generator=torch.Generator().manual_seed(0))
     lopsided = dataclasses.replace(lopsided, volume=Image(noise * mask.data, affine))
     same, none = level_to_midplane(lopsided)
-    assert none is None and same is lopsided
+    assert none is None and same.volume is lopsided.volume and same.slices is lopsided.slices
+    # ... and its best plane in any orientation is recorded for the verdict: none is clear.
+    assert same.mirror_correlation is not None and same.mirror_correlation < 0.4
+    assert same.mirror_tilt_deg is not None
+    assert levelled.mirror_correlation is not None and levelled.mirror_correlation > 0.9
+
+
+@pytest.mark.parametrize(
+    ("mirror", "tilt", "converged", "status", "trust"),
+    [
+        (0.8, 3.0, True, "ok", "trusted"),
+        (0.8, 45.0, True, "warning", "untrusted"),  # a clear plane far from x = 0
+        (0.15, 80.0, True, "warning", "uncertain"),  # no clear plane: not a brain
+        (0.15, 80.0, False, "failed", "uncertain"),  # ... and not converged: failed
+        (0.8, 3.0, False, "warning", "trusted"),
+    ],
+)
+def test_the_brains_mirror_plane_checks_the_volume_and_the_frame(
+    mirror, tilt, converged, status, trust
+):
+    # A learned margin that would trust the frame on its own (wu24-severe's: 4.0).
+    result = result_with(
+        [0.95] * 4,
+        "canonical",
+        frame_margin=4.0,
+        converged=converged,
+        mirror_correlation=mirror,
+        mirror_tilt_deg=tilt,
+    )
+    verdict = assess(result)
+    assert (verdict.status, verdict.frame) == (status, trust)
+    if mirror < 0.4:
+        assert any("no clear mirror plane" in r for r in verdict.reasons)
+    if trust == "untrusted":
+        assert "45 deg from the frame's x = 0" in verdict.reasons[-1]
+    # In the scanner frame only the volume is judged by it.
+    scanner = dataclasses.replace(
+        result, slices=result.slices.with_poses(result.slices.poses, "scanner")
+    )
+    assert assess(scanner).frame == "scanner"
+    assert assess(scanner).status == (
+        "failed" if status == "failed" else "warning" if mirror < 0.4 or not converged else "ok"
+    )
+
+
+def test_a_frame_whose_mirror_plane_is_far_off_is_written_in_the_scanner_frame():
+    from svr.reconstruction.pipeline import _judged
+
+    result = result_with(
+        [0.95] * 4,
+        "canonical",
+        frame_margin=8.0,
+        from_scanner=torch.eye(4, dtype=F64),
+        mirror_correlation=0.8,
+        mirror_tilt_deg=45.0,
+    )
+    judged = _judged(result)
+    assert judged.slices.frame == "scanner"
+    assert judged.verdict.frame == "scanner"
+    assert judged.verdict.reasons[-1] == "written in the scanner frame instead"
 
 
 def test_the_joint_frame_of_registered_stacks_outvotes_a_twin(monkeypatch):

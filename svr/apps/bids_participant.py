@@ -197,6 +197,8 @@ def _sidecar(
             "frame_margin": result.frame_margin,
             "atlas_margin": result.atlas_margin,
             "midplane_tilt_deg": result.midplane_tilt_deg,
+            "mirror_correlation": result.mirror_correlation,
+            "mirror_tilt_deg": result.mirror_tilt_deg,
             "atlas_ncc": list(result.atlas_ncc),
             "atlas_chosen": result.atlas_chosen,
             "rounds": len(result.rounds),

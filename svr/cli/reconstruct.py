@@ -232,6 +232,7 @@ def _summary(args: argparse.Namespace, job: ReconstructionJob, result: Reconstru
     """The settings, timings, initialisation and exclusions, as text for --output-log."""
     from svr.apps.reconstruct import excluded_by_stack, provenance
     from svr.reconstruction.convergence import verdict
+    from svr.reconstruction.midplane import mirror_plane_line
 
     lines = [f"# svr {args.command} summary", "inputs:"]
     masks = job.masks or [job.mask_source] * len(job.stacks)
@@ -262,6 +263,8 @@ def _summary(args: argparse.Namespace, job: ReconstructionJob, result: Reconstru
         lines += [
             f"  {path}: NCC {ncc:.3f}" for path, ncc in zip(volumes, result.atlas_ncc, strict=True)
         ]
+    mirror = mirror_plane_line(result)
+    lines += [mirror] if mirror else []
     ending = verdict(result.converged)
     schedule = job.config.schedule.kind
     lines.append(
