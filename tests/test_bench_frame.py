@@ -51,3 +51,19 @@ def test_scanner_frame_copy_applies_the_frame_the_poses_give(tmp_path, rng):
     copy = nib.load(out)
     np.testing.assert_allclose(copy.affine, G @ volume_affine, atol=1e-5)
     np.testing.assert_array_equal(np.asarray(copy.dataobj), data)
+
+
+def test_the_benchmarks_read_the_last_verdict_a_log_states():
+    from bench_common import verdict_in
+
+    verbose = (
+        "2026-12-07 17:16:48,830 INFO svr.x: the registered stacks' frame\n"
+        "2026-12-07 17:19:09,806 WARNING svr.reconstruction.pipeline: verdict: failed, canonical "
+        "frame uncertain: not converged\n"
+        "wrote out.nii.gz: 90 slices\n"
+        "verdict: failed, canonical frame uncertain: not converged\n"
+    )
+    assert verdict_in(verbose) == "failed, canonical frame uncertain: not converged"
+    summary = "# svr reconstruct summary\nframe: canonical\nverdict: ok, scanner frame\n"
+    assert verdict_in(summary) == "ok, scanner frame"
+    assert verdict_in("# svr reconstruct summary\nframe: canonical\n") == ""
