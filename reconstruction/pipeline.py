@@ -171,15 +171,20 @@ def reconstruct_from_poses(
         )
     slices = slices.with_poses(poses.to(device), frame)
     result = run_rounds(slices, config, ("given",) * len(stacks), timer, progress)
-    result = _mirror_plane(result, timer)
+    result = _mirror_plane(result, timer, level=False)
     _report_exclusions(result)
     return _judged(result)
 
 
-def _mirror_plane(result: ReconstructionResult, timer: PhaseTimer) -> ReconstructionResult:
-    """A canonical result levelled onto its mirror plane; any result's plane recorded."""
+def _mirror_plane(
+    result: ReconstructionResult, timer: PhaseTimer, level: bool = True
+) -> ReconstructionResult:
+    """The result's mirror plane recorded; a canonical one levelled onto it if ``level``.
+
+    Given poses (:func:`reconstruct_from_poses`) keep their frame: the plane is only measured.
+    """
     with timer.phase("mid-sagittal plane"):
-        if result.slices.frame == "canonical":
+        if level and result.slices.frame == "canonical":
             return level_to_midplane(result)[0]
         return measure_symmetry(result)
 

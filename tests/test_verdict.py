@@ -17,9 +17,11 @@ from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet
 from svr.reconstruction.initialisation import stack_pose
 from svr.reconstruction.midplane import level_to_midplane
+from svr.reconstruction.pipeline import _judged, _mirror_plane
 from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.slices import extract_slices
 from svr.reconstruction.verdict import Verdict, VerdictConfig, assess
+from svr.timing import PhaseTimer
 
 F64 = torch.float64
 
@@ -151,6 +153,13 @@ def test_a_brain_is_levelled_onto_its_own_mirror_plane():
     assert same.mirror_correlation is not None and same.mirror_correlation < 0.4
     assert same.mirror_tilt_deg is not None
     assert levelled.mirror_correlation is not None and levelled.mirror_correlation > 0.9
+    # Given poses keep their frame (reconstruct_from_poses): the plane is only measured.
+    kept = _mirror_plane(result, PhaseTimer(), level=False)
+    assert torch.equal(kept.volume.affine, result.volume.affine)
+    assert kept.mirror_tilt_deg is not None and abs(kept.mirror_tilt_deg - 10.0) < 1.5
+    assert kept.mirror_correlation is not None and kept.mirror_correlation > 0.9
+    moved = _mirror_plane(result, PhaseTimer())
+    torch.testing.assert_close(moved.volume.affine, levelled.volume.affine)
 
 
 @pytest.mark.parametrize(
@@ -192,8 +201,6 @@ def test_the_brains_mirror_plane_checks_the_volume_and_the_frame(
 
 
 def test_a_frame_whose_mirror_plane_is_far_off_is_written_in_the_scanner_frame():
-    from svr.reconstruction.pipeline import _judged
-
     result = result_with(
         [0.95] * 4,
         "canonical",
