@@ -183,11 +183,14 @@ def level_to_midplane(
 def mirror_plane_line(result: ReconstructionResult) -> str | None:
     """One line on the brain's mirror plane for a log or QA page, or ``None`` if not measured.
 
-    For example ``"mirror plane: correlation 0.78, 2 deg from x = 0"`` (a canonical output) or
-    ``"mirror plane: correlation 0.15"`` (a scanner-frame one).
+    For example ``"mirror plane: correlation 0.78, x = 0 (levelled by 2 deg)"`` (a canonical
+    output levelled onto it), ``"mirror plane: correlation 0.17, 82 deg from x = 0"`` (one whose
+    frame was kept) or ``"mirror plane: correlation 0.15"`` (a scanner-frame output).
     """
     if result.mirror_correlation is None:
         return None
+    line = f"mirror plane: correlation {result.mirror_correlation:.2f}"
+    if result.midplane_tilt_deg is not None:
+        return f"{line}, x = 0 (levelled by {result.midplane_tilt_deg:.0f} deg)"
     tilt = result.mirror_tilt_deg
-    where = f", {tilt:.0f} deg from x = 0" if tilt is not None else ""
-    return f"mirror plane: correlation {result.mirror_correlation:.2f}{where}"
+    return line if tilt is None else f"{line}, {tilt:.0f} deg from x = 0"

@@ -16,7 +16,7 @@ from svr.geometry import half_turns, rotation_angle, se3_compose
 from svr.image import Image
 from svr.models.stack_pose import StackPoseConfig, StackPoseNet
 from svr.reconstruction.initialisation import stack_pose
-from svr.reconstruction.midplane import level_to_midplane
+from svr.reconstruction.midplane import level_to_midplane, mirror_plane_line
 from svr.reconstruction.pipeline import _judged, _mirror_plane
 from svr.reconstruction.result import ReconstructionResult, relabelled
 from svr.reconstruction.slices import extract_slices
@@ -160,6 +160,13 @@ def test_a_brain_is_levelled_onto_its_own_mirror_plane():
     assert kept.mirror_correlation is not None and kept.mirror_correlation > 0.9
     moved = _mirror_plane(result, PhaseTimer())
     torch.testing.assert_close(moved.volume.affine, levelled.volume.affine)
+    # The log's and QA page's line says which.
+    assert mirror_plane_line(levelled) == (
+        f"mirror plane: correlation {levelled.mirror_correlation:.2f}, x = 0 (levelled by "
+        f"{tilt:.0f} deg)"
+    )
+    assert mirror_plane_line(kept).endswith(f", {kept.mirror_tilt_deg:.0f} deg from x = 0")
+    assert mirror_plane_line(lopsided) is None
 
 
 @pytest.mark.parametrize(
