@@ -21,14 +21,12 @@ import re
 import time
 from pathlib import Path
 
-import nibabel as nib
-import numpy as np
 import torch
 from bench_common import write_results
 
 from svr.geometry.mirror import SAGITTAL
-from svr.image import Image
-from svr.reconstruction.midplane import MIDPLANE_MIN_CORRELATION
+from svr.image import load_nifti
+from svr.reconstruction.midplane import MIDPLANE_MIN_CORRELATION, symmetry_volume
 from svr.sampling.mirror_planes import measure_reflection_plane, search_reflection_plane
 from svr.sampling.volume import CanonicalVolume
 
@@ -51,17 +49,12 @@ def psnr_by_volume(logs: list[Path]) -> dict[str, float]:
 
 
 def brain(path: Path) -> CanonicalVolume:
-    """The volume's voxels > 0 as the brain, scaled to their 99th percentile."""
-    image = nib.load(path)
-    data = torch.from_numpy(np.asarray(image.dataobj, dtype=np.float32))
-    inside = data > 0
-    scale = float(data[inside].quantile(0.99)) or 1.0
-    return CanonicalVolume(
-        image=Image(data / scale, torch.from_numpy(image.affine)),
-        mask=inside,
-        centre_mm=torch.zeros(3, dtype=torch.float64),
-        intensity_scale=scale,
-    )
+    """The volume's voxels > 0 as the brain (``symmetry_volume``)."""
+    volume = load_nifti(path)
+    brain = symmetry_volume(volume, volume.data > 0)
+    if brain is None:
+        raise SystemExit(f"{path}: fewer than 100 voxels > 0; not a reconstructed volume")
+    return brain
 
 
 def main() -> int:

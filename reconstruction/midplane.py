@@ -47,6 +47,7 @@ __all__ = [
     "level_to_midplane",
     "measure_symmetry",
     "mirror_plane_line",
+    "symmetry_volume",
 ]
 
 log = logging.getLogger(__name__)
@@ -73,19 +74,33 @@ def _levelling(normal: Tensor, offset_mm: float) -> Tensor:
     return transform
 
 
-def _brain(result: ReconstructionResult) -> CanonicalVolume | None:
-    """The result's brain-masked volume scaled to its 99th percentile (``None`` if too small)."""
-    inside = (result.mask.data > 0.5) & (result.volume.data > 0)
+def symmetry_volume(volume: Image, inside: Tensor) -> CanonicalVolume | None:
+    """A volume's brain, as the mirror-plane fits take it.
+
+    Args:
+        volume: The reconstructed volume (any frame).
+        inside: Bool mask of its brain voxels, the volume's shape.
+
+    Returns:
+        The masked volume scaled to its 99th percentile, in the volume's own frame, or ``None``
+        for fewer than 100 brain voxels.
+    """
+    inside = inside.cpu()
     if int(inside.sum()) < 100:
         return None
-    data = result.volume.data.cpu().float() * inside.cpu()
-    scale = float(data[inside.cpu()].quantile(0.99)) or 1.0
+    data = volume.data.cpu().float() * inside
+    scale = float(data[inside].quantile(0.99)) or 1.0
     return CanonicalVolume(
-        image=Image(data / scale, result.volume.affine.cpu()),
-        mask=inside.cpu(),
+        image=Image(data / scale, volume.affine.cpu()),
+        mask=inside,
         centre_mm=torch.zeros(3, dtype=torch.float64),
         intensity_scale=scale,
     )
+
+
+def _brain(result: ReconstructionResult) -> CanonicalVolume | None:
+    """The result's brain: its mask where the volume is positive (:func:`symmetry_volume`)."""
+    return symmetry_volume(result.volume, (result.mask.data > 0.5) & (result.volume.data > 0))
 
 
 def _tilt_deg(fit: PlaneFit) -> float:

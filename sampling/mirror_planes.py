@@ -12,9 +12,10 @@ volume; if all are symmetric, correlation >= ``threshold``, use their mean plane
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, cast
 
@@ -100,6 +101,30 @@ def mirror_correlation(volume: CanonicalVolume, plane: ReflectionPlane, points: 
     return float((a * b).sum() / ((a.square().sum() * b.square().sum()).sqrt() + 1e-12))
 
 
+def _powell(
+    volume: CanonicalVolume,
+    points: Tensor,
+    plane_of: Callable[[np.ndarray], ReflectionPlane],
+    bounds: tuple[float, float],
+    ftol: float,
+    maxfev: int,
+) -> tuple[ReflectionPlane, float]:
+    """The plane ``plane_of(params)`` of highest mirror correlation, by Powell's method from 0.
+
+    ``params`` are two tilts (radians, within ``bounds[0]``) and an offset (mm, within
+    ``bounds[1]``); returns the plane and its correlation.
+    """
+    tilt, offset = bounds
+    result = minimize(
+        lambda params: -mirror_correlation(volume, plane_of(params), points),
+        np.zeros(3),
+        method="Powell",
+        bounds=[(-tilt, tilt), (-tilt, tilt), (-offset, offset)],
+        options={"xtol": 1e-3, "ftol": ftol, "maxfev": maxfev},
+    )
+    return plane_of(result.x), -float(result.fun)
+
+
 def measure_reflection_plane(
     volume: CanonicalVolume, max_points: int = 20000, seed: int = 0
 ) -> PlaneFit:
@@ -122,19 +147,7 @@ def measure_reflection_plane(
         )
     points = _brain_points(volume, max_points, seed)
     sagittal = mirror_correlation(volume, SAGITTAL, points)
-
-    def cost(params: np.ndarray) -> float:
-        return -mirror_correlation(volume, _plane(params), points)
-
-    result = minimize(
-        cost,
-        np.zeros(3),
-        method="Powell",
-        bounds=[(-0.5, 0.5), (-0.5, 0.5), (-20.0, 20.0)],
-        options={"xtol": 1e-3, "ftol": 1e-6, "maxfev": 400},
-    )
-    best = _plane(result.x)
-    corr = -float(result.fun)
+    best, corr = _powell(volume, points, _plane, (0.5, 20.0), ftol=1e-6, maxfev=400)
     if corr < sagittal:
         best, corr = SAGITTAL, sagittal
     return PlaneFit(best, corr, sagittal)
@@ -211,19 +224,16 @@ def search_reflection_plane(
     coarse.sort(key=lambda scored: -scored[0])
     best, corr = SAGITTAL, sagittal
     for _, normal in coarse[:refine]:
-
-        def cost(params: np.ndarray, normal: np.ndarray = normal) -> float:
-            return -mirror_correlation(volume, _tilted(normal, centre, params), points)
-
-        result = minimize(
-            cost,
-            np.zeros(3),
-            method="Powell",
-            bounds=[(-0.3, 0.3), (-0.3, 0.3), (-8.0, 8.0)],
-            options={"xtol": 1e-3, "ftol": 1e-5, "maxfev": 200},
+        plane, fitted = _powell(
+            volume,
+            points,
+            functools.partial(_tilted, normal, centre),
+            (0.3, 8.0),
+            ftol=1e-5,
+            maxfev=200,
         )
-        if -float(result.fun) > corr:
-            best, corr = _tilted(normal, centre, result.x), -float(result.fun)
+        if fitted > corr:
+            best, corr = plane, fitted
     return PlaneFit(best, corr, sagittal)
 
 
