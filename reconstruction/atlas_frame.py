@@ -54,6 +54,7 @@ __all__ = [
     "align_to_atlas",
     "atlas_starts",
     "atlas_transform",
+    "atlas_turn_line",
     "best_atlas_transform",
 ]
 
@@ -299,7 +300,8 @@ def align_to_atlas(
         pose premultiplied by the fitted transform (:func:`~svr.reconstruction.result.relabelled`),
         each atlas's NCC after its fit (``atlas_ncc``), the index of the atlas whose frame it took
         (``atlas_chosen``) and the fit's margin: the NCC of the frame kept minus the best NCC of a
-        distinct frame fitted finely (``atlas_margin``; ``None`` where no distinct frame was).
+        distinct frame fitted finely (``atlas_margin``; ``None`` where no distinct frame was),
+        and the fit's turn and whether it was applied (``atlas_turn_deg``, ``atlas_turn_kept``).
     """
     volume = result.volume
     kept = ~result.excluded.to(result.slices.device)
@@ -318,7 +320,8 @@ def align_to_atlas(
     )
     others = [ncc for name, ncc in found.final.items() if name != found.start]
     margin = found.final[found.start] - max(others) if others else None
-    if max_turn_deg is not None and angle > max_turn_deg:
+    kept = max_turn_deg is None or angle <= max_turn_deg
+    if not kept:
         log.warning(
             "atlas frame: the fit turned the volume's frame by %.1f deg, more than %g deg from a "
             "frame the stacks' learned poses support: only its centring is kept",
@@ -332,4 +335,23 @@ def align_to_atlas(
         atlas_ncc=choice.ncc,
         atlas_chosen=choice.chosen,
         atlas_margin=margin,
+        atlas_turn_deg=angle,
+        atlas_turn_kept=kept,
     )
+
+
+def atlas_turn_line(result: ReconstructionResult) -> str:
+    """The log's and QA page's line on the atlas fit's turn, or ``""`` without an atlas.
+
+    Args:
+        result: A reconstruction (its ``atlas_turn_deg`` and ``atlas_turn_kept``).
+
+    Returns:
+        For example ``"atlas fit: turned 4.7 deg"`` or ``"atlas fit: would turn 32.8 deg (not
+        applied)"``.
+    """
+    if result.atlas_turn_deg is None:
+        return ""
+    if result.atlas_turn_kept is False:
+        return f"atlas fit: would turn {result.atlas_turn_deg:.1f} deg (not applied)"
+    return f"atlas fit: turned {result.atlas_turn_deg:.1f} deg"

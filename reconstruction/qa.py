@@ -36,6 +36,7 @@ from torch import Tensor
 
 from svr.files import atomic_write_bytes, check_output_path
 from svr.image import Image, resample_to_grid
+from svr.reconstruction.atlas_frame import atlas_turn_line
 from svr.reconstruction.convergence import verdict
 from svr.reconstruction.midplane import mirror_plane_line
 from svr.reconstruction.result import ReconstructionResult
@@ -132,6 +133,8 @@ def _text(result: ReconstructionResult, notes: Sequence[str] = ()) -> str:
             f"atlas {result.atlas_margin:.3f}" if result.atlas_margin is not None else "",
         ]
         lines.append("frame margins: " + ", ".join(m for m in margins if m))
+    turn = atlas_turn_line(result)
+    lines += [turn] if turn else []
     mirror = mirror_plane_line(result)
     lines += [mirror] if mirror else []
     return "\n".join(lines)

@@ -68,6 +68,11 @@ class ReconstructionResult:
             pooled logits over the runner-up frame's), or ``None``.
         atlas_margin: The atlas fit's NCC margin of the frame kept over the best distinct
             other, or ``None`` without an atlas.
+        atlas_turn_deg: The turn (degrees) by which the atlas fit moved the frame, or would have
+            moved it where the turn was refused, or ``None`` without an atlas.
+        atlas_turn_kept: Whether that turn was applied (``False``: it went farther than a frame
+            the learned stack poses support may be turned, and only the centring was kept), or
+            ``None`` without an atlas.
         midplane_tilt_deg: The tilt (degrees) by which a canonical output was levelled onto the
             brain's own mid-sagittal plane (:mod:`svr.reconstruction.midplane`), or ``None``.
         mirror_correlation: The correlation of the volume with its mirror image about the
@@ -96,6 +101,8 @@ class ReconstructionResult:
     from_scanner: Tensor | None = None
     frame_margin: float | None = None
     atlas_margin: float | None = None
+    atlas_turn_deg: float | None = None
+    atlas_turn_kept: bool | None = None
     midplane_tilt_deg: float | None = None
     mirror_correlation: float | None = None
     mirror_tilt_deg: float | None = None

@@ -16,6 +16,10 @@ The evidence for a canonical frame:
 * the atlas fit's *margin*: the NCC of the volume with the atlas in the frame kept, minus the best
   NCC of a distinct frame (:func:`~svr.reconstruction.atlas_frame.align_to_atlas`).
 
+A learned frame with a clear margin is not turned far by the atlas fit (the pipeline refuses a
+turn over :data:`~svr.reconstruction.pipeline.ATLAS_MAX_TURN_DEG`); where the fit wanted such a
+turn, the atlas does not confirm the frame, and the frame is at most uncertain.
+
 A frame with neither margin above its threshold is uncertain (so is one whose evidence was not
 measured: the slice-pose start without an atlas); with every measured margin at or below zero it
 is untrusted, and the pipeline then writes the volume in the scanner frame instead.
@@ -141,9 +145,17 @@ def _frame(result: ReconstructionResult, config: VerdictConfig) -> tuple[str, li
     strong = (learned is not None and learned >= config.frame_margin) or (
         atlas is not None and atlas >= config.atlas_margin
     )
-    if strong and _asymmetric(result, config):
-        return "uncertain", ["no mirror plane to check the frame by" + _listed(evidence)]
     if strong:
+        doubts = []
+        if _asymmetric(result, config):
+            doubts.append("no mirror plane to check the frame by")
+        if result.atlas_turn_kept is False and result.atlas_turn_deg is not None:
+            doubts.append(
+                f"the atlas fit disagrees: it would turn the frame by {result.atlas_turn_deg:.0f} "
+                "deg (not applied)"
+            )
+        if doubts:
+            return "uncertain", [*doubts[:-1], doubts[-1] + _listed(evidence)]
         return "trusted", []
     if not evidence:
         return "uncertain", ["the frame's evidence was not measured (give an atlas)"]

@@ -96,6 +96,30 @@ def test_a_canonical_frame_is_trusted_only_on_evidence(frame_margin, atlas_margi
         assert "evidence" in verdict.reasons[-1]
 
 
+@pytest.mark.parametrize(
+    ("turn", "kept", "trust"), [(33.0, False, "uncertain"), (12.0, True, "trusted")]
+)
+def test_a_learned_frame_the_atlas_fit_would_turn_far_is_uncertain(turn, kept, trust):
+    # The real scan with automatic masks: the learned frame has a clear margin, the atlas fit
+    # wanted a 33 deg turn and was refused; the atlas does not confirm the frame.
+    result = result_with(
+        [0.95] * 4,
+        "canonical",
+        frame_margin=5.5,
+        atlas_margin=0.0,
+        atlas_turn_deg=turn,
+        atlas_turn_kept=kept,
+    )
+    verdict = assess(result)
+    assert verdict.frame == trust
+    if trust == "uncertain":
+        assert verdict.status == "warning"
+        assert verdict.reasons == (
+            "the atlas fit disagrees: it would turn the frame by 33 deg (not applied) "
+            "(stack-pose margin 5.5, atlas-fit margin 0.000)",
+        )
+
+
 def test_verdict_thresholds_are_checked():
     with pytest.raises(ConfigFieldError, match="'frame_margin'"):
         VerdictConfig(frame_margin=-1.0)
@@ -251,3 +275,13 @@ def test_the_joint_frame_of_registered_stacks_outvotes_a_twin(monkeypatch):
     assert joint.margin == pytest.approx(joint.score - (-3.0 - 3.0 + 2.0))
     # With its own stacks alone, the twin would have won stack 2.
     assert se3_compose(twin, right).shape == (4, 4)
+
+
+def test_the_atlas_turn_line_says_whether_the_turn_was_applied():
+    from svr.reconstruction.atlas_frame import atlas_turn_line
+
+    assert atlas_turn_line(result_with([0.9] * 4)) == ""
+    kept = result_with([0.9] * 4, atlas_turn_deg=4.71, atlas_turn_kept=True)
+    assert atlas_turn_line(kept) == "atlas fit: turned 4.7 deg"
+    refused = result_with([0.9] * 4, atlas_turn_deg=32.8, atlas_turn_kept=False)
+    assert atlas_turn_line(refused) == "atlas fit: would turn 32.8 deg (not applied)"

@@ -196,6 +196,8 @@ def _sidecar(
             "from_scanner": None if result.from_scanner is None else result.from_scanner.tolist(),
             "frame_margin": result.frame_margin,
             "atlas_margin": result.atlas_margin,
+            "atlas_turn_deg": result.atlas_turn_deg,
+            "atlas_turn_kept": result.atlas_turn_kept,
             "midplane_tilt_deg": result.midplane_tilt_deg,
             "mirror_correlation": result.mirror_correlation,
             "mirror_tilt_deg": result.mirror_tilt_deg,

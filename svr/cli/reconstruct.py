@@ -231,6 +231,7 @@ def _write_outputs(
 def _summary(args: argparse.Namespace, job: ReconstructionJob, result: ReconstructionResult) -> str:
     """The settings, timings, initialisation and exclusions, as text for --output-log."""
     from svr.apps.reconstruct import excluded_by_stack, provenance
+    from svr.reconstruction.atlas_frame import atlas_turn_line
     from svr.reconstruction.convergence import verdict
     from svr.reconstruction.midplane import mirror_plane_line
 
@@ -263,6 +264,7 @@ def _summary(args: argparse.Namespace, job: ReconstructionJob, result: Reconstru
         lines += [
             f"  {path}: NCC {ncc:.3f}" for path, ncc in zip(volumes, result.atlas_ncc, strict=True)
         ]
+        lines.append(f"  {atlas_turn_line(result)}")
     mirror = mirror_plane_line(result)
     lines += [mirror] if mirror else []
     ending = verdict(result.converged)
