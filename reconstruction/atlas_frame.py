@@ -320,8 +320,8 @@ def align_to_atlas(
     )
     others = [ncc for name, ncc in found.final.items() if name != found.start]
     margin = found.final[found.start] - max(others) if others else None
-    kept = max_turn_deg is None or angle <= max_turn_deg
-    if not kept:
+    applied = max_turn_deg is None or angle <= max_turn_deg
+    if not applied:
         log.warning(
             "atlas frame: the fit turned the volume's frame by %.1f deg, more than %g deg from a "
             "frame the stacks' learned poses support: only its centring is kept",
@@ -336,7 +336,7 @@ def align_to_atlas(
         atlas_chosen=choice.chosen,
         atlas_margin=margin,
         atlas_turn_deg=angle,
-        atlas_turn_kept=kept,
+        atlas_turn_kept=applied,
     )
 
 
