@@ -301,7 +301,7 @@ def align_to_atlas(
         each atlas's NCC after its fit (``atlas_ncc``), the index of the atlas whose frame it took
         (``atlas_chosen``) and the fit's margin: the NCC of the frame kept minus the best NCC of a
         distinct frame fitted finely (``atlas_margin``; ``None`` where no distinct frame was),
-        and the fit's turn and whether it was applied (``atlas_turn_deg``, ``atlas_turn_kept``).
+        and the fit's turn and whether it was applied (``atlas_turn_deg``, ``atlas_turn_applied``).
     """
     volume = result.volume
     kept = ~result.excluded.to(result.slices.device)
@@ -336,7 +336,7 @@ def align_to_atlas(
         atlas_chosen=choice.chosen,
         atlas_margin=margin,
         atlas_turn_deg=angle,
-        atlas_turn_kept=applied,
+        atlas_turn_applied=applied,
     )
 
 
@@ -344,7 +344,7 @@ def atlas_turn_line(result: ReconstructionResult) -> str:
     """The log's and QA page's line on the atlas fit's turn, or ``""`` without an atlas.
 
     Args:
-        result: A reconstruction (its ``atlas_turn_deg`` and ``atlas_turn_kept``).
+        result: A reconstruction (its ``atlas_turn_deg`` and ``atlas_turn_applied``).
 
     Returns:
         For example ``"atlas fit: turned 4.7 deg"`` or ``"atlas fit: would turn 32.8 deg (not
@@ -352,6 +352,6 @@ def atlas_turn_line(result: ReconstructionResult) -> str:
     """
     if result.atlas_turn_deg is None:
         return ""
-    if result.atlas_turn_kept is False:
+    if result.atlas_turn_applied is False:
         return f"atlas fit: would turn {result.atlas_turn_deg:.1f} deg (not applied)"
     return f"atlas fit: turned {result.atlas_turn_deg:.1f} deg"

@@ -70,7 +70,7 @@ class ReconstructionResult:
             other, or ``None`` without an atlas.
         atlas_turn_deg: The turn (degrees) by which the atlas fit moved the frame, or would have
             moved it where the turn was refused, or ``None`` without an atlas.
-        atlas_turn_kept: Whether that turn was applied (``False``: it went farther than a frame
+        atlas_turn_applied: Whether that turn was applied (``False``: it went farther than a frame
             the learned stack poses support may be turned, and only the centring was kept), or
             ``None`` without an atlas.
         midplane_tilt_deg: The tilt (degrees) by which a canonical output was levelled onto the
@@ -102,7 +102,7 @@ class ReconstructionResult:
     frame_margin: float | None = None
     atlas_margin: float | None = None
     atlas_turn_deg: float | None = None
-    atlas_turn_kept: bool | None = None
+    atlas_turn_applied: bool | None = None
     midplane_tilt_deg: float | None = None
     mirror_correlation: float | None = None
     mirror_tilt_deg: float | None = None

@@ -149,7 +149,7 @@ def _frame(result: ReconstructionResult, config: VerdictConfig) -> tuple[str, li
         doubts = []
         if _asymmetric(result, config):
             doubts.append("no mirror plane to check the frame by")
-        if result.atlas_turn_kept is False and result.atlas_turn_deg is not None:
+        if result.atlas_turn_applied is False and result.atlas_turn_deg is not None:
             doubts.append(
                 f"the atlas fit disagrees: it would turn the frame by {result.atlas_turn_deg:.0f} "
                 "deg (not applied)"

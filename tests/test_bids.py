@@ -145,7 +145,7 @@ def test_participant_level_writes_bids_derivatives(participant_run, dataset):
     # scanner-frame output (no tilt from a canonical x = 0).
     assert -1 <= svr_info["mirror_correlation"] <= 1 and svr_info["mirror_tilt_deg"] is None
     # No atlas: no atlas fit, no turn.
-    assert svr_info["atlas_turn_deg"] is None and svr_info["atlas_turn_kept"] is None
+    assert svr_info["atlas_turn_deg"] is None and svr_info["atlas_turn_applied"] is None
     # No temporary folders are left behind.
     assert not [p for p in out.rglob(".*")]
     volume = load_nifti(folder / names.volume)
@@ -316,7 +316,7 @@ def test_each_participant_is_fitted_to_the_atlases_of_its_own_age(dataset, tmp_p
     assert [Path(a["volume"]).parent.name for a in info["atlas"]] == ["GA20_phantom", "GA30_noise"]
     assert len(info["atlas_ncc"]) == 2 and info["atlas_ncc"][0] > info["atlas_ncc"][1]
     assert info["atlas_chosen"] == 0
-    assert info["atlas_turn_deg"] >= 0 and isinstance(info["atlas_turn_kept"], bool)
+    assert info["atlas_turn_deg"] >= 0 and isinstance(info["atlas_turn_applied"], bool)
     # Bad uses: one line, before any work.
     err = _bad(["bids", str(study), str(tmp_path / "o2"), "participant", *FAST,
                 "--age-column", "ga"], capsys)  # fmt: skip

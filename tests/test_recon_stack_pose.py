@@ -264,12 +264,12 @@ def test_align_to_atlas_turns_everything_and_centres_the_kept_slices_masks(turne
     torch.testing.assert_close(centre, torch.zeros(3, dtype=F64), atol=1e-6, rtol=0)
     turn = aligned.atlas_turn_deg
     assert (
-        aligned.atlas_turn_kept is True
+        aligned.atlas_turn_applied is True
         and abs(turn - _angle_deg(small, torch.eye(4, dtype=F64))) < 1.0
     )
     # A turn over the limit is refused and recorded: only the centring is applied.
     refused = align_to_atlas(result, atlas, max_turn_deg=turn / 2)
-    assert refused.atlas_turn_kept is False and refused.atlas_turn_deg == pytest.approx(turn)
+    assert refused.atlas_turn_applied is False and refused.atlas_turn_deg == pytest.approx(turn)
     only_shift = refused.volume.affine @ torch.linalg.inv(volume.affine)
     torch.testing.assert_close(only_shift[:3, :3], torch.eye(3, dtype=F64))
 

@@ -108,7 +108,7 @@ def test_a_learned_frame_the_atlas_fit_would_turn_far_is_uncertain(turn, kept, t
         frame_margin=5.5,
         atlas_margin=0.0,
         atlas_turn_deg=turn,
-        atlas_turn_kept=kept,
+        atlas_turn_applied=kept,
     )
     verdict = assess(result)
     assert verdict.frame == trust
@@ -281,7 +281,7 @@ def test_the_atlas_turn_line_says_whether_the_turn_was_applied():
     from svr.reconstruction.atlas_frame import atlas_turn_line
 
     assert atlas_turn_line(result_with([0.9] * 4)) == ""
-    kept = result_with([0.9] * 4, atlas_turn_deg=4.71, atlas_turn_kept=True)
+    kept = result_with([0.9] * 4, atlas_turn_deg=4.71, atlas_turn_applied=True)
     assert atlas_turn_line(kept) == "atlas fit: turned 4.7 deg"
-    refused = result_with([0.9] * 4, atlas_turn_deg=32.8, atlas_turn_kept=False)
+    refused = result_with([0.9] * 4, atlas_turn_deg=32.8, atlas_turn_applied=False)
     assert atlas_turn_line(refused) == "atlas fit: would turn 32.8 deg (not applied)"

@@ -197,7 +197,7 @@ def _sidecar(
             "frame_margin": result.frame_margin,
             "atlas_margin": result.atlas_margin,
             "atlas_turn_deg": result.atlas_turn_deg,
-            "atlas_turn_kept": result.atlas_turn_kept,
+            "atlas_turn_applied": result.atlas_turn_applied,
             "midplane_tilt_deg": result.midplane_tilt_deg,
             "mirror_correlation": result.mirror_correlation,
             "mirror_tilt_deg": result.mirror_tilt_deg,
