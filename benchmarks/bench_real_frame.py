@@ -15,7 +15,9 @@ mid-sagittal plane), so its rotation is those turns alone. The reference
 (``benchmarks/results/real-scan-frame-reference.json``) is ``G`` of a run whose axial, coronal and
 sagittal views were looked at and found to be the standard planes (``--write-reference`` records
 it from the first run). There is no ground truth on a real scan; what this measures is whether
-every run lands on that frame (a few degrees) rather than its twin (150-180 degrees).
+every run lands on that frame (a few degrees) rather than its twin (150-180 degrees). Its pitch
+(the turn about the left-right axis) is uncertain by several degrees: a symmetric view does not
+show it, and no atlas pins it on this scan (``bench_real_pitch.py``).
 
 ``--fabian`` also reconstructs each subject of the FaBiAN stacks (simulated normal brains from
 another atlas family; ``bench_real_stacks.py``) with the atlas whose brain volume is nearest its
