@@ -34,44 +34,15 @@ import json
 import math
 from pathlib import Path
 
-import nibabel as nib
 import numpy as np
 import SimpleITK as sitk  # noqa: N813 (the usual alias)
 from bench_common import scanner_from_canonical, write_results
 from bench_real_frame import REFERENCE
-from scipy.ndimage import affine_transform
+from midplane_oracle import world_image
 from scipy.spatial.transform import Rotation
 
 PITCH_STARTS_DEG = (-10.0, -5.0, 0.0, 5.0, 10.0)
 """Starting turns of each atlas fit about the left-right (canonical x) axis, degrees."""
-
-
-def world_image(path: Path, spacing_mm: float = 1.0, mask: Path | None = None) -> sitk.Image:
-    """A NIfTI image resampled (trilinear) onto a grid of its world axes.
-
-    SimpleITK's physical points are then the file's RAS world coordinates (mm). ``mask``: a mask
-    file on the same grid, returned instead of the image (nearest neighbour).
-    """
-    image = nib.load(str(path))
-    source = image if mask is None else nib.load(str(mask))
-    data = np.asarray(source.dataobj, dtype=np.float32)
-    affine = image.affine
-    world = np.argwhere(np.asarray(image.dataobj) != 0) @ affine[:3, :3].T + affine[:3, 3]
-    low = world.min(axis=0) - 8.0
-    shape = tuple(int(n) + 1 for n in np.ceil((world.max(axis=0) + 8.0 - low) / spacing_mm))
-    inverse = np.linalg.inv(affine)
-    order = 1 if mask is None else 0
-    resampled = affine_transform(
-        data,
-        inverse[:3, :3] * spacing_mm,
-        offset=inverse[:3, :3] @ low + inverse[:3, 3],
-        output_shape=shape,
-        order=order,
-    )
-    out = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(resampled, (2, 1, 0))))
-    out.SetSpacing((spacing_mm,) * 3)
-    out.SetOrigin(tuple(float(v) for v in low))
-    return out
 
 
 def _matrix(transform: sitk.Euler3DTransform) -> np.ndarray:

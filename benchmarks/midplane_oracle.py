@@ -22,7 +22,14 @@ import SimpleITK as sitk  # noqa: N813 (the usual alias)
 from bench_real_frame import rotation_part
 from scipy.ndimage import affine_transform
 
-__all__ = ["MidplaneEstimate", "midplane_in_world", "midplane_of_array", "midplane_of_file"]
+__all__ = [
+    "MidplaneEstimate",
+    "midplane_in_world",
+    "midplane_of_array",
+    "midplane_of_file",
+    "on_world_axes",
+    "world_image",
+]
 
 STARTS_DEG = ((0.0, 0.0), (30.0, 0.0), (-30.0, 0.0), (0.0, 30.0), (0.0, -30.0))
 """Starting turns (about the second and third axes, degrees) of the mirror registration.
@@ -50,10 +57,45 @@ class MidplaneEstimate:
         return math.degrees(math.acos(min(1.0, abs(float(self.normal[0])))))
 
 
-def _image(data: np.ndarray, spacing: np.ndarray) -> sitk.Image:
+def _image(data: np.ndarray, spacing: np.ndarray, origin: np.ndarray | None = None) -> sitk.Image:
     image = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(data, (2, 1, 0)), np.float32))
     image.SetSpacing(tuple(float(s) for s in spacing))
+    if origin is not None:
+        image.SetOrigin(tuple(float(v) for v in origin))
     return image
+
+
+def on_world_axes(
+    data: np.ndarray,
+    affine: np.ndarray,
+    support: np.ndarray,
+    spacing_mm: float,
+    margin_mm: float,
+    order: int = 1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """An array resampled onto a grid of its world's axes around ``support``.
+
+    Args:
+        data: (I, J, K) values on the grid of ``affine``.
+        affine: (4, 4) voxel -> world (mm).
+        support: (I, J, K) bool: the voxels the new grid must cover.
+        spacing_mm: The new grid's spacing (mm).
+        margin_mm: How far past the support's extent the grid reaches (mm).
+        order: Spline order of the resampling (1: trilinear, 0: nearest).
+
+    Returns:
+        The resampled array and (3,) the world point of its first voxel (mm); its voxel ``v``
+        lies at ``low + spacing_mm * v``.
+    """
+    world = np.argwhere(support) @ affine[:3, :3].T + affine[:3, 3]
+    low = world.min(axis=0) - margin_mm
+    shape = tuple(int(n) + 1 for n in np.ceil((world.max(axis=0) + margin_mm - low) / spacing_mm))
+    inverse = np.linalg.inv(affine)
+    # grid voxel v -> world low + spacing v -> the source's voxel
+    matrix = inverse[:3, :3] * spacing_mm
+    offset = inverse[:3, :3] @ low + inverse[:3, 3]
+    resampled = affine_transform(data, matrix, offset=offset, output_shape=shape, order=order)
+    return resampled, low
 
 
 def midplane_of_array(
@@ -162,13 +204,28 @@ def midplane_in_world(
     image = nib.load(str(image_path))
     data = np.asarray(image.dataobj, dtype=np.float32)
     data = data * (np.asarray(nib.load(str(mask_path)).dataobj) > 0.5)
-    affine = image.affine
-    world = np.argwhere(data > 0) @ affine[:3, :3].T + affine[:3, 3]
-    low = world.min(axis=0) - 5.0
-    shape = tuple(int(n) + 1 for n in np.ceil((world.max(axis=0) + 5.0 - low) / spacing_mm))
-    inverse = np.linalg.inv(affine)
-    # grid voxel v -> world low + spacing v -> the stack's voxel
-    matrix = inverse[:3, :3] * spacing_mm
-    offset = inverse[:3, :3] @ low + inverse[:3, 3]
-    resampled = affine_transform(data, matrix, offset=offset, output_shape=shape, order=1)
+    resampled, _ = on_world_axes(data, image.affine, data > 0, spacing_mm, 5.0)
     return midplane_of_array(resampled, np.full(3, spacing_mm), threads)
+
+
+def world_image(path: Path, spacing_mm: float = 1.0, mask: Path | None = None) -> sitk.Image:
+    """A NIfTI image resampled onto a grid of its world axes, as a SimpleITK image.
+
+    SimpleITK's physical points are then the file's RAS world coordinates (mm), with no LPS
+    conversion. The grid covers the image's nonzero voxels and 8 mm more.
+
+    Args:
+        path: The image (NIfTI).
+        spacing_mm: The grid's spacing (mm).
+        mask: A mask on the same grid, returned instead of the image (nearest neighbour).
+
+    Returns:
+        The image (or mask) on the new grid.
+    """
+    image = nib.load(str(path))
+    source = image if mask is None else nib.load(str(mask))
+    data = np.asarray(source.dataobj, dtype=np.float32)
+    support = np.asarray(image.dataobj) != 0
+    order = 1 if mask is None else 0
+    resampled, low = on_world_axes(data, image.affine, support, spacing_mm, 8.0, order)
+    return _image(resampled, np.full(3, spacing_mm), low)
