@@ -1,15 +1,18 @@
 """Scanner artefacts of simulated thick-slice stacks (:func:`svr.sampling.simulate.simulate_case`).
 
 A smooth multiplicative bias field over the brain, signal voids (dark blobs on some slices) and
-Rician noise, drawn in that order from one generator by :func:`stack_artefacts`.
+Rician noise, drawn in that order from one generator by :func:`stack_artefacts`; and the errors
+of an automatic brain mask on a whole-uterus scan (:func:`loose_mask`).
 """
 
 from __future__ import annotations
 
 import torch
+from scipy import ndimage
 from torch import Tensor
+from torch.nn import functional
 
-__all__ = ["bias_field", "rician_noise", "signal_voids", "stack_artefacts"]
+__all__ = ["bias_field", "loose_mask", "rician_noise", "signal_voids", "stack_artefacts"]
 
 
 def bias_field(
@@ -130,3 +133,74 @@ def stack_artefacts(
     if sigma is not None:
         slices = rician_noise(slices, sigma, generator)
     return slices
+
+
+def loose_mask(
+    mask: Tensor,
+    data: Tensor,
+    spacing_mm: Tensor,
+    reach_mm: float,
+    generator: torch.Generator,
+    tissue: tuple[float, float] = (0.2, 2.0),
+) -> tuple[Tensor, Tensor]:
+    """An automatic mask's errors: its edge moved in and out by a smooth field, tissue taken in.
+
+    An automatic mask on a whole-uterus scan misses a rim of the brain in one place and takes in
+    fluid or tissue beside the head in another (more end slices, a wedge below the brain). Its
+    edge is put where the signed distance to the true edge equals a smooth random field (a
+    4 x 4 x 4 grid of values of random sign and size 0.3-1 times 0.5-1 of ``reach_mm``,
+    interpolated over the stack, plus an offset up to a quarter of that), so that it lies out
+    in some places and in in others; the voxels it takes in outside the brain are filled with a
+    tissue of random brightness (``tissue``, relative to the brain's median) and 15 % noise.
+
+    Args:
+        mask: (I, J, K) bool true brain mask on the stack's grid (CPU, as ``data``).
+        data: (I, J, K) float stack intensities on the same grid (0 outside the brain where the
+            source brain was skull-stripped).
+        spacing_mm: (3,) voxel sizes along I, J, K, mm (the signed distance is in mm).
+        reach_mm: The field's largest value, mm (> 0).
+        generator: Source of every draw.
+        tissue: (low, high) brightness range of what the mask takes in, relative to the brain's
+            median intensity.
+
+    Returns:
+        ``(mask, data)``: the (I, J, K) bool loose mask, and the intensities with the tissue it
+        takes in filled (``data`` itself where it takes in nothing outside the brain).
+
+    Raises:
+        ValueError: If ``reach_mm`` is not > 0 or the shapes differ.
+    """
+    if not reach_mm > 0:
+        raise ValueError(f"loose_mask(): 'reach_mm' must be > 0, got {reach_mm}")
+    if mask.shape != data.shape or mask.dim() != 3:
+        raise ValueError(
+            f"loose_mask(): 'mask' and 'data' must be the same (I, J, K) shape, got "
+            f"{tuple(mask.shape)} and {tuple(data.shape)}"
+        )
+    brain = mask.bool()
+    if not bool(brain.any()):
+        return brain, data
+    sampling = spacing_mm.double().tolist()
+    inside = brain.numpy()
+    signed = ndimage.distance_transform_edt(~inside, sampling=sampling) - (
+        ndimage.distance_transform_edt(inside, sampling=sampling)
+    )
+    amplitude = reach_mm * (0.5 + 0.5 * float(torch.rand(1, generator=generator)))
+    sign = torch.randint(2, (1, 1, 4, 4, 4), generator=generator).double() * 2 - 1
+    coarse = sign * (
+        0.3 + 0.7 * torch.rand(1, 1, 4, 4, 4, generator=generator, dtype=torch.float64)
+    )
+    offset = (float(torch.rand(1, generator=generator)) * 2 - 1) * 0.25 * amplitude
+    field = functional.interpolate(coarse, size=tuple(mask.shape), mode="trilinear")[0, 0]
+    loose = torch.from_numpy(signed < (field * amplitude + offset).numpy())
+    taken = loose & ~brain
+    if not bool(taken.any()):
+        return loose, data
+    low, high = tissue
+    level = float(data[brain].median()) * (
+        low + (high - low) * float(torch.rand(1, generator=generator))
+    )
+    noise = torch.randn(data.shape, generator=generator, dtype=torch.float64).to(data.dtype)
+    filled = data.clone()
+    filled[taken] = (level * (1 + 0.15 * noise[taken])).clamp(min=0)
+    return loose, filled

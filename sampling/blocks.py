@@ -25,6 +25,7 @@ from torch.nn import functional
 from svr.geometry import se3_compose, se3_inverse
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, intensity_scale, sample_channels, stack_slice_poses, world_to_grid
+from svr.sampling.artefacts import loose_mask
 from svr.sampling.motion import Trajectory
 from svr.sampling.simulate import SimulationConfig, simulate_case
 from svr.sampling.volume import CanonicalVolume
@@ -297,6 +298,9 @@ class TrainingStackConfig:
         bias_field: (low, high) bias-field strength.
         signal_void_probability: Chance per slice of a signal void.
         mask_change_px: Largest number of pixels the mask is grown or shrunk by, in-plane.
+        loose_mask_mm: With a value > 0, each mask's edge is also moved in and out by a smooth
+            field up to this far and the tissue it takes in is filled
+            (:func:`svr.sampling.artefacts.loose_mask`); 0 draws nothing more.
         gamma: (low, high) of the intensity exponent.
 
     Raises:
@@ -313,6 +317,7 @@ class TrainingStackConfig:
     bias_field: tuple[float, float] = (0.0, 0.3)
     signal_void_probability: float = 0.1
     mask_change_px: int = 2
+    loose_mask_mm: float = 0.0
     gamma: tuple[float, float] = (0.7, 1.4)
 
     def __post_init__(self) -> None:
@@ -326,6 +331,7 @@ class TrainingStackConfig:
         check_number(owner, "in_plane_mm", self.in_plane_mm, gt=0)
         check_fraction(owner, "signal_void_probability", self.signal_void_probability)
         check_int(owner, "mask_change_px", self.mask_change_px, minimum=0)
+        check_number(owner, "loose_mask_mm", self.loose_mask_mm, ge=0)
 
 
 @dataclass(frozen=True)
@@ -410,6 +416,11 @@ def simulate_training_stack(
         torch.randint(-config.mask_change_px, config.mask_change_px + 1, (1,), generator=generator)
     )
     mask = _change_mask(stack.mask.data > 0.5, change)
+    if config.loose_mask_mm > 0:
+        loose, data = loose_mask(
+            mask > 0.5, data, stack.image.spacing, config.loose_mask_mm, generator
+        )
+        mask = loose.to(mask.dtype)
     image = Image(data, stack.image.affine)
     return TrainingStack(
         image=image,

@@ -173,6 +173,15 @@ def _add_brain_options(p: argparse.ArgumentParser) -> None:
         "copy (the phantoms never are)",
     )
     p.add_argument(
+        "--loose-masks",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="also move each training stack's mask edge in and out by a smooth random field up "
+        "to MM and fill the tissue it takes in, as automatic masks of whole-uterus scans do "
+        "(svr.sampling.artefacts.loose_mask; default: 0, off)",
+    )
+    p.add_argument(
         "--volume-downsample",
         type=positive_int,
         default=2,
@@ -293,6 +302,7 @@ _OPTIONS = {
     "checkpoint_every": "--checkpoint-every",
     "seed": "--seed",
     "synthesis_fraction": "--synthesis-fraction",
+    "loose_mask_mm": "--loose-masks",
 }
 """The option behind each StackPoseConfig and StackPoseTrainingConfig field it sets
 (:func:`~svr.cli.common.option_errors`)."""
@@ -366,6 +376,7 @@ def run(args: argparse.Namespace) -> int:
 
     from svr.cli.stack_pose_brains import training_brains
     from svr.models.stack_pose_train import StackPoseTrainingConfig, train_stack_pose
+    from svr.sampling.blocks import TrainingStackConfig
     from svr.sampling.motion import load_trajectories
     from svr.sampling.synthesis import SynthesisConfig
 
@@ -383,6 +394,7 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             synthesis=None if args.synthesis == "none" else SynthesisConfig(mode=args.synthesis),
             synthesis_fraction=args.synthesis_fraction,
+            stacks=TrainingStackConfig(loose_mask_mm=args.loose_masks),
         )
     device = resolve_device(args.device)
     brains = training_brains(args)
