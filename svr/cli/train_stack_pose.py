@@ -179,7 +179,7 @@ def _add_brain_options(p: argparse.ArgumentParser) -> None:
         metavar="MM",
         help="also move each training stack's mask edge in and out by a smooth random field up "
         "to MM and fill the tissue it takes in, as automatic masks of whole-uterus scans do "
-        "(svr.sampling.artefacts.loose_mask; default: 0, off)",
+        "(svr.sampling.artefacts.loose_mask; 0: off)",
     )
     p.add_argument(
         "--volume-downsample",
