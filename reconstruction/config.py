@@ -302,7 +302,13 @@ class SuperResolutionConfig:
         "super-resolution (conjugate-gradient) iterations per round; the last value repeats",
         metavar="N",
     )
-    regularization: tuple[float, ...] = (0.15, 0.15, 0.15, 0.1, 0.05)
+    regularization: tuple[float, ...] = option(
+        (0.15, 0.15, 0.15, 0.1, 0.05),
+        "--sr-regularization",
+        "weight of super-resolution's edge-preserving regulariser per round, relative to the "
+        "data; the last value repeats and makes the final volume (lower: sharper, noisier)",
+        metavar="W",
+    )
     edge_delta: float = 0.15
     background_mm: tuple[float, float] = (2.0, 5.0)
 

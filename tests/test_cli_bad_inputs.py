@@ -1053,6 +1053,7 @@ def _cases() -> list[Case]:
             ("--output-resolution", "inf", "--output-resolution must be a finite number > 0"),
             ("--iterations", "0", "--iterations must be an integer >= 1, got 0"),
             ("--sr-iterations", "0", "--sr-iterations must be a non-empty tuple of integers >= 1"),
+            ("--sr-regularization", "-0.1", "--sr-regularization must be"),
             ("--svr-iterations", "0", "--svr-iterations must be an integer >= 1, got 0"),
             ("--packets", "0", "--packets must be an integer >= 1, got 0"),
             ("--template", "-1", "--template must be an integer >= 0, got -1"),

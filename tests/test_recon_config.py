@@ -144,11 +144,15 @@ def test_every_option_is_generated_from_its_field():
     assert declared <= flags
     assert {"--ncc-threshold", "--iterations", "--no-robust", "--output-resolution"} <= declared
     args = parser.parse_args(
-        ["--ncc-threshold", "0.3", "--no-robust", "--sr-iterations", "2", "3", "--iterations", "4"]
-    )
+        [
+            "--ncc-threshold", "0.3", "--no-robust", "--sr-iterations", "2", "3",
+            "--sr-regularization", "0.1", "0.03", "--iterations", "4",
+        ]
+    )  # fmt: skip
     config = config_from_options(args, ReconstructionConfig.preset("learned"))
     assert config.outliers == OutlierConfig(robust=False, ncc_threshold=0.3)
     assert config.superres.iterations == (2, 3)
+    assert config.superres.regularization == (0.1, 0.03)
     assert config.schedule.rounds == 4
     # What was not given keeps the base's (the learned start's preset).
     assert config.schedule.converged_deg == 0.15
@@ -159,6 +163,7 @@ def test_every_option_is_generated_from_its_field():
     assert values["--ncc-threshold"] == 0.3 and values["--no-robust"] is True
     assert option_values(untouched)["--no-robust"] is False
     assert values["--sr-iterations"] == [2, 3]
+    assert values["--sr-regularization"] == [0.1, 0.03]
 
 
 def test_a_bad_option_value_is_named_by_its_option():
