@@ -16,6 +16,9 @@ ones (``--steps`` each), or saved ones (``--stage NAME=PATH ... --schedule NAME 
 ``--subject-pass`` then refines the kept poses once more (the shipped ``fine`` stage, 3 steps)
 against the subject's own volume: the scattered-data volume of the brain-masked slices at their
 kept poses, each stack against the other stacks' only, on the refiner's reference grid.
+``--subject-start`` refines the *start* that way instead, keeps a move where the other stacks at
+their start agree better (the rule of a start that agrees), and keeps the atlas-refined pose only
+where the subject-refined one lies within each ``--agree-deg`` of it.
 
     python benchmarks/experiments/refine_in_pipeline.py --cases ../shared/data/bench/sb32-severe
         --atlas ../shared/data/atlas/sb-fidon2021/GA33_operated --reconstruct
@@ -46,16 +49,25 @@ from svr.reconstruction.config import ReconstructionConfig
 from svr.reconstruction.initialisation import initialise
 from svr.reconstruction.initialisation.case_evaluation import load_case
 from svr.reconstruction.initialisation.slice_refinement import (
+    KEEP_MARGIN,
     REFERENCE_VOXEL_MM,
     _normalised,
+    atlas_reference,
     place_slices,
     refine_poses,
 )
 from svr.reconstruction.pipeline import reconstruct_from_poses
-from svr.reconstruction.registration import _sda
+from svr.reconstruction.registration import _sda, slice_agreement
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.superres import output_grid
 from svr.sampling.volume import load_canonical_volume
+
+
+def geodesic_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(N,) rotation angle (deg) between two sets of (N, 4, 4) poses."""
+    relative = a[:, :3, :3].double().transpose(1, 2) @ b[:, :3, :3].double()
+    cos = ((relative.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)
+    return torch.rad2deg(torch.arccos(cos))
 
 
 def _stages(args: argparse.Namespace) -> list:
@@ -97,6 +109,13 @@ def main() -> int:
         action="store_true",
         help="then refine the kept poses against the other stacks' own volume",
     )
+    parser.add_argument(
+        "--subject-start",
+        action="store_true",
+        help="also refine the start (fine x 3) against the other stacks' own volume, kept as "
+        "the trusted branch keeps moves",
+    )
+    parser.add_argument("--agree-deg", type=float, nargs="*", default=[2.0, 4.0])
     parser.add_argument("--reconstruct", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("runs/refine-in-pipeline"))
     parser.add_argument("--scorer", type=Path, default=SHARED / "tools" / "score_recon.py")
@@ -141,6 +160,36 @@ def main() -> int:
             print(
                 f"- then against the other stacks' own volume (every slice): {describe(rot, cen)}"
             )
+        if args.subject_start:
+            mine = subject_pass(placed_in)
+            rot, cen = relative_errors(truth, mine)
+            print(f"- from the start against the other stacks' own volume: {describe(rot, cen)}")
+            grid_mm = config.initialisation_grid_mm
+            before = slice_agreement(placed_in, grid_mm, leave_out=True)
+            at_start = slice_agreement(placed_in, grid_mm, True, at=mine.to(placed_in.poses))
+            keep = (at_start > before + KEEP_MARGIN).cpu()
+            kept_poses = torch.where(keep[:, None, None], mine, placed_in.poses.double().cpu())
+            rot, cen = relative_errors(truth, kept_poses)
+            print(
+                f"- the same, kept where the others at their start agree better "
+                f"({int(keep.sum())}/{len(keep)}; start median NCC {float(before.median()):.2f}): "
+                f"{describe(rot, cen)}",
+                flush=True,
+            )
+            # Both references: the atlas-refined pose, kept where the subject-refined one
+            # lands near it and the others at their start agree better.
+            refined = refine_poses(stages, placed_in, atlas_reference(reference)).cpu()
+            apart = geodesic_deg(refined, mine)
+            agree = slice_agreement(placed_in, grid_mm, True, at=refined.to(placed_in.poses))
+            for limit in args.agree_deg:
+                keep = ((apart < limit) & (agree > before + KEEP_MARGIN).cpu()).cpu()
+                both = torch.where(keep[:, None, None], refined, placed_in.poses.double().cpu())
+                rot, cen = relative_errors(truth, both)
+                print(
+                    f"- atlas-refined, kept where the subject-refined pose is within {limit:g} deg "
+                    f"and the others agree ({int(keep.sum())}/{len(keep)}): {describe(rot, cen)}",
+                    flush=True,
+                )
         if not args.reconstruct:
             continue
         for label, poses in (("start", placed_in.poses), ("kept", placed.poses)):
