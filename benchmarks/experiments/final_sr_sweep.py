@@ -35,7 +35,19 @@ CV_ENV = "SVR_FINAL_SR_CV"
 FOLDS = 5
 
 
-def held_out_ncc(acquisition, state, config, index, regularization, iterations, snapshot):
+def _snapshot(state):
+    """A copy of the schedule's round state whose tensors the solves below cannot change."""
+    import torch
+
+    copied = copy.copy(state)
+    for field in dataclasses.fields(state):
+        value = getattr(state, field.name)
+        if isinstance(value, torch.Tensor):
+            setattr(copied, field.name, value.clone())
+    return copied
+
+
+def held_out_ncc(acquisition, state, config, index, regularization, iterations):
     """Mean NCC of left-out slices with their simulation, over ``FOLDS`` folds (slice index mod).
 
     Each fold's slices (and their background pixels) get zero weight in the final
@@ -49,7 +61,7 @@ def held_out_ncc(acquisition, state, config, index, regularization, iterations, 
     projector = acquisition.projector
     scores = []
     for fold in range(FOLDS):
-        st = snapshot(state)
+        st = _snapshot(state)
         outliers = reject_outliers(
             acquisition, st.volume, st.points, config, st.pixel_w, st.slice_w, st.background_points
         )
@@ -87,25 +99,15 @@ def key(regularization: float, iterations: int) -> str:
 
 def install(settings: list[tuple[float, int]], output: Path) -> None:
     """Patch the schedule's final round to also save the final volume at ``settings``."""
-    import torch
-
     from svr.reconstruction import schedule
     from svr.reconstruction.rounds import finalise
 
     original_round, original_volume = schedule._final_round, schedule._reconstruct_volume
     captured: dict = {}
 
-    def snapshot(state):
-        copied = copy.copy(state)
-        for field in dataclasses.fields(state):
-            value = getattr(state, field.name)
-            if isinstance(value, torch.Tensor):
-                setattr(copied, field.name, value.clone())
-        return copied
-
     def volume(acquisition, state, config, timer, round_index, settings_=None):
         if captured.pop("armed", False):
-            captured["state"] = snapshot(state)
+            captured["state"] = _snapshot(state)
         return original_volume(acquisition, state, config, timer, round_index, settings_)
 
     def final_round(acquisition, state, config, timer, single, index, settled):
@@ -113,7 +115,7 @@ def install(settings: list[tuple[float, int]], output: Path) -> None:
         record = original_round(acquisition, state, config, timer, single, index, settled)
         arrays = {"own": finalise(acquisition, state.volume, state.points, state.pixel_w).volume}
         for regularization, iterations in settings:
-            alt = snapshot(captured["state"])
+            alt = _snapshot(captured["state"])
             original_volume(acquisition, alt, config, timer, index, (regularization, iterations))
             arrays[key(regularization, iterations)] = finalise(
                 acquisition, alt.volume, alt.points, alt.pixel_w
@@ -123,9 +125,10 @@ def install(settings: list[tuple[float, int]], output: Path) -> None:
         if os.environ.get(CV_ENV):
             for regularization, iterations in [(reg, iters), *settings]:
                 cv[f"cv_{key(regularization, iterations)}"] = np.array(
-                    held_out_ncc(acquisition, captured["state"], config, index, regularization,
-                                 iterations, snapshot)
-                )  # fmt: skip
+                    held_out_ncc(
+                        acquisition, captured["state"], config, index, regularization, iterations
+                    )
+                )
         np.savez(
             output,
             own_setting=np.array([reg, iters]),
@@ -152,9 +155,9 @@ def install_from_environment() -> None:
 def score(out: Path, cases: list[Path], only: list[str] | None = None) -> int:
     """Write and score the saved settings (``only`` these and the run's own, if given)."""
     import nibabel as nib
-    from bench_common import run_scorer
+    from bench_common import SHARED, run_scorer
 
-    scorer = ROOT.parent / "shared" / "tools" / "score_recon.py"
+    scorer = SHARED / "tools" / "score_recon.py"
     rows = []
     for case in cases:
         for saved in sorted(out.glob(f"{case.name}-*-finalsr.npz")):
@@ -167,7 +170,7 @@ def score(out: Path, cases: list[Path], only: list[str] | None = None) -> int:
                 print(f"{stem}: the saved own-setting volume differs from the written one by {gap}")
                 return 1
             for name in data.files:
-                if name == "own_setting":
+                if name == "own_setting" or name.startswith("cv_"):
                     continue
                 label = own if name == "own" else name
                 if only and name != "own" and name not in only:

@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_common import SHARED, load_case_stacks, run_scorer
 from bench_packet_refinement import describe, relative_errors, true_canonical
 
-from svr.geometry import se3_compose, se3_inverse
+from svr.geometry import rotation_angle, se3_compose, se3_inverse
 from svr.geometry.averaging import robust_mean_pose
 from svr.image import Image, save_nifti
 from svr.models.pretrained import stack_pose_model_path
@@ -61,13 +61,6 @@ from svr.reconstruction.registration import _sda, slice_agreement
 from svr.reconstruction.slices import SliceSet, extract_slices
 from svr.reconstruction.superres import output_grid
 from svr.sampling.volume import load_canonical_volume
-
-
-def geodesic_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(N,) rotation angle (deg) between two sets of (N, 4, 4) poses."""
-    relative = a[:, :3, :3].double().transpose(1, 2) @ b[:, :3, :3].double()
-    cos = ((relative.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)
-    return torch.rad2deg(torch.arccos(cos))
 
 
 def _stages(args: argparse.Namespace) -> list:
@@ -179,7 +172,7 @@ def main() -> int:
             # Both references: the atlas-refined pose, kept where the subject-refined one
             # lands near it and the others at their start agree better.
             refined = refine_poses(stages, placed_in, atlas_reference(reference)).cpu()
-            apart = geodesic_deg(refined, mine)
+            apart = torch.rad2deg(rotation_angle(refined.double(), mine.double()))
             agree = slice_agreement(placed_in, grid_mm, True, at=refined.to(placed_in.poses))
             for limit in args.agree_deg:
                 keep = ((apart < limit) & (agree > before + KEEP_MARGIN).cpu()).cpu()
